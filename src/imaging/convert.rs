@@ -1,0 +1,109 @@
+//! Conversions between the `image` crate's types and the core's planes (pure layer).
+
+use image::{DynamicImage, GrayImage, Rgb, RgbImage};
+
+use super::{GrayF32, Mask, RgbF32};
+
+/// Rec. 601 luma weights, as most cameras' JPEG encoders use.
+const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
+
+/// Any decoded image as RGB in 0..=1 (16-bit and float inputs keep their precision;
+/// alpha is dropped: a photograph's alpha carries nothing the fill can use).
+pub fn to_rgb(img: &DynamicImage) -> RgbF32 {
+    let rgb = img.to_rgb32f();
+    let (w, h) = (rgb.width() as usize, rgb.height() as usize);
+    let data = rgb.into_raw();
+    let pixels = data.chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect();
+    RgbF32::from_vec(w, h, pixels)
+}
+
+/// Luminance of an RGB plane.
+pub fn luminance(rgb: &RgbF32) -> GrayF32 {
+    let mut out = GrayF32::new(0, 0, 0.0);
+    luminance_into(rgb, &mut out);
+    out
+}
+
+/// [`luminance`] into a reused buffer.
+pub fn luminance_into(rgb: &RgbF32, out: &mut GrayF32) {
+    out.reset(rgb.width(), rgb.height(), 0.0);
+    for (o, p) in out.as_mut_slice().iter_mut().zip(rgb.as_slice()) {
+        *o = LUMA[0] * p[0] + LUMA[1] * p[1] + LUMA[2] * p[2];
+    }
+}
+
+/// Luminance straight from a decoded image, without an intermediate RGB plane.
+pub fn to_luminance(img: &DynamicImage) -> GrayF32 {
+    match img {
+        DynamicImage::ImageLuma8(g) => {
+            let (w, h) = (g.width() as usize, g.height() as usize);
+            GrayF32::from_vec(w, h, g.as_raw().iter().map(|&v| v as f32 / 255.0).collect())
+        }
+        DynamicImage::ImageRgb8(c) => {
+            let (w, h) = (c.width() as usize, c.height() as usize);
+            let data = c
+                .as_raw()
+                .chunks_exact(3)
+                .map(|p| (LUMA[0] * p[0] as f32 + LUMA[1] * p[1] as f32 + LUMA[2] * p[2] as f32) / 255.0)
+                .collect();
+            GrayF32::from_vec(w, h, data)
+        }
+        other => luminance(&to_rgb(other)),
+    }
+}
+
+/// RGB plane to an 8-bit image, rounding and clamping.
+pub fn to_rgb8(rgb: &RgbF32) -> RgbImage {
+    RgbImage::from_fn(rgb.width() as u32, rgb.height() as u32, |x, y| {
+        let p = rgb.get(x as usize, y as usize);
+        Rgb(p.map(quantise))
+    })
+}
+
+/// Grey plane to an 8-bit image, rounding and clamping.
+pub fn gray_to_luma8(gray: &GrayF32) -> GrayImage {
+    GrayImage::from_fn(gray.width() as u32, gray.height() as u32, |x, y| {
+        image::Luma([quantise(gray.get(x as usize, y as usize))])
+    })
+}
+
+/// A decoded image as a mask: luminance > 127 (of 255) means "fill".
+pub fn to_mask(img: &DynamicImage) -> Mask {
+    let g = img.to_luma8();
+    Mask::from_vec(g.width() as usize, g.height() as usize, g.into_raw())
+}
+
+/// A mask as an 8-bit grey image (0 or 255).
+pub fn mask_to_luma8(mask: &Mask) -> GrayImage {
+    GrayImage::from_fn(mask.width() as u32, mask.height() as u32, |x, y| {
+        image::Luma([if mask.is_hole(x as usize, y as usize) { 255 } else { 0 }])
+    })
+}
+
+#[inline]
+fn quantise(v: f32) -> u8 {
+    (v * 255.0).round().clamp(0.0, 255.0) as u8
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rgb8_round_trips() {
+        let src = RgbImage::from_fn(5, 3, |x, y| Rgb([(x * 40) as u8, (y * 90) as u8, 7]));
+        let back = to_rgb8(&to_rgb(&DynamicImage::ImageRgb8(src.clone())));
+        assert_eq!(src, back);
+    }
+
+    #[test]
+    fn luminance_paths_agree() {
+        let src = RgbImage::from_fn(4, 4, |x, y| Rgb([(x * 60) as u8, (y * 60) as u8, 200]));
+        let dynamic = DynamicImage::ImageRgb8(src);
+        let a = to_luminance(&dynamic);
+        let b = luminance(&to_rgb(&dynamic));
+        for (p, q) in a.as_slice().iter().zip(b.as_slice()) {
+            assert!((p - q).abs() < 1e-5);
+        }
+    }
+}

@@ -1,0 +1,103 @@
+//! Decoding of image bytes with limits and EXIF orientation (pure layer: bytes in, pixels
+//! out; reading the file is the caller's business).
+
+use std::io::Cursor;
+
+use image::{DynamicImage, ImageDecoder, ImageReader, Limits};
+use thiserror::Error;
+
+/// What the decoder may allocate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DecodeLimits {
+    /// Largest accepted width × height. A file that declares more is refused before any
+    /// pixel buffer is allocated (a decompression bomb costs nothing).
+    pub max_pixels: u64,
+}
+
+impl Default for DecodeLimits {
+    fn default() -> Self {
+        Self { max_pixels: 100_000_000 }
+    }
+}
+
+/// Why bytes did not become an image. Every variant is the input's fault, not ours.
+#[derive(Debug, Error)]
+pub enum DecodeError {
+    #[error("empty file")]
+    Empty,
+    #[error("not an image in a format clearview reads (JPEG, PNG, TIFF, WebP)")]
+    UnknownFormat,
+    #[error("{width}x{height} is {pixels} pixels, more than the limit of {limit}")]
+    TooLarge { width: u32, height: u32, pixels: u64, limit: u64 },
+    #[error("image has no pixels ({width}x{height})")]
+    Degenerate { width: u32, height: u32 },
+    #[error("cannot decode: {0}")]
+    Corrupt(#[source] image::ImageError),
+}
+
+/// Decodes `bytes` into an image, upright (EXIF orientation applied), within `limits`.
+pub fn decode(bytes: &[u8], limits: &DecodeLimits) -> Result<DynamicImage, DecodeError> {
+    if bytes.is_empty() {
+        return Err(DecodeError::Empty);
+    }
+    let reader = ImageReader::new(Cursor::new(bytes))
+        .with_guessed_format()
+        .map_err(|e| DecodeError::Corrupt(image::ImageError::IoError(e)))?;
+    if reader.format().is_none() {
+        return Err(DecodeError::UnknownFormat);
+    }
+    let mut decoder = reader.into_decoder().map_err(DecodeError::Corrupt)?;
+    let (width, height) = decoder.dimensions();
+    let pixels = u64::from(width) * u64::from(height);
+    if pixels > limits.max_pixels {
+        return Err(DecodeError::TooLarge { width, height, pixels, limit: limits.max_pixels });
+    }
+    if pixels == 0 {
+        return Err(DecodeError::Degenerate { width, height });
+    }
+    let mut alloc = Limits::default();
+    // Room for the decoded buffer at 16 bits × 4 channels, plus the decoder's own scratch.
+    alloc.max_alloc = Some(pixels.saturating_mul(8).saturating_add(64 << 20));
+    decoder.set_limits(alloc).map_err(DecodeError::Corrupt)?;
+    let orientation = decoder.orientation().ok();
+    let mut img = DynamicImage::from_decoder(decoder).map_err(DecodeError::Corrupt)?;
+    if let Some(o) = orientation {
+        img.apply_orientation(o);
+    }
+    Ok(img)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use image::{ImageFormat, RgbImage};
+
+    fn png_bytes(w: u32, h: u32) -> Vec<u8> {
+        let img = RgbImage::from_fn(w, h, |x, y| image::Rgb([x as u8, y as u8, 0]));
+        let mut out = Cursor::new(Vec::new());
+        img.write_to(&mut out, ImageFormat::Png).unwrap();
+        out.into_inner()
+    }
+
+    #[test]
+    fn decodes_png() {
+        let img = decode(&png_bytes(7, 5), &DecodeLimits::default()).unwrap();
+        assert_eq!((img.width(), img.height()), (7, 5));
+    }
+
+    #[test]
+    fn refuses_empty_garbage_and_truncated() {
+        let limits = DecodeLimits::default();
+        assert!(matches!(decode(&[], &limits), Err(DecodeError::Empty)));
+        assert!(matches!(decode(b"hello world, not an image", &limits), Err(DecodeError::UnknownFormat)));
+        let png = png_bytes(64, 64);
+        assert!(matches!(decode(&png[..png.len() / 2], &limits), Err(DecodeError::Corrupt(_))));
+    }
+
+    #[test]
+    fn refuses_more_pixels_than_the_limit_before_decoding() {
+        let limits = DecodeLimits { max_pixels: 100 };
+        let err = decode(&png_bytes(11, 10), &limits).unwrap_err();
+        assert!(matches!(err, DecodeError::TooLarge { pixels: 110, .. }), "{err}");
+    }
+}

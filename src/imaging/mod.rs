@@ -1,0 +1,286 @@
+//! Image containers and pixel operations shared by the whole core (pure layer).
+//!
+//! The core works on its own small, dense, row-major buffers rather than on the `image`
+//! crate's generic types: the geometry wants `f32` luminance, the fill wants `f32` RGB,
+//! and both want cheap row slices and bilinear sampling without per-pixel trait calls.
+//! Conversion from and to `image` lives in [`convert`].
+
+pub mod convert;
+pub mod decode;
+pub mod filter;
+pub mod pyramid;
+
+use std::fmt;
+
+/// A dense, row-major image of `T` pixels: `data[y * width + x]`.
+#[derive(Clone, PartialEq)]
+pub struct Plane<T> {
+    width: usize,
+    height: usize,
+    data: Vec<T>,
+}
+
+/// Luminance (or one channel) in `f32`, nominally 0..=1.
+pub type GrayF32 = Plane<f32>;
+/// Linear-ish RGB in `f32`, nominally 0..=1 per channel.
+pub type RgbF32 = Plane<[f32; 3]>;
+/// An 8-bit mask; a value > 127 means "fill this pixel" (ARCHITECTURE.md).
+pub type Mask = Plane<u8>;
+
+impl<T> fmt::Debug for Plane<T> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "Plane({}x{})", self.width, self.height)
+    }
+}
+
+impl<T: Copy> Plane<T> {
+    /// An image of `width × height` pixels, all equal to `value`.
+    pub fn new(width: usize, height: usize, value: T) -> Self {
+        Self { width, height, data: vec![value; width * height] }
+    }
+
+    /// An image whose pixel at `(x, y)` is `f(x, y)`.
+    pub fn from_fn(width: usize, height: usize, mut f: impl FnMut(usize, usize) -> T) -> Self {
+        let mut data = Vec::with_capacity(width * height);
+        for y in 0..height {
+            for x in 0..width {
+                data.push(f(x, y));
+            }
+        }
+        Self { width, height, data }
+    }
+
+    /// Wraps `data` (row-major, `width * height` long).
+    ///
+    /// # Panics
+    /// If the length does not match the dimensions: that is a bug in the caller.
+    pub fn from_vec(width: usize, height: usize, data: Vec<T>) -> Self {
+        assert_eq!(data.len(), width * height, "plane data does not match {width}x{height}");
+        Self { width, height, data }
+    }
+
+    /// Resizes to `width × height` and fills with `value`, reusing the allocation.
+    pub fn reset(&mut self, width: usize, height: usize, value: T) {
+        self.width = width;
+        self.height = height;
+        self.data.clear();
+        self.data.resize(width * height, value);
+    }
+
+    #[inline]
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    #[inline]
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    #[inline]
+    pub fn len(&self) -> usize {
+        self.data.len()
+    }
+
+    #[inline]
+    pub fn is_empty(&self) -> bool {
+        self.data.is_empty()
+    }
+
+    #[inline]
+    pub fn get(&self, x: usize, y: usize) -> T {
+        self.data[y * self.width + x]
+    }
+
+    #[inline]
+    pub fn set(&mut self, x: usize, y: usize, value: T) {
+        self.data[y * self.width + x] = value;
+    }
+
+    /// The pixel at `(x, y)`, or `None` outside the image.
+    #[inline]
+    pub fn get_checked(&self, x: isize, y: isize) -> Option<T> {
+        if x < 0 || y < 0 || x as usize >= self.width || y as usize >= self.height {
+            None
+        } else {
+            Some(self.data[y as usize * self.width + x as usize])
+        }
+    }
+
+    /// The pixel at `(x, y)` with coordinates clamped to the border.
+    #[inline]
+    pub fn get_clamped(&self, x: isize, y: isize) -> T {
+        let x = x.clamp(0, self.width as isize - 1) as usize;
+        let y = y.clamp(0, self.height as isize - 1) as usize;
+        self.data[y * self.width + x]
+    }
+
+    #[inline]
+    pub fn row(&self, y: usize) -> &[T] {
+        &self.data[y * self.width..(y + 1) * self.width]
+    }
+
+    #[inline]
+    pub fn row_mut(&mut self, y: usize) -> &mut [T] {
+        &mut self.data[y * self.width..(y + 1) * self.width]
+    }
+
+    #[inline]
+    pub fn as_slice(&self) -> &[T] {
+        &self.data
+    }
+
+    #[inline]
+    pub fn as_mut_slice(&mut self) -> &mut [T] {
+        &mut self.data
+    }
+
+    pub fn into_vec(self) -> Vec<T> {
+        self.data
+    }
+
+    /// `true` when `(x, y)` (real-valued) lies inside the pixel-centre rectangle.
+    #[inline]
+    pub fn contains(&self, x: f64, y: f64) -> bool {
+        x >= 0.0 && y >= 0.0 && x <= (self.width - 1) as f64 && y <= (self.height - 1) as f64
+    }
+
+    /// Applies `f` to every pixel, producing a new image.
+    pub fn map<U: Copy>(&self, f: impl FnMut(&T) -> U) -> Plane<U> {
+        Plane { width: self.width, height: self.height, data: self.data.iter().map(f).collect() }
+    }
+}
+
+impl Mask {
+    /// `true` where the mask asks for the pixel to be filled.
+    #[inline]
+    pub fn is_hole(&self, x: usize, y: usize) -> bool {
+        self.get(x, y) > 127
+    }
+
+    /// How many pixels the mask asks to fill.
+    pub fn hole_count(&self) -> usize {
+        self.data.iter().filter(|&&v| v > 127).count()
+    }
+}
+
+/// Samples a grey image at a real-valued position with bilinear interpolation.
+///
+/// Returns `None` when the 2×2 neighbourhood is not inside the image (so callers can tell
+/// "not seen" from "black").
+#[inline]
+pub fn bilinear(img: &GrayF32, x: f32, y: f32) -> Option<f32> {
+    if !(x >= 0.0 && y >= 0.0) {
+        return None;
+    }
+    let x0 = x as usize;
+    let y0 = y as usize;
+    let (w, h) = (img.width, img.height);
+    if x0 >= w || y0 >= h {
+        return None;
+    }
+    let fx = x - x0 as f32;
+    let fy = y - y0 as f32;
+    let x1 = if x0 + 1 < w {
+        x0 + 1
+    } else if fx == 0.0 {
+        x0
+    } else {
+        return None;
+    };
+    let y1 = if y0 + 1 < h {
+        y0 + 1
+    } else if fy == 0.0 {
+        y0
+    } else {
+        return None;
+    };
+    let d = &img.data;
+    let a = d[y0 * w + x0];
+    let b = d[y0 * w + x1];
+    let c = d[y1 * w + x0];
+    let e = d[y1 * w + x1];
+    let top = a + (b - a) * fx;
+    let bottom = c + (e - c) * fx;
+    Some(top + (bottom - top) * fy)
+}
+
+/// Bilinear sample with the coordinates clamped to the image (never fails).
+#[inline]
+pub fn bilinear_clamped(img: &GrayF32, x: f32, y: f32) -> f32 {
+    let x = x.clamp(0.0, (img.width - 1) as f32);
+    let y = y.clamp(0.0, (img.height - 1) as f32);
+    bilinear(img, x, y).unwrap_or(0.0)
+}
+
+/// Samples an RGB image at a real-valued position with bilinear interpolation; `None`
+/// outside the image.
+#[inline]
+pub fn bilinear_rgb(img: &RgbF32, x: f32, y: f32) -> Option<[f32; 3]> {
+    if !(x >= 0.0 && y >= 0.0) {
+        return None;
+    }
+    let x0 = x as usize;
+    let y0 = y as usize;
+    let (w, h) = (img.width, img.height);
+    if x0 >= w || y0 >= h {
+        return None;
+    }
+    let fx = x - x0 as f32;
+    let fy = y - y0 as f32;
+    let x1 = if x0 + 1 < w {
+        x0 + 1
+    } else if fx == 0.0 {
+        x0
+    } else {
+        return None;
+    };
+    let y1 = if y0 + 1 < h {
+        y0 + 1
+    } else if fy == 0.0 {
+        y0
+    } else {
+        return None;
+    };
+    let d = &img.data;
+    let (a, b, c, e) = (d[y0 * w + x0], d[y0 * w + x1], d[y1 * w + x0], d[y1 * w + x1]);
+    let mut out = [0.0; 3];
+    for k in 0..3 {
+        let top = a[k] + (b[k] - a[k]) * fx;
+        let bottom = c[k] + (e[k] - c[k]) * fx;
+        out[k] = top + (bottom - top) * fy;
+    }
+    Some(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bilinear_interpolates_and_refuses_outside() {
+        let img = GrayF32::from_fn(3, 2, |x, y| (x + 10 * y) as f32);
+        assert_eq!(bilinear(&img, 0.0, 0.0), Some(0.0));
+        assert_eq!(bilinear(&img, 2.0, 1.0), Some(12.0));
+        assert!((bilinear(&img, 0.5, 0.5).unwrap() - 5.5).abs() < 1e-6);
+        assert_eq!(bilinear(&img, -0.1, 0.0), None);
+        assert_eq!(bilinear(&img, 2.1, 0.0), None);
+        assert_eq!(bilinear(&img, 0.0, 1.5), None);
+    }
+
+    #[test]
+    fn rgb_bilinear_matches_grey_per_channel() {
+        let g = GrayF32::from_fn(4, 4, |x, y| (x * y) as f32);
+        let c = g.map(|&v| [v, 2.0 * v, -v]);
+        let s = bilinear_rgb(&c, 1.3, 2.7).unwrap();
+        let v = bilinear(&g, 1.3, 2.7).unwrap();
+        assert!((s[0] - v).abs() < 1e-5 && (s[1] - 2.0 * v).abs() < 1e-5 && (s[2] + v).abs() < 1e-5);
+    }
+
+    #[test]
+    fn mask_counts_holes_above_127() {
+        let m = Mask::from_vec(4, 1, vec![0, 127, 128, 255]);
+        assert_eq!(m.hole_count(), 2);
+        assert!(!m.is_hole(1, 0) && m.is_hole(2, 0));
+    }
+}

@@ -1,0 +1,24 @@
+//! clearview: removes trees, cars and people from photographs of buildings by filling the
+//! hole with what other photographs of the same facade actually saw there.
+//!
+//! # Layout
+//!
+//! ```text
+//!             sources (async)            compute (sync, CPU-bound)           sinks (async)
+//!   folder watch ─┐                 ┌───────────────────────────┐
+//!                 ├─► decoded View ─►  Session::add_view(view)  ├─► Update ─► result files,
+//!   video frames ─┘   (channel)     │   align → warp → fill      │   (channel)  sidecar JSON,
+//!                                   └───────────────────────────┘              events, HTTP
+//! ```
+//!
+//! The core is pure (no I/O, no clock, seeded randomness):
+//! - [`imaging`]: image planes, decoding from bytes, filters, pyramids;
+//! - [`features`]: Harris corners and oriented, normalised patch descriptors, matching;
+//! - [`geometry`]: homographies, the normalised DLT, robust estimation (LMedS, MSAC);
+//! - [`align`]: the pipeline that turns a keyframe and a view into a verdict and an `H`;
+//!
+//! The edges (`main.rs`, [`cli`]) read files, parse arguments and print.
+
+pub mod geometry;
+pub mod imaging;
+pub mod synth;
