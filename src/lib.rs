@@ -19,6 +19,9 @@
 //!
 //! The edges (`main.rs`, [`cli`]) read files, parse arguments and print.
 
+pub mod align;
+pub mod cli;
+pub mod features;
 pub mod geometry;
 pub mod imaging;
 pub mod synth;

@@ -1,5 +1,36 @@
-//! The `clearview` binary: parses the command line and hands over to the library.
+//! The `clearview` binary: parses the command line, starts logging, runs the subcommand
+//! and turns its outcome into an exit code (0 ok, 1 runtime failure, 3 rejected,
+//! 64 bad usage).
 
-fn main() {
-    println!("clearview: under construction");
+use std::process::ExitCode;
+
+use clap::Parser;
+use clearview::cli::{Cli, Command, align, demo, exit};
+
+fn main() -> ExitCode {
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => {
+            let code = if e.use_stderr() { exit::USAGE } else { exit::OK };
+            let _ = e.print();
+            return ExitCode::from(code);
+        }
+    };
+    init_logging(cli.log_json);
+    let code = match &cli.command {
+        Command::Align(args) => align::run(args),
+        Command::Demo { dir } => demo::run(dir),
+    };
+    ExitCode::from(code)
+}
+
+fn init_logging(json: bool) {
+    let filter = tracing_subscriber::EnvFilter::try_from_env("CLEARVIEW_LOG")
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    if json {
+        builder.json().init();
+    } else {
+        builder.init();
+    }
 }

@@ -1,0 +1,525 @@
+//! The alignment pipeline: a keyframe and a view in, the homography between them and an
+//! honest verdict out (pure layer).
+//!
+//! 1. Harris corners on a half-octave pyramid of a reduced image (about 1 MP), described
+//!    by oriented, normalised patches (scale and rotation invariant);
+//! 2. putative matches by SSD with ratio test and mutual check;
+//! 3. a coarse homography by MSAC (tolerates the > 50 % outliers of hard pairs);
+//! 4. the paper's steps 2–3 proper: SSD (as normalised correlation) within a small region
+//!    around each predicted position, then LMedS with bucketing and a least-squares
+//!    refinement; first at the detection resolution, then at full resolution;
+//! 5. a verdict: enough inliers, a sane inlier share, inliers spread over a real part of
+//!    the frame, a well-conditioned map. Rejecting is always better than guessing.
+
+use nalgebra::Point2;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use std::fmt;
+
+use crate::features::{
+    DescriptorParams, GuidedParams, HarrisParams, Keypoint, MatchParams, descriptor, guided_match, harris,
+    match_descriptors,
+};
+use crate::geometry::robust::Consensus;
+use crate::geometry::{Correspondence, Homography, Method, NoModel, RobustParams, homography::image_corners};
+use crate::imaging::GrayF32;
+use crate::imaging::pyramid::{Pyramid, half};
+
+/// Parameters of the whole pipeline; `Default` is tuned on the Oxford sequences.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AlignParams {
+    /// Features are detected on the largest octave (image halved n times) with at most
+    /// this many pixels.
+    pub detect_max_pixels: usize,
+    /// Half-octave levels in the detection pyramid (the top two only feed descriptors).
+    pub pyramid_levels: usize,
+    pub harris: HarrisParams,
+    /// Corners kept on the finest detection level; coarser levels keep fewer.
+    pub corners: usize,
+    pub descriptor: DescriptorParams,
+    pub matching: MatchParams,
+    /// The coarse estimate from putative matches (threshold in detection-level pixels).
+    pub coarse: RobustParams,
+    pub guided: GuidedParams,
+    /// The estimate from guided matches (threshold in pixels of the stage's resolution).
+    pub fine: RobustParams,
+    /// At most this many keyframe points are matched by guided search.
+    pub guided_points: usize,
+    pub acceptance: Acceptance,
+    /// Seed for every random choice (the same inputs and seed give the same answer).
+    pub seed: u64,
+}
+
+impl Default for AlignParams {
+    fn default() -> Self {
+        Self {
+            detect_max_pixels: 800_000,
+            pyramid_levels: 8,
+            harris: HarrisParams { border: 12, ..HarrisParams::default() },
+            corners: 500,
+            descriptor: DescriptorParams::default(),
+            matching: MatchParams::default(),
+            coarse: RobustParams {
+                method: Method::Msac,
+                sample_size: 4,
+                threshold_px: 3.0,
+                max_iterations: 5000,
+                ..RobustParams::default()
+            },
+            guided: GuidedParams::default(),
+            fine: RobustParams { threshold_px: 1.5, ..RobustParams::paper() },
+            guided_points: 600,
+            acceptance: Acceptance::default(),
+            seed: 0x00c1_ea4e,
+        }
+    }
+}
+
+/// What a view must show to be accepted.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Acceptance {
+    pub min_inliers: usize,
+    /// Inliers as a share of the keyframe points checked by guided matching (those that
+    /// land inside the view).
+    pub min_inlier_share: f64,
+    /// Area of the inliers' convex hull as a share of the keyframe.
+    pub min_coverage: f64,
+    /// Largest zoom between keyframe and view (either way), measured as the square root
+    /// of the local area scale over the inliers' hull.
+    pub max_zoom: f64,
+}
+
+impl Default for Acceptance {
+    fn default() -> Self {
+        Self { min_inliers: 20, min_inlier_share: 0.2, min_coverage: 0.04, max_zoom: 8.0 }
+    }
+}
+
+/// Why a view was not accepted, in words a photographer can act on.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Rejection {
+    TooFewMatches { matches: usize },
+    NoModel(NoModel),
+    TooFewInliers { inliers: usize, matches: usize },
+    LowInlierShare { inliers: usize, checked: usize },
+    PoorSpread { coverage: f64 },
+    IllConditioned { zoom: f64 },
+    FoldsOver,
+}
+
+impl fmt::Display for Rejection {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::TooFewMatches { matches } => {
+                write!(
+                    f,
+                    "only {matches} putative matches: the view shares too little texture with the keyframe"
+                )
+            }
+            Self::NoModel(e) => write!(f, "no homography fits the matches: {e}"),
+            Self::TooFewInliers { inliers, matches } => write!(f, "{inliers} inliers of {matches} matches"),
+            Self::LowInlierShare { inliers, checked } => write!(
+                f,
+                "only {inliers} of {checked} checked points agree ({:.0} %): probably not the same scene",
+                100.0 * *inliers as f64 / (*checked).max(1) as f64
+            ),
+            Self::PoorSpread { coverage } => {
+                write!(f, "inliers cover {:.0} % of the frame", 100.0 * coverage)
+            }
+            Self::IllConditioned { zoom } => {
+                write!(f, "the homography zooms by {zoom:.1}x: too extreme to be a view of the same facade")
+            }
+            Self::FoldsOver => {
+                write!(f, "the homography folds the keyframe over (part of it maps behind the camera)")
+            }
+        }
+    }
+}
+
+/// The outcome of aligning one view to the keyframe.
+#[derive(Debug, Clone)]
+pub struct Alignment {
+    /// The best estimate, also when rejected (for the report), `None` if there was none.
+    pub homography: Option<Homography>,
+    /// `None` when accepted.
+    pub rejection: Option<Rejection>,
+    /// Putative matches from descriptors (0 when a prior made them unnecessary).
+    pub putative: usize,
+    /// Correspondences the final estimate was fitted on (from guided matching).
+    pub matches: usize,
+    /// Those of `matches` that the final estimate explains.
+    pub inliers: usize,
+    /// Keyframe points checked by the final guided search.
+    pub checked: usize,
+    /// Median transfer distance of the final inliers, in full-resolution pixels.
+    pub median_residual_px: f64,
+    /// Area of the inliers' convex hull as a share of the keyframe.
+    pub coverage: f64,
+    /// Whether the estimate started from a given prior homography.
+    pub from_prior: bool,
+}
+
+impl Alignment {
+    pub fn accepted(&self) -> bool {
+        self.rejection.is_none() && self.homography.is_some()
+    }
+
+    fn rejected(rejection: Rejection, putative: usize) -> Self {
+        Self {
+            homography: None,
+            rejection: Some(rejection),
+            putative,
+            matches: 0,
+            inliers: 0,
+            checked: 0,
+            median_residual_px: f64::NAN,
+            coverage: 0.0,
+            from_prior: false,
+        }
+    }
+}
+
+/// An image prepared for alignment: its octaves and its described corners. Building one
+/// is most of the cost of aligning, so a keyframe's is built once and reused.
+pub struct Frame {
+    width: usize,
+    height: usize,
+    /// `octaves[o]` is the image halved `o` times; `octaves[0]` is full resolution.
+    octaves: Vec<GrayF32>,
+    detect_octave: usize,
+    keypoints: Vec<Keypoint>,
+    descriptors: Vec<descriptor::Descriptor>,
+}
+
+impl fmt::Debug for Frame {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "Frame({}x{}, {} keypoints)", self.width, self.height, self.keypoints.len())
+    }
+}
+
+impl Frame {
+    /// Builds the octaves and detects and describes corners.
+    pub fn new(gray: GrayF32, params: &AlignParams) -> Self {
+        let (width, height) = (gray.width(), gray.height());
+        let mut octaves = vec![gray];
+        loop {
+            let last = octaves.last().expect("at least the base");
+            if last.width().min(last.height()) < 64 {
+                break;
+            }
+            octaves.push(half(last));
+        }
+        let detect_octave =
+            octaves.iter().position(|o| o.len() <= params.detect_max_pixels).unwrap_or(octaves.len() - 1);
+        let detect = octaves[detect_octave].clone();
+        let octave_scale = (1u32 << detect_octave) as f32;
+        let pyramid = Pyramid::half_octaves(detect, params.pyramid_levels, 24);
+        let mut keypoints = Vec::new();
+        let mut descriptors = Vec::new();
+        for level in 0..pyramid.levels.len().saturating_sub(2) {
+            let budget = (params.corners as f32 / pyramid.scales[level]).round() as usize;
+            let hp = HarrisParams { max_corners: budget.max(16), ..params.harris.clone() };
+            let corners = harris(&pyramid.levels[level], &hp);
+            for (mut kp, d) in descriptor::describe(&pyramid, level, &corners, &params.descriptor) {
+                kp.x *= octave_scale;
+                kp.y *= octave_scale;
+                kp.scale *= octave_scale;
+                keypoints.push(kp);
+                descriptors.push(d);
+            }
+        }
+        Self { width, height, octaves, detect_octave, keypoints, descriptors }
+    }
+
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    pub fn keypoints(&self) -> &[Keypoint] {
+        &self.keypoints
+    }
+
+    /// The descriptors, in the order of [`Frame::keypoints`] (benchmarks and diagnostics).
+    pub fn descriptors_for_bench(&self) -> &[descriptor::Descriptor] {
+        &self.descriptors
+    }
+
+    /// The full-resolution grey image.
+    pub fn image(&self) -> &GrayF32 {
+        &self.octaves[0]
+    }
+
+    /// Keyframe points for guided matching: the strongest corners, spread over the frame
+    /// by a grid, finest level first.
+    fn guided_points(&self, limit: usize) -> Vec<Point2<f64>> {
+        const GRID: usize = 12;
+        let mut cells: Vec<Vec<&Keypoint>> = vec![Vec::new(); GRID * GRID];
+        for kp in &self.keypoints {
+            let cx = ((kp.x as usize * GRID) / self.width).min(GRID - 1);
+            let cy = ((kp.y as usize * GRID) / self.height).min(GRID - 1);
+            cells[cy * GRID + cx].push(kp);
+        }
+        for c in &mut cells {
+            c.sort_by(|a, b| a.level.cmp(&b.level).then(b.response.total_cmp(&a.response)));
+        }
+        // Round-robin over the cells so every part of the frame is represented.
+        let mut out = Vec::with_capacity(limit);
+        let mut rank = 0;
+        while out.len() < limit {
+            let mut any = false;
+            for c in &cells {
+                if let Some(kp) = c.get(rank) {
+                    any = true;
+                    out.push(Point2::new(kp.x as f64, kp.y as f64));
+                    if out.len() == limit {
+                        break;
+                    }
+                }
+            }
+            if !any {
+                break;
+            }
+            rank += 1;
+        }
+        out
+    }
+}
+
+/// Aligns `view` to `key`: the homography mapping keyframe pixels to view pixels, and
+/// whether it can be trusted. With a `prior` (say, the previous view's homography in a
+/// sequence), guided matching starts from it and the descriptor stage is skipped when
+/// that succeeds.
+pub fn align(key: &Frame, view: &Frame, params: &AlignParams, prior: Option<&Homography>) -> Alignment {
+    if let Some(h) = prior {
+        let mut out = refine(key, view, params, *h, 0);
+        out.from_prior = true;
+        if out.accepted() {
+            return out;
+        }
+    }
+    // Putative matches.
+    let matches = match_descriptors(&key.descriptors, &view.descriptors, &params.matching);
+    let putative: Vec<Correspondence> = matches
+        .iter()
+        .map(|m| {
+            let (a, b) = (key.keypoints[m.key], view.keypoints[m.view]);
+            Correspondence::new(Point2::new(a.x as f64, a.y as f64), Point2::new(b.x as f64, b.y as f64))
+        })
+        .collect();
+    if putative.len() < 8 {
+        return Alignment::rejected(Rejection::TooFewMatches { matches: putative.len() }, putative.len());
+    }
+    // Coarse model; its threshold is in detection-level pixels.
+    let scale = (1u32 << key.detect_octave) as f64;
+    let coarse_params =
+        RobustParams { threshold_px: params.coarse.threshold_px * scale, ..params.coarse.clone() };
+    let rng = ChaCha8Rng::seed_from_u64(params.seed);
+    let coarse = match Consensus::new(coarse_params, rng).estimate(&putative) {
+        Ok(e) => e,
+        Err(e) => return Alignment::rejected(Rejection::NoModel(e), putative.len()),
+    };
+    if coarse.inliers.len() < params.acceptance.min_inliers.min(12) {
+        let mut out = Alignment::rejected(
+            Rejection::TooFewInliers { inliers: coarse.inliers.len(), matches: putative.len() },
+            putative.len(),
+        );
+        out.homography = Some(coarse.homography);
+        return out;
+    }
+    refine(key, view, params, coarse.homography, putative.len())
+}
+
+/// Guided matching and re-estimation from an initial `h`, coarse to fine, then the
+/// verdict.
+fn refine(key: &Frame, view: &Frame, params: &AlignParams, mut h: Homography, putative: usize) -> Alignment {
+    let points = key.guided_points(params.guided_points);
+    // Octave schedule: the detection octave first, then full resolution; at full
+    // resolution of a small image, a second pass with the better model and a tighter
+    // search.
+    let mut stages = vec![(key.detect_octave, params.guided.search)];
+    if key.detect_octave > 0 {
+        stages.push((0, 3));
+    } else {
+        stages.push((0, 2));
+    }
+    let mut last = None;
+    for (i, &(octave, search)) in stages.iter().enumerate() {
+        let gp = GuidedParams { search, ..params.guided.clone() };
+        let found = guided_match(&key.octaves, &view.octaves, &points, &h, octave, &gp);
+        let checked = points.iter().filter(|&&p| lands_inside(&h, p, view)).count();
+        let scale = (1u32 << octave) as f64;
+        let fine = RobustParams { threshold_px: params.fine.threshold_px * scale, ..params.fine.clone() };
+        let rng = ChaCha8Rng::seed_from_u64(params.seed.wrapping_add(1 + i as u64));
+        let est = match Consensus::new(fine, rng).estimate(&found) {
+            Ok(e) => e,
+            Err(e) => {
+                let mut out = Alignment::rejected(Rejection::NoModel(e), putative);
+                out.homography = Some(h);
+                return out;
+            }
+        };
+        h = est.homography;
+        // Every stage searches all points again: where the previous model was off by more
+        // than the search window, the better one now finds them.
+        last = Some((est, found, checked));
+    }
+    let (est, found, checked) = last.expect("at least one stage");
+    let inlier_keys: Vec<Point2<f64>> = est.inliers.iter().map(|&k| found[k].key).collect();
+    let mut residuals: Vec<f64> = est.inliers.iter().map(|&k| found[k].residual(&h)).collect();
+    residuals.sort_by(f64::total_cmp);
+    let median_residual_px = residuals.get(residuals.len() / 2).copied().unwrap_or(f64::NAN);
+    let hull = convex_hull(&inlier_keys);
+    let coverage = polygon_area(&hull) / ((key.width - 1) * (key.height - 1)).max(1) as f64;
+    let inliers = est.inliers.len();
+    let matches = found.len();
+    let rejection = verdict(&params.acceptance, &h, &hull, inliers, matches, checked, coverage);
+    Alignment {
+        homography: Some(h),
+        rejection,
+        putative,
+        matches,
+        inliers,
+        checked,
+        median_residual_px,
+        coverage,
+        from_prior: false,
+    }
+}
+
+fn verdict(
+    acc: &Acceptance,
+    h: &Homography,
+    hull: &[Point2<f64>],
+    inliers: usize,
+    matches: usize,
+    checked: usize,
+    coverage: f64,
+) -> Option<Rejection> {
+    if inliers < acc.min_inliers {
+        return Some(Rejection::TooFewInliers { inliers, matches });
+    }
+    if (inliers as f64) < acc.min_inlier_share * checked as f64 {
+        return Some(Rejection::LowInlierShare { inliers, checked });
+    }
+    if coverage < acc.min_coverage {
+        return Some(Rejection::PoorSpread { coverage });
+    }
+    if hull.iter().any(|&p| h.w(p) <= 0.0 || h.area_scale(p) <= 0.0) {
+        return Some(Rejection::FoldsOver);
+    }
+    let max_area = acc.max_zoom * acc.max_zoom;
+    for &p in hull {
+        let a = h.area_scale(p);
+        if a > max_area || a < 1.0 / max_area {
+            let zoom = if a > 1.0 { a.sqrt() } else { 1.0 / a.sqrt() };
+            return Some(Rejection::IllConditioned { zoom });
+        }
+    }
+    None
+}
+
+fn lands_inside(h: &Homography, p: Point2<f64>, view: &Frame) -> bool {
+    h.w(p) > 0.0
+        && h.apply(p).is_some_and(|q| {
+            q.x >= 8.0 && q.y >= 8.0 && q.x <= view.width as f64 - 9.0 && q.y <= view.height as f64 - 9.0
+        })
+}
+
+/// Convex hull (Andrew's monotone chain), counter-clockwise in a y-up frame.
+fn convex_hull(points: &[Point2<f64>]) -> Vec<Point2<f64>> {
+    let mut pts: Vec<Point2<f64>> = points.to_vec();
+    pts.sort_by(|a, b| a.x.total_cmp(&b.x).then(a.y.total_cmp(&b.y)));
+    pts.dedup();
+    if pts.len() < 3 {
+        return pts;
+    }
+    let cross = crate::geometry::homography::cross;
+    let mut hull: Vec<Point2<f64>> = Vec::with_capacity(2 * pts.len());
+    for pass in 0..2 {
+        let start = hull.len();
+        let iter: Box<dyn Iterator<Item = &Point2<f64>>> =
+            if pass == 0 { Box::new(pts.iter()) } else { Box::new(pts.iter().rev()) };
+        for &p in iter {
+            while hull.len() >= start + 2 && cross(hull[hull.len() - 2], hull[hull.len() - 1], p) <= 0.0 {
+                hull.pop();
+            }
+            hull.push(p);
+        }
+        hull.pop();
+    }
+    hull
+}
+
+fn polygon_area(poly: &[Point2<f64>]) -> f64 {
+    if poly.len() < 3 {
+        return 0.0;
+    }
+    let mut a = 0.0;
+    for i in 0..poly.len() {
+        let (p, q) = (poly[i], poly[(i + 1) % poly.len()]);
+        a += p.x * q.y - q.x * p.y;
+    }
+    a.abs() / 2.0
+}
+
+/// The corners of a `width × height` frame (re-exported for reports).
+pub fn frame_corners(width: usize, height: usize) -> [Point2<f64>; 4] {
+    image_corners(width, height)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::imaging::convert::luminance;
+    use crate::synth;
+
+    #[test]
+    fn hull_and_area_of_a_square_with_inner_points() {
+        let pts: Vec<_> = [(0.0, 0.0), (2.0, 0.0), (2.0, 2.0), (0.0, 2.0), (1.0, 1.0), (0.5, 1.5)]
+            .iter()
+            .map(|&(x, y)| Point2::new(x, y))
+            .collect();
+        let hull = convex_hull(&pts);
+        assert_eq!(hull.len(), 4);
+        assert!((polygon_area(&hull) - 4.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn aligns_a_rendered_view_and_rejects_an_unrelated_one() {
+        let scene = synth::facade(640, 480, 11);
+        let truth =
+            Homography::from_rows([[0.95, 0.08, 12.0], [-0.06, 0.97, 9.0], [1e-4, -5e-5, 1.0]]).unwrap();
+        let view = synth::render_view(&scene, &truth.inverse().unwrap(), 640, 480, [0.0; 3]);
+        let params = AlignParams::default();
+        let kf = Frame::new(luminance(&scene), &params);
+        let vf = Frame::new(luminance(&view), &params);
+        let a = align(&kf, &vf, &params, None);
+        assert!(a.accepted(), "{:?}", a.rejection);
+        let err = a.homography.unwrap().mean_corner_error(&truth, 640, 480);
+        assert!(err < 0.3, "corner error {err}");
+
+        let other = synth::facade(640, 480, 12345);
+        let of = Frame::new(luminance(&other), &params);
+        let b = align(&kf, &of, &params, None);
+        assert!(!b.accepted(), "an unrelated facade was accepted: {b:?}");
+    }
+
+    #[test]
+    fn a_good_prior_skips_the_descriptors() {
+        let scene = synth::facade(480, 360, 2);
+        let truth = Homography::from_rows([[1.02, 0.03, -7.0], [-0.02, 1.01, 4.0], [0.0, 0.0, 1.0]]).unwrap();
+        let view = synth::render_view(&scene, &truth.inverse().unwrap(), 480, 360, [0.0; 3]);
+        let params = AlignParams::default();
+        let kf = Frame::new(luminance(&scene), &params);
+        let vf = Frame::new(luminance(&view), &params);
+        // A prior off by a few pixels.
+        let prior = Homography::translation(2.0, -1.5).after(&truth);
+        let a = align(&kf, &vf, &params, Some(&prior));
+        assert!(a.accepted() && a.from_prior && a.putative == 0, "{a:?}");
+        assert!(a.homography.unwrap().mean_corner_error(&truth, 480, 360) < 0.3);
+    }
+}

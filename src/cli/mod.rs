@@ -1,0 +1,44 @@
+//! The command line (edge layer): argument types, and one module per subcommand that
+//! reads files, calls the core and prints.
+
+pub mod align;
+pub mod demo;
+pub mod load;
+
+use std::path::PathBuf;
+
+use clap::{Parser, Subcommand};
+
+/// Exit codes shared by every subcommand (STYLE.md).
+pub mod exit {
+    pub const OK: u8 = 0;
+    /// A runtime failure: a file could not be read, decoded or written.
+    pub const FAILURE: u8 = 1;
+    /// The view was rejected (align), or every view was (fill).
+    pub const REJECTED: u8 = 3;
+    /// Bad usage or configuration.
+    pub const USAGE: u8 = 64;
+}
+
+#[derive(Debug, Parser)]
+#[command(name = "clearview", version, about = "Clears trees, cars and people from photographs of buildings")]
+pub struct Cli {
+    /// Log as JSON lines instead of human-readable text.
+    #[arg(long, global = true)]
+    pub log_json: bool,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Estimate the homography that maps KEY's pixels to VIEW's, and say whether to trust it.
+    Align(align::AlignArgs),
+    /// Render a facade, photograph it from several places with things in front, and align
+    /// every shot to the first: a tour that needs no files.
+    Demo {
+        /// Where to write the rendered shots.
+        #[arg(default_value = "clearview-demo")]
+        dir: PathBuf,
+    },
+}
