@@ -16,6 +16,7 @@
 //! - [`features`]: Harris corners and oriented, normalised patch descriptors, matching;
 //! - [`geometry`]: homographies, the normalised DLT, robust estimation (LMedS, MSAC);
 //! - [`align`]: the pipeline that turns a keyframe and a view into a verdict and an `H`;
+//! - [`inpaint`]: the fill of the keyframe's masked region from the aligned views;
 //!
 //! The edges (`main.rs`, [`cli`]) read files, parse arguments and print.
 
@@ -24,4 +25,5 @@ pub mod cli;
 pub mod features;
 pub mod geometry;
 pub mod imaging;
+pub mod inpaint;
 pub mod synth;
