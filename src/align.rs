@@ -301,15 +301,32 @@ pub fn align(key: &Frame, view: &Frame, params: &AlignParams, prior: Option<&Hom
             return out;
         }
     }
-    // Putative matches.
+    let putative = putative_matches(key, view, params);
+    align_from_matches(key, view, params, &putative)
+}
+
+/// Step 2: putative correspondences from descriptor matches (SSD of oriented, normalised
+/// patches with ratio test and mutual check), keyframe → view.
+pub fn putative_matches(key: &Frame, view: &Frame, params: &AlignParams) -> Vec<Correspondence> {
     let matches = match_descriptors(&key.descriptors, &view.descriptors, &params.matching);
-    let putative: Vec<Correspondence> = matches
+    matches
         .iter()
         .map(|m| {
             let (a, b) = (key.keypoints[m.key], view.keypoints[m.view]);
             Correspondence::new(Point2::new(a.x as f64, a.y as f64), Point2::new(b.x as f64, b.y as f64))
         })
-        .collect();
+        .collect()
+}
+
+/// Steps 3–5 from given putative correspondences: the coarse model, guided refinement
+/// coarse to fine, and the verdict. [`align`] is this after [`putative_matches`]; tests
+/// use it to feed in correspondences with a known share of outliers.
+pub fn align_from_matches(
+    key: &Frame,
+    view: &Frame,
+    params: &AlignParams,
+    putative: &[Correspondence],
+) -> Alignment {
     if putative.len() < 8 {
         return Alignment::rejected(Rejection::TooFewMatches { matches: putative.len() }, putative.len());
     }
@@ -318,7 +335,7 @@ pub fn align(key: &Frame, view: &Frame, params: &AlignParams, prior: Option<&Hom
     let coarse_params =
         RobustParams { threshold_px: params.coarse.threshold_px * scale, ..params.coarse.clone() };
     let rng = ChaCha8Rng::seed_from_u64(params.seed);
-    let coarse = match Consensus::new(coarse_params, rng).estimate(&putative) {
+    let coarse = match Consensus::new(coarse_params, rng).estimate(putative) {
         Ok(e) => e,
         Err(e) => return Alignment::rejected(Rejection::NoModel(e), putative.len()),
     };
