@@ -94,6 +94,90 @@ mod tests {
         assert!(matches!(decode(&png[..png.len() / 2], &limits), Err(DecodeError::Corrupt(_))));
     }
 
+    /// A little-endian TIFF block with one IFD entry: Orientation (0x0112) = `o`.
+    fn exif_orientation(o: u16) -> Vec<u8> {
+        let mut e = b"II*\0".to_vec();
+        e.extend(8u32.to_le_bytes());
+        e.extend(1u16.to_le_bytes());
+        e.extend(0x0112u16.to_le_bytes());
+        e.extend(3u16.to_le_bytes());
+        e.extend(1u32.to_le_bytes());
+        e.extend((o as u32).to_le_bytes());
+        e.extend(0u32.to_le_bytes());
+        e
+    }
+
+    /// Where display pixel `(x, y)` comes from in a stored `w × h` image, per EXIF 1–8.
+    fn stored_position(o: u16, x: u32, y: u32, w: u32, h: u32) -> (u32, u32) {
+        match o {
+            1 => (x, y),
+            2 => (w - 1 - x, y),
+            3 => (w - 1 - x, h - 1 - y),
+            4 => (x, h - 1 - y),
+            5 => (y, x),
+            6 => (y, h - 1 - x),
+            7 => (w - 1 - y, h - 1 - x),
+            8 => (w - 1 - y, x),
+            _ => unreachable!(),
+        }
+    }
+
+    #[test]
+    fn every_exif_orientation_comes_out_upright() {
+        use image::ImageEncoder;
+        use image::codecs::jpeg::JpegEncoder;
+        use image::codecs::png::PngEncoder;
+        // Flat 16-pixel blocks, so JPEG's loss cannot confuse one block with another.
+        let (bw, bh) = (3u32, 2u32);
+        let block = |bx: u32, by: u32| [(40 + 70 * bx) as u8, (30 + 150 * by) as u8, 128];
+        let stored = RgbImage::from_fn(bw * 16, bh * 16, |x, y| image::Rgb(block(x / 16, y / 16)));
+        for o in 1..=8u16 {
+            for format in ["png", "jpeg"] {
+                let mut bytes = Vec::new();
+                match format {
+                    "png" => {
+                        let mut enc = PngEncoder::new(&mut bytes);
+                        enc.set_exif_metadata(exif_orientation(o)).unwrap();
+                        enc.write_image(
+                            stored.as_raw(),
+                            stored.width(),
+                            stored.height(),
+                            image::ExtendedColorType::Rgb8,
+                        )
+                        .unwrap();
+                    }
+                    _ => {
+                        let mut enc = JpegEncoder::new_with_quality(&mut bytes, 95);
+                        enc.set_exif_metadata(exif_orientation(o)).unwrap();
+                        enc.write_image(
+                            stored.as_raw(),
+                            stored.width(),
+                            stored.height(),
+                            image::ExtendedColorType::Rgb8,
+                        )
+                        .unwrap();
+                    }
+                }
+                let img = decode(&bytes, &DecodeLimits::default()).unwrap().to_rgb8();
+                let turned = o >= 5;
+                let (w, h) = if turned { (bh, bw) } else { (bw, bh) };
+                assert_eq!((img.width(), img.height()), (w * 16, h * 16), "{format} orientation {o}");
+                for by in 0..h {
+                    for bx in 0..w {
+                        let (sx, sy) = stored_position(o, bx, by, bw, bh);
+                        let got = img.get_pixel(bx * 16 + 8, by * 16 + 8).0;
+                        let want = block(sx, sy);
+                        let close = got.iter().zip(want).all(|(&g, w)| (g as i32 - w as i32).abs() <= 8);
+                        assert!(
+                            close,
+                            "{format} orientation {o}: block ({bx}, {by}) is {got:?}, want {want:?}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn refuses_more_pixels_than_the_limit_before_decoding() {
         let limits = DecodeLimits { max_pixels: 100 };
