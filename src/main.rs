@@ -5,7 +5,7 @@
 use std::process::ExitCode;
 
 use clap::Parser;
-use clearview::cli::{Cli, Command, align, demo, exit};
+use clearview::cli::{Cli, Command, align, demo, exit, fill};
 
 fn main() -> ExitCode {
     let cli = match Cli::try_parse() {
@@ -19,6 +19,7 @@ fn main() -> ExitCode {
     init_logging(cli.log_json);
     let code = match &cli.command {
         Command::Align(args) => align::run(args),
+        Command::Fill(args) => fill::run(args),
         Command::Demo { dir } => demo::run(dir),
     };
     ExitCode::from(code)

@@ -3,7 +3,9 @@
 
 pub mod align;
 pub mod demo;
+pub mod fill;
 pub mod load;
+pub mod save;
 
 use std::path::PathBuf;
 
@@ -34,6 +36,8 @@ pub struct Cli {
 pub enum Command {
     /// Estimate the homography that maps KEY's pixels to VIEW's, and say whether to trust it.
     Align(align::AlignArgs),
+    /// Clear the keyframe's masked region with what the other views saw there.
+    Fill(fill::FillArgs),
     /// Render a facade, photograph it from several places with things in front, and align
     /// every shot to the first: a tour that needs no files.
     Demo {

@@ -8,6 +8,7 @@
 
 pub mod automask;
 pub mod exemplar;
+pub mod region;
 
 use crate::geometry::Homography;
 use crate::imaging::{Mask, Plane, RgbF32};

@@ -1,0 +1,362 @@
+//! `clearview fill`: the keyframe with its masked region re-inpainted from the other
+//! views, a report of what came from where, and a progress bar on a terminal (edge layer).
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use clap::Args;
+use image::DynamicImage;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::Serialize;
+
+use super::exit;
+use super::load::load_image;
+use super::save::{output_format, save_image};
+use crate::align::{AlignParams, Frame, align};
+use crate::geometry::{Homography, Rows};
+use crate::imaging::convert::{mask_to_luma8, to_luminance, to_mask, to_rgb, to_rgb8};
+use crate::imaging::decode::DecodeLimits;
+use crate::imaging::{Mask, RgbF32};
+use crate::inpaint::region::{Rect, footprint, into_crop, mask_bounds};
+use crate::inpaint::{AutoMaskParams, FillParams, Observer, Source, Stage, auto_mask, fill};
+
+/// Keyframe pixels kept around the mask for the fill's patches, local search, photometric
+/// ring and blending.
+const MARGIN: usize = 64;
+
+#[derive(Debug, Args)]
+pub struct FillArgs {
+    /// The photograph to clear.
+    #[arg(long)]
+    pub keyframe: PathBuf,
+    /// An 8-bit image the keyframe's size, > 127 meaning "fill", or `auto` to find the
+    /// transient objects (people, cars) where the keyframe disagrees with the views.
+    #[arg(long)]
+    pub mask: String,
+    /// Where to write the result (format from the extension: png, jpg, tif, webp).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also write a JSON report: per view the verdict and what it filled; time per stage.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+    /// With `--mask auto`, write the mask that was found.
+    #[arg(long)]
+    pub save_mask: Option<PathBuf>,
+    /// Refuse images with more pixels than this (decompression bombs).
+    #[arg(long, default_value_t = DecodeLimits::default().max_pixels)]
+    pub max_pixels: u64,
+    /// Seed for every random choice.
+    #[arg(long, default_value_t = 0x00c1_ea4e)]
+    pub seed: u64,
+    /// Other photographs of the scene.
+    #[arg(required = true)]
+    pub views: Vec<PathBuf>,
+}
+
+#[derive(Debug, Serialize)]
+struct ViewReport {
+    path: PathBuf,
+    accepted: bool,
+    reason: Option<String>,
+    homography: Option<Rows>,
+    inliers: usize,
+    matches: usize,
+    median_residual_px: Option<f64>,
+    /// Masked pixels this view sees, and how many the result took from it.
+    covered_pixels: usize,
+    filled_pixels: usize,
+    gain: Option<[f32; 3]>,
+    offset: Option<[f32; 3]>,
+}
+
+impl ViewReport {
+    fn refused(path: &Path, reason: String) -> Self {
+        Self {
+            path: path.to_owned(),
+            accepted: false,
+            reason: Some(reason),
+            homography: None,
+            inliers: 0,
+            matches: 0,
+            median_residual_px: None,
+            covered_pixels: 0,
+            filled_pixels: 0,
+            gain: None,
+            offset: None,
+        }
+    }
+}
+
+#[derive(Debug, Serialize)]
+struct Report<'a> {
+    keyframe: &'a Path,
+    mask: &'a str,
+    out: &'a Path,
+    masked_pixels: usize,
+    from_views_pixels: usize,
+    fallback_pixels: usize,
+    share_from_views: f64,
+    views: Vec<ViewReport>,
+    /// Wall time per stage, in order.
+    timings_ms: Vec<(&'static str, f64)>,
+}
+
+/// Times the stages and drives the progress bar.
+struct Progress {
+    bar: ProgressBar,
+    stage: Option<(&'static str, Instant)>,
+    timings: Vec<(&'static str, f64)>,
+}
+
+impl Progress {
+    fn new() -> Self {
+        let bar = if std::io::stderr().is_terminal() { ProgressBar::new(0) } else { ProgressBar::hidden() };
+        bar.set_style(
+            ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} {elapsed}")
+                .expect("valid template")
+                .progress_chars("=> "),
+        );
+        Self { bar, stage: None, timings: Vec::new() }
+    }
+
+    fn begin(&mut self, name: &'static str, total: usize) {
+        self.end();
+        self.stage = Some((name, Instant::now()));
+        self.bar.set_message(name);
+        self.bar.set_length(total as u64);
+        self.bar.set_position(0);
+    }
+
+    fn end(&mut self) {
+        if let Some((name, start)) = self.stage.take() {
+            self.timings.push((name, start.elapsed().as_secs_f64() * 1e3));
+        }
+    }
+
+    fn finish(mut self) -> Vec<(&'static str, f64)> {
+        self.end();
+        self.bar.finish_and_clear();
+        self.timings
+    }
+}
+
+impl Observer for Progress {
+    fn stage(&mut self, stage: Stage) {
+        self.begin(stage.name(), 0);
+    }
+
+    fn progress(&mut self, done: usize, total: usize) {
+        self.bar.set_length(total as u64);
+        self.bar.set_position(done as u64);
+    }
+}
+
+/// A view that survived alignment: the part of it the fill needs.
+struct Aligned {
+    crop: RgbF32,
+    homography: Homography,
+    report: usize,
+}
+
+pub fn run(args: &FillArgs) -> u8 {
+    match try_run(args) {
+        Ok(code) => code,
+        Err((code, message)) => {
+            eprintln!("clearview fill: {message}");
+            code
+        }
+    }
+}
+
+fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
+    let usage = |m: String| (exit::USAGE, m);
+    let failure = |m: String| (exit::FAILURE, m);
+    output_format(&args.out).map_err(|e| usage(e.to_string()))?;
+    if let Some(p) = &args.save_mask {
+        output_format(p).map_err(|e| usage(e.to_string()))?;
+    }
+    let auto = args.mask == "auto";
+    let mut inputs: Vec<&Path> = vec![&args.keyframe];
+    inputs.extend(args.views.iter().map(PathBuf::as_path));
+    if !auto {
+        inputs.push(Path::new(&args.mask));
+    }
+    for written in [Some(&args.out), args.report.as_ref(), args.save_mask.as_ref()].into_iter().flatten() {
+        if inputs.iter().any(|i| same_file(i, written)) {
+            return Err(usage(format!(
+                "{}: is one of the inputs; refusing to overwrite it",
+                written.display()
+            )));
+        }
+    }
+
+    let limits = DecodeLimits { max_pixels: args.max_pixels };
+    let params = AlignParams { seed: args.seed, ..AlignParams::default() };
+    let mut progress = Progress::new();
+
+    progress.begin("decode", 1);
+    let key_img = load_image(&args.keyframe, &limits).map_err(|e| failure(e.to_string()))?;
+    let (kw, kh) = (key_img.width() as usize, key_img.height() as usize);
+    let given_mask = if auto {
+        None
+    } else {
+        let path = Path::new(&args.mask);
+        let m = to_mask(&load_image(path, &limits).map_err(|e| failure(e.to_string()))?);
+        if (m.width(), m.height()) != (kw, kh) {
+            return Err(failure(format!(
+                "{}: the mask is {}x{} but the keyframe {} is {kw}x{kh}",
+                path.display(),
+                m.width(),
+                m.height(),
+                args.keyframe.display()
+            )));
+        }
+        Some(m)
+    };
+    let key_rgb = to_rgb(&key_img);
+    // The keyframe region the fill works in; with an automatic mask, all of it.
+    let region = match &given_mask {
+        Some(m) => mask_bounds(m).map(|r| r.grown(MARGIN, kw, kh)),
+        None => Some(Rect { x0: 0, y0: 0, x1: kw, y1: kh }),
+    };
+    progress.begin("align", args.views.len());
+    let key_frame = Frame::new(to_luminance(&key_img), &params);
+    drop(key_img);
+
+    let mut reports = Vec::with_capacity(args.views.len());
+    let mut aligned: Vec<Aligned> = Vec::new();
+    for (i, path) in args.views.iter().enumerate() {
+        progress.bar.set_position(i as u64);
+        let _span = tracing::info_span!("view", path = %path.display()).entered();
+        let img = match load_image(path, &limits) {
+            Ok(img) => img,
+            Err(e) => {
+                eprintln!("clearview fill: {e}: skipped");
+                reports.push(ViewReport::refused(path, e.to_string()));
+                continue;
+            }
+        };
+        let frame = Frame::new(to_luminance(&img), &params);
+        let a = align(&key_frame, &frame, &params, None);
+        drop(frame);
+        let mut report = ViewReport {
+            path: path.clone(),
+            accepted: a.accepted(),
+            reason: a.rejection.as_ref().map(ToString::to_string),
+            homography: a.homography.as_ref().map(Rows::from),
+            inliers: a.inliers,
+            matches: a.matches,
+            median_residual_px: a.median_residual_px.is_finite().then_some(a.median_residual_px),
+            covered_pixels: 0,
+            filled_pixels: 0,
+            gain: None,
+            offset: None,
+        };
+        match (&a.homography, &a.rejection, &region) {
+            (Some(h), None, Some(region)) => {
+                let (vw, vh) = (img.width() as usize, img.height() as usize);
+                if let Some(crop) = footprint(region, h, vw, vh) {
+                    let part = img.crop_imm(
+                        crop.x0 as u32,
+                        crop.y0 as u32,
+                        crop.width() as u32,
+                        crop.height() as u32,
+                    );
+                    aligned.push(Aligned {
+                        crop: to_rgb(&part),
+                        homography: into_crop(h, &crop),
+                        report: reports.len(),
+                    });
+                } else {
+                    report.reason = Some("the view does not show the masked region".into());
+                }
+            }
+            (_, Some(r), _) => eprintln!("clearview fill: {}: rejected: {r}", path.display()),
+            _ => {}
+        }
+        reports.push(report);
+    }
+
+    let sources: Vec<Source<'_>> =
+        aligned.iter().map(|a| Source { image: &a.crop, homography: a.homography }).collect();
+    let mask: Mask = match given_mask {
+        Some(m) => m,
+        None => {
+            progress.begin("auto mask", 0);
+            let m = auto_mask(&key_rgb, &sources, &AutoMaskParams::default());
+            if let Some(p) = &args.save_mask {
+                save_image(p, &DynamicImage::ImageLuma8(mask_to_luma8(&m)))
+                    .map_err(|e| failure(e.to_string()))?;
+            }
+            m
+        }
+    };
+    let filled = fill(&key_rgb, &mask, &sources, &FillParams::default(), args.seed, &mut progress);
+    for (a, s) in aligned.iter().zip(&filled.report.sources) {
+        let r = &mut reports[a.report];
+        r.covered_pixels = s.covered;
+        r.filled_pixels = s.filled;
+        r.gain = Some(s.gain);
+        r.offset = Some(s.offset);
+    }
+
+    progress.begin("write", 1);
+    save_image(&args.out, &DynamicImage::ImageRgb8(to_rgb8(&filled.image)))
+        .map_err(|e| failure(e.to_string()))?;
+    let timings = progress.finish();
+
+    let fr = &filled.report;
+    let from_views = fr.sources.iter().map(|s| s.filled).sum::<usize>();
+    let report = Report {
+        keyframe: &args.keyframe,
+        mask: &args.mask,
+        out: &args.out,
+        masked_pixels: fr.masked,
+        from_views_pixels: from_views,
+        fallback_pixels: fr.fallback,
+        share_from_views: fr.from_views(),
+        views: reports,
+        timings_ms: timings,
+    };
+    if let Some(p) = &args.report {
+        let json = serde_json::to_vec_pretty(&report).expect("report serialises");
+        super::save::write_atomic(p, &json).map_err(|e| failure(e.to_string()))?;
+    }
+    print_summary(&report);
+    let accepted = report.views.iter().filter(|v| v.accepted).count();
+    Ok(if accepted == 0 { exit::REJECTED } else { exit::OK })
+}
+
+fn print_summary(r: &Report<'_>) {
+    println!(
+        "{}: {} masked pixels, {:.1} % from views, {} from the single-image fallback",
+        r.out.display(),
+        r.masked_pixels,
+        100.0 * r.share_from_views,
+        r.fallback_pixels
+    );
+    for v in &r.views {
+        match (&v.accepted, &v.reason) {
+            (true, _) => println!(
+                "  {}: accepted, {} inliers, filled {} of the {} masked pixels it sees",
+                v.path.display(),
+                v.inliers,
+                v.filled_pixels,
+                v.covered_pixels
+            ),
+            (false, Some(reason)) => println!("  {}: skipped: {reason}", v.path.display()),
+            (false, None) => println!("  {}: skipped", v.path.display()),
+        }
+    }
+    let stages: Vec<String> = r.timings_ms.iter().map(|(n, ms)| format!("{n} {ms:.0} ms")).collect();
+    println!("  time: {}", stages.join(", "));
+}
+
+/// Whether two paths name the same file (the second may not exist yet).
+fn same_file(a: &Path, b: &Path) -> bool {
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => a == b,
+    }
+}

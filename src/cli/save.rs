@@ -1,0 +1,90 @@
+//! Writing results (edge layer): encode in memory, write to a temporary name beside the
+//! target, sync, rename. A reader never sees half a file, and a failed write leaves what
+//! was there before untouched.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use image::{DynamicImage, ImageFormat};
+use thiserror::Error;
+
+/// A result that could not be written.
+#[derive(Debug, Error)]
+pub enum SaveError {
+    #[error("{path}: unknown image format (use .png, .jpg, .tif or .webp)")]
+    UnknownFormat { path: PathBuf },
+    #[error("{path}: cannot encode: {source}")]
+    Encode { path: PathBuf, source: image::ImageError },
+    #[error("{path}: cannot write: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+}
+
+/// The image format a path's extension names, if clearview writes it.
+pub fn output_format(path: &Path) -> Result<ImageFormat, SaveError> {
+    match ImageFormat::from_path(path) {
+        Ok(f @ (ImageFormat::Png | ImageFormat::Jpeg | ImageFormat::Tiff | ImageFormat::WebP)) => Ok(f),
+        _ => Err(SaveError::UnknownFormat { path: path.to_owned() }),
+    }
+}
+
+/// Encodes `img` in the format `path`'s extension names and writes it atomically.
+pub fn save_image(path: &Path, img: &DynamicImage) -> Result<(), SaveError> {
+    let format = output_format(path)?;
+    let mut bytes = std::io::Cursor::new(Vec::new());
+    // JPEG has no alpha and no 16-bit; our results are 8-bit RGB anyway.
+    img.write_to(&mut bytes, format).map_err(|source| SaveError::Encode { path: path.to_owned(), source })?;
+    write_atomic(path, bytes.get_ref())
+}
+
+/// Writes `bytes` to `path` through a temporary file in the same folder, synced and then
+/// renamed into place (and the folder synced, so the rename survives a power cut).
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), SaveError> {
+    let io = |source| SaveError::Io { path: path.to_owned(), source };
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let name = path.file_name().ok_or_else(|| io(std::io::Error::other("not a file name")))?;
+    let mut tmp_name = std::ffi::OsString::from(".");
+    tmp_name.push(name);
+    tmp_name.push(format!(".{}.tmp", std::process::id()));
+    let tmp = dir.join(tmp_name);
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        drop(f);
+        std::fs::rename(&tmp, path)?;
+        if let Ok(d) = std::fs::File::open(dir) {
+            let _ = d.sync_all();
+        }
+        Ok(())
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result.map_err(io)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn writes_atomically_and_leaves_no_temporary() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("out.png");
+        std::fs::write(&p, b"old").unwrap();
+        write_atomic(&p, b"new contents").unwrap();
+        assert_eq!(std::fs::read(&p).unwrap(), b"new contents");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn a_failed_write_keeps_the_old_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("missing-folder").join("out.png");
+        assert!(matches!(write_atomic(&p, b"x"), Err(SaveError::Io { .. })));
+        assert!(matches!(output_format(Path::new("a.bmpx")), Err(SaveError::UnknownFormat { .. })));
+    }
+}

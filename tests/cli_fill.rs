@@ -1,0 +1,217 @@
+//! `clearview fill` as a user runs it: the real binary on a scene made in the test.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use clearview::geometry::Homography;
+use clearview::imaging::convert::{mask_to_luma8, to_rgb, to_rgb8};
+use clearview::imaging::{Mask, RgbF32};
+use clearview::synth::{self, Occluder};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+const BIN: &str = env!("CARGO_BIN_EXE_clearview");
+const W: usize = 480;
+const H: usize = 360;
+
+struct Scene {
+    dir: tempfile::TempDir,
+    /// The keyframe as it would be without the occluder.
+    truth: RgbF32,
+    mask: Mask,
+    views: Vec<PathBuf>,
+}
+
+impl Scene {
+    fn path(&self, name: &str) -> PathBuf {
+        self.dir.path().join(name)
+    }
+}
+
+/// A keyframe with a tree in front of the facade, its mask, and three views from elsewhere,
+/// each with a person in a different place and its own exposure.
+fn scene() -> Scene {
+    let dir = tempfile::tempdir().unwrap();
+    let facade = synth::facade(W * 2, H * 2, 21);
+    let centre = Homography::translation(W as f64 / 2.0, H as f64 / 2.0);
+    let truth = synth::render_view(&facade, &centre, W, H, [0.5; 3]);
+    let mut key = truth.clone();
+    let mut mask = Mask::new(W, H, 0);
+    synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Tree, 240.0, 190.0, 150.0, 3);
+    to_rgb8(&key).save(dir.path().join("key.png")).unwrap();
+    mask_to_luma8(&mask).save(dir.path().join("key.mask.png")).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    let mut views = Vec::new();
+    for i in 0..3 {
+        let h = synth::random_homography(&mut rng, W, H, 0.1, 0.25, (0.9, 1.1));
+        let mut view = synth::render_view(&facade, &centre.after(&h.inverse().unwrap()), W, H, [0.5; 3]);
+        synth::paint_occluder(
+            &mut view,
+            None,
+            Occluder::Person,
+            60.0 + 170.0 * i as f32,
+            200.0,
+            150.0,
+            10 + i,
+        );
+        synth::expose(&mut view, 0.9 + 0.1 * i as f32, 0.0);
+        let p = dir.path().join(format!("view-{i}.png"));
+        to_rgb8(&view).save(&p).unwrap();
+        views.push(p);
+    }
+    Scene { dir, truth, mask, views }
+}
+
+fn fill<S: AsRef<std::ffi::OsStr>>(args: impl IntoIterator<Item = S>) -> Output {
+    Command::new(BIN).arg("fill").args(args).output().expect("the binary runs")
+}
+
+/// The usual arguments: keyframe, its mask, `out`, `report`, then the scene's views.
+fn args(s: &Scene, out: &Path, report: &Path) -> Vec<PathBuf> {
+    let mut v: Vec<PathBuf> = vec![
+        "--keyframe".into(),
+        s.path("key.png"),
+        "--mask".into(),
+        s.path("key.mask.png"),
+        "--out".into(),
+        out.into(),
+        "--report".into(),
+        report.into(),
+    ];
+    v.extend(s.views.iter().cloned());
+    v
+}
+
+/// Peak signal-to-noise ratio over the masked pixels, in dB.
+fn masked_psnr(a: &RgbF32, b: &RgbF32, mask: &Mask) -> f64 {
+    let (mut se, mut n) = (0.0f64, 0usize);
+    for ((p, q), &m) in a.as_slice().iter().zip(b.as_slice()).zip(mask.as_slice()) {
+        if m > 127 {
+            for c in 0..3 {
+                se += ((p[c] - q[c]) as f64).powi(2);
+            }
+            n += 3;
+        }
+    }
+    10.0 * (1.0 / (se / n as f64)).log10()
+}
+
+#[test]
+fn fills_the_mask_writes_a_report_and_leaves_the_rest_alone() {
+    let s = scene();
+    let (out, report) = (s.path("clear.png"), s.path("report.json"));
+    let o = fill(args(&s, &out, &report));
+    assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    let result = to_rgb(&image::open(&out).unwrap());
+    let key = to_rgb(&image::open(s.path("key.png")).unwrap());
+    assert_eq!((result.width(), result.height()), (W, H));
+    // Outside the mask the keyframe's own pixels, exactly.
+    for ((r, k), &m) in result.as_slice().iter().zip(key.as_slice()).zip(s.mask.as_slice()) {
+        if m <= 127 {
+            assert_eq!(r, k);
+        }
+    }
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    assert_eq!(v["masked_pixels"].as_u64().unwrap() as usize, s.mask.hole_count());
+    assert_eq!(v["views"].as_array().unwrap().len(), 3);
+    let stages: Vec<&str> =
+        v["timings_ms"].as_array().unwrap().iter().map(|t| t[0].as_str().unwrap()).collect();
+    assert!(
+        stages.contains(&"decode") && stages.contains(&"align") && stages.contains(&"write"),
+        "{stages:?}"
+    );
+    let psnr = masked_psnr(&result, &s.truth, &s.mask);
+    println!("masked PSNR {psnr:.2} dB");
+    let _ = psnr;
+}
+
+#[test]
+fn a_bad_view_is_reported_and_skipped_and_the_rest_still_fill() {
+    let mut s = scene();
+    let bad = s.path("broken.jpg");
+    std::fs::write(&bad, b"\xff\xd8\xff\xe0 truncated").unwrap();
+    let other = s.path("other.png");
+    to_rgb8(&synth::facade(W, H, 777)).save(&other).unwrap();
+    s.views.push(bad.clone());
+    s.views.push(other.clone());
+    let (out, report) = (s.path("clear.jpg"), s.path("report.json"));
+    let o = fill(args(&s, &out, &report));
+    assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("broken.jpg") && err.contains("other.png"), "{err}");
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let views = v["views"].as_array().unwrap();
+    assert_eq!(views.iter().filter(|v| v["accepted"] == true).count(), 3);
+    assert!(views[3]["reason"].as_str().unwrap().contains("decode"), "{}", views[3]);
+    assert_eq!(views[4]["accepted"], false);
+    assert!(image::open(&out).is_ok());
+}
+
+#[test]
+fn every_view_rejected_still_writes_a_result_and_exits_3() {
+    let s = scene();
+    let other = s.path("other.png");
+    to_rgb8(&synth::facade(W, H, 778)).save(&other).unwrap();
+    let out = s.path("clear.png");
+    let o = fill([
+        "--keyframe".into(),
+        s.path("key.png"),
+        "--mask".into(),
+        s.path("key.mask.png"),
+        "--out".into(),
+        out.clone(),
+        other.clone(),
+    ]);
+    assert_eq!(o.status.code(), Some(3), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(image::open(&out).is_ok());
+}
+
+#[test]
+fn a_mask_of_the_wrong_size_is_a_clear_error() {
+    let s = scene();
+    let small = s.path("small.png");
+    mask_to_luma8(&Mask::new(100, 80, 255)).save(&small).unwrap();
+    let out = s.path("clear.png");
+    let o = fill([
+        "--keyframe".into(),
+        s.path("key.png"),
+        "--mask".into(),
+        small.clone(),
+        "--out".into(),
+        out.clone(),
+        s.views[0].clone(),
+    ]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("small.png") && err.contains("100x80") && err.contains("480x360"), "{err}");
+    assert!(!out.exists());
+}
+
+#[test]
+fn never_overwrites_an_input_and_refuses_unknown_formats() {
+    let s = scene();
+    let key = s.path("key.png");
+    let before = std::fs::read(&key).unwrap();
+    let o = fill([
+        "--keyframe".into(),
+        key.clone(),
+        "--mask".into(),
+        s.path("key.mask.png"),
+        "--out".into(),
+        key.clone(),
+        s.views[0].clone(),
+    ]);
+    assert_eq!(o.status.code(), Some(64));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("refusing to overwrite"));
+    assert_eq!(std::fs::read(&key).unwrap(), before);
+    let o = fill([
+        "--keyframe".into(),
+        key.clone(),
+        "--mask".into(),
+        s.path("key.mask.png"),
+        "--out".into(),
+        s.path("clear.xyz"),
+        s.views[0].clone(),
+    ]);
+    assert_eq!(o.status.code(), Some(64));
+}
