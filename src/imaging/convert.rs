@@ -97,6 +97,33 @@ mod tests {
     }
 
     #[test]
+    fn every_pixel_layout_gives_the_same_luminance() {
+        use image::{ImageBuffer, Luma, LumaA, Rgba};
+        let grey = |x: u32, y: u32| (x * 37 + y * 11) as u8;
+        let reference =
+            to_luminance(&DynamicImage::ImageLuma8(GrayImage::from_fn(6, 4, |x, y| Luma([grey(x, y)]))));
+        let layouts = [
+            DynamicImage::ImageRgb8(RgbImage::from_fn(6, 4, |x, y| Rgb([grey(x, y); 3]))),
+            DynamicImage::ImageRgba8(ImageBuffer::from_fn(6, 4, |x, y| {
+                Rgba([grey(x, y), grey(x, y), grey(x, y), 9])
+            })),
+            DynamicImage::ImageLumaA8(ImageBuffer::from_fn(6, 4, |x, y| LumaA([grey(x, y), 200]))),
+            DynamicImage::ImageLuma16(ImageBuffer::from_fn(6, 4, |x, y| Luma([grey(x, y) as u16 * 257]))),
+            DynamicImage::ImageRgb16(ImageBuffer::from_fn(6, 4, |x, y| Rgb([grey(x, y) as u16 * 257; 3]))),
+            DynamicImage::ImageRgba16(ImageBuffer::from_fn(6, 4, |x, y| {
+                Rgba([grey(x, y) as u16 * 257, grey(x, y) as u16 * 257, grey(x, y) as u16 * 257, 1])
+            })),
+        ];
+        for img in &layouts {
+            let l = to_luminance(img);
+            assert_eq!((l.width(), l.height()), (6, 4));
+            for (a, b) in l.as_slice().iter().zip(reference.as_slice()) {
+                assert!((a - b).abs() < 1e-4, "{:?}: {a} vs {b}", img.color());
+            }
+        }
+    }
+
+    #[test]
     fn luminance_paths_agree() {
         let src = RgbImage::from_fn(4, 4, |x, y| Rgb([(x * 60) as u8, (y * 60) as u8, 200]));
         let dynamic = DynamicImage::ImageRgb8(src);
