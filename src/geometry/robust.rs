@@ -203,14 +203,7 @@ impl<R: Rng> Consensus<R> {
 
     /// Share of the last scored residuals under the inlier threshold.
     fn inlier_share(&self, t2: f64) -> f64 {
-        let t2 = match self.params.method {
-            Method::Lmeds => {
-                // LMedS has no threshold: count what its robust scale calls an inlier.
-                let s2 = lmeds_scale_sq(&self.residuals, self.params.sample_size);
-                (6.25 * s2).min(t2)
-            }
-            _ => t2,
-        };
+        let t2 = self.inlier_limit_sq(t2);
         self.residuals.iter().filter(|&&r| r < t2).count() as f64 / self.residuals.len() as f64
     }
 
@@ -249,13 +242,27 @@ impl<R: Rng> Consensus<R> {
     fn classify(&mut self, data: &[Correspondence], h: &Homography, t2: f64) -> Vec<usize> {
         self.residuals.clear();
         self.residuals.extend(data.iter().map(|c| c.residual_sq(h)));
-        let limit = match self.params.method {
-            Method::Lmeds => (6.25 * lmeds_scale_sq(&self.residuals, self.params.sample_size)).min(t2),
-            _ => t2,
-        };
+        let limit = self.inlier_limit_sq(t2);
         (0..data.len()).filter(|&i| self.residuals[i] < limit).collect()
     }
+
+    /// The squared residual under which the last scored residuals count as inliers: the
+    /// threshold `t2`, or for LMedS (which has none) 2.5 times its robust scale, capped by
+    /// `t2` and floored by [`LMEDS_MIN_LIMIT_SQ`].
+    fn inlier_limit_sq(&self, t2: f64) -> f64 {
+        match self.params.method {
+            Method::Lmeds => (6.25 * lmeds_scale_sq(&self.residuals, self.params.sample_size))
+                .max(LMEDS_MIN_LIMIT_SQ)
+                .min(t2),
+            _ => t2,
+        }
+    }
 }
+
+/// The smallest LMedS inlier limit (squared pixels): 2.5 σ with σ = 0.02 px, far below
+/// what any image measures. Without it, exact correspondences (rendered scenes) have a
+/// median residual of rounding noise and would call part of their own noise outliers.
+const LMEDS_MIN_LIMIT_SQ: f64 = 0.05 * 0.05;
 
 /// Rousseeuw's robust scale for LMedS, squared: `(1.4826 (1 + 5/(n − p)))² · median r²`.
 fn lmeds_scale_sq(residuals_sq: &[f64], p: usize) -> f64 {
