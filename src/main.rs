@@ -5,7 +5,7 @@
 use std::process::ExitCode;
 
 use clap::Parser;
-use clearview::cli::{Cli, Command, align, demo, exit};
+use clearview::cli::{Cli, Command, align, check_config, demo, exit, run};
 
 fn main() -> ExitCode {
     let cli = match Cli::try_parse() {
@@ -19,6 +19,8 @@ fn main() -> ExitCode {
     init_logging(cli.log_json);
     let code = match &cli.command {
         Command::Align(args) => align::run(args),
+        Command::Run(args) => run::run(args),
+        Command::CheckConfig(args) => check_config::run(args),
         Command::Demo { dir } => demo::run(dir),
     };
     ExitCode::from(code)
@@ -31,6 +33,6 @@ fn init_logging(json: bool) {
     if json {
         builder.json().init();
     } else {
-        builder.init();
+        builder.with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr())).init();
     }
 }
