@@ -130,6 +130,17 @@ impl Intake {
 
     /// A hint that `path` may have changed.
     fn observe(&mut self, path: PathBuf) {
+        if path.parent() == Some(self.config.watch_dir.as_path()) && path.is_dir() {
+            // A new session folder: files can land in it before the watcher watches it.
+            if let Ok(entries) = std::fs::read_dir(&path) {
+                for e in entries.flatten() {
+                    if e.file_type().is_ok_and(|t| t.is_file()) {
+                        self.observe(e.path());
+                    }
+                }
+            }
+            return;
+        }
         let Some(candidate) = watch::classify(&self.config.watch_dir, &path, &self.config.extensions) else {
             return;
         };

@@ -97,9 +97,13 @@ pub struct Stats {
 
 /// Runs the service on `config` until `shutdown` completes, then stops cleanly within the
 /// grace period. Creates the folders it needs.
-pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(), DaemonError> {
-    for dir in [&config.watch_dir, &config.out_dir, &config.state_dir] {
+pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Result<(), DaemonError> {
+    for dir in [&mut config.watch_dir, &mut config.out_dir, &mut config.state_dir] {
         create_dir(dir)?;
+        // Absolute from here on: notifications, scans and logs all name files the same way.
+        if let Ok(abs) = std::fs::canonicalize(&*dir) {
+            *dir = abs;
+        }
     }
     create_dir(&state::sessions_dir(&config.state_dir))?;
     emit::remove_stale_temporaries(&config.out_dir);
