@@ -106,12 +106,14 @@ fn play(dir: &Path) -> Result<(), String> {
         let _ = if p.is_dir() { std::fs::remove_dir_all(&p) } else { std::fs::remove_file(&p) };
     }
     let _ = std::fs::remove_file(outbox.join("events.jsonl"));
-    let mut config = Config::default();
-    config.watch_dir = inbox.clone();
-    config.out_dir = outbox.clone();
-    config.state_dir = state;
-    config.quiet_period = Duration::from_millis(150);
-    config.history = 10;
+    let config = Config {
+        watch_dir: inbox.clone(),
+        out_dir: outbox.clone(),
+        state_dir: state,
+        quiet_period: Duration::from_millis(150),
+        history: 10,
+        ..Config::default()
+    };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .worker_threads(2)
