@@ -17,13 +17,23 @@
 //! - [`geometry`]: homographies, the normalised DLT, robust estimation (LMedS, MSAC);
 //! - [`align`]: the pipeline that turns a keyframe and a view into a verdict and an `H`;
 //! - [`inpaint`]: the fill of the keyframe's masked region from the aligned views;
+//! - [`session`]: one keyframe, its mask, a bounded buffer of cropped aligned views, the
+//!   rule that decides when a new view is worth a fill, and the current result.
 //!
-//! The edges (`main.rs`, [`cli`]) read files, parse arguments and print.
+//! The shell, [`daemon`], is asynchronous and owns all I/O and time: it watches the
+//! upload folder, decodes complete files, hands work to a fixed set of compute threads
+//! (each owning some sessions), writes results atomically, logs events, saves state and
+//! talks to systemd.
+//!
+//! The edges (`main.rs`, [`cli`], [`config`]) parse arguments and TOML, read files and print.
 
 pub mod align;
 pub mod cli;
+pub mod config;
+pub mod daemon;
 pub mod features;
 pub mod geometry;
 pub mod imaging;
 pub mod inpaint;
+pub mod session;
 pub mod synth;

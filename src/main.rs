@@ -5,7 +5,7 @@
 use std::process::ExitCode;
 
 use clap::Parser;
-use clearview::cli::{Cli, Command, align, demo, exit, fill};
+use clearview::cli::{Cli, Command, align, check_config, demo, exit, fill, run};
 
 fn main() -> ExitCode {
     let cli = match Cli::try_parse() {
@@ -20,6 +20,8 @@ fn main() -> ExitCode {
     let code = match &cli.command {
         Command::Align(args) => align::run(args),
         Command::Fill(args) => fill::run(args),
+        Command::Run(args) => run::run(args),
+        Command::CheckConfig(args) => check_config::run(args),
         Command::Demo { dir } => demo::run(dir),
     };
     ExitCode::from(code)
@@ -32,6 +34,6 @@ fn init_logging(json: bool) {
     if json {
         builder.json().init();
     } else {
-        builder.init();
+        builder.with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr())).init();
     }
 }

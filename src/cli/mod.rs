@@ -2,9 +2,11 @@
 //! reads files, calls the core and prints.
 
 pub mod align;
+pub mod check_config;
 pub mod demo;
 pub mod fill;
 pub mod load;
+pub mod run;
 pub mod save;
 
 use std::path::PathBuf;
@@ -38,10 +40,15 @@ pub enum Command {
     Align(align::AlignArgs),
     /// Clear the keyframe's masked region with what the other views saw there.
     Fill(fill::FillArgs),
-    /// Render a facade, photograph it from several places with things in front, and align
-    /// every shot to the first: a tour that needs no files.
+    /// Run the capture service: watch a folder of sessions, align each new view and
+    /// re-inpaint the keyframe whenever it can improve the result.
+    Run(run::RunArgs),
+    /// Validate a service configuration file: exit 0 when valid, 64 when not.
+    CheckConfig(check_config::CheckConfigArgs),
+    /// Play a capture session of a rendered facade into the service, running in-process,
+    /// and watch the result improve view by view: a tour that needs no files.
     Demo {
-        /// Where to write the rendered shots.
+        /// The demo's folder (inbox, outbox and state are created inside).
         #[arg(default_value = "clearview-demo")]
         dir: PathBuf,
     },

@@ -1,0 +1,220 @@
+//! The capture service (shell layer, async): owns all I/O and time around the pure
+//! [`crate::session`] core.
+//!
+//! ```text
+//!  notify / polling ─► hints ─► intake ─────────────► worker threads ──► emit
+//!  (watch)            (bounded) quiet period,   (one bounded       Session per      results, history,
+//!  start-up scan                decode in       crossbeam queue    session: align,  result.json,
+//!                               spawn_blocking  per worker)        admit, fill      events.jsonl, state
+//! ```
+//!
+//! - [`watch`]: which files are candidates (names, extensions, sessions), the notify
+//!   watcher and the full scan.
+//! - [`intake`]: a file is taken when its size and modification time have stood still for
+//!   the quiet period; it is decoded in `spawn_blocking` behind a semaphore and queued to
+//!   the worker that owns its session. **A full queue leaves the file pending on disk**: it
+//!   stays "ready" and is queued as soon as the worker has room, so memory is bounded by
+//!   `workers × queue` decoded images and nothing is dropped.
+//! - [`worker`]: a fixed set of threads; sessions are spread over them by name, so a
+//!   session's files are handled in arrival order by one thread (no locks). Views that
+//!   arrive while more of the same session are waiting are aligned one by one and filled
+//!   together (batching), at most `batch_max` at a time.
+//! - [`emit`]: atomic files (temporary name in the same folder, fsync, rename) and the
+//!   event log. [`state`]: what a restart needs. [`systemd`]: readiness, status, watchdog.
+//!
+//! Shutdown: the shutdown future (SIGTERM/SIGINT) cancels a token; the intake stops
+//! queueing, each worker finishes the step in hand (an alignment or a fill with its
+//! files) and exits; jobs still queued are left to the next start (their files are on
+//! disk). The whole is bounded by the grace period.
+
+pub mod emit;
+pub mod intake;
+pub mod state;
+pub mod systemd;
+pub mod watch;
+pub mod worker;
+
+use std::collections::HashMap;
+use std::future::Future;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use thiserror::Error;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+
+use crate::config::Config;
+
+/// Why the service could not run. Per-file problems are never here: they are events.
+#[derive(Debug, Error)]
+pub enum DaemonError {
+    #[error("{path}: cannot create folder: {source}")]
+    CreateDir { path: PathBuf, source: std::io::Error },
+    #[error("{path}: cannot open the event log: {source}")]
+    EventLog { path: PathBuf, source: std::io::Error },
+    #[error("{path}: cannot watch: {source}")]
+    Watch { path: PathBuf, source: notify::Error },
+    #[error("cannot start a worker thread: {0}")]
+    Thread(std::io::Error),
+}
+
+/// Files of each session that are complete on disk but not yet handled by a worker. A
+/// session's fill waits while it has some (they are filled together).
+#[derive(Debug, Default)]
+pub struct Backlog(Mutex<HashMap<String, usize>>);
+
+impl Backlog {
+    pub fn add(&self, session: &str) {
+        *self.0.lock().expect("backlog lock").entry(session.to_owned()).or_default() += 1;
+    }
+
+    pub fn done(&self, session: &str) {
+        let mut map = self.0.lock().expect("backlog lock");
+        if let Some(n) = map.get_mut(session) {
+            *n = n.saturating_sub(1);
+            if *n == 0 {
+                map.remove(session);
+            }
+        }
+    }
+
+    pub fn get(&self, session: &str) -> usize {
+        self.0.lock().expect("backlog lock").get(session).copied().unwrap_or(0)
+    }
+}
+
+/// Counters for the systemd status line and the watchdog.
+#[derive(Debug, Default)]
+pub struct Stats {
+    pub views: AtomicU64,
+    pub results: AtomicU64,
+    pub skipped: AtomicU64,
+    /// Milliseconds since start of the intake's last tick (the watchdog's heartbeat).
+    pub heartbeat_ms: AtomicU64,
+}
+
+/// Runs the service on `config` until `shutdown` completes, then stops cleanly within the
+/// grace period. Creates the folders it needs.
+pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Result<(), DaemonError> {
+    for dir in [&mut config.watch_dir, &mut config.out_dir, &mut config.state_dir] {
+        create_dir(dir)?;
+        // Absolute from here on: notifications, scans and logs all name files the same way.
+        if let Ok(abs) = std::fs::canonicalize(&*dir) {
+            *dir = abs;
+        }
+    }
+    create_dir(&state::sessions_dir(&config.state_dir))?;
+    emit::remove_stale_temporaries(&config.out_dir);
+    emit::remove_stale_temporaries(&state::sessions_dir(&config.state_dir));
+    let config = Arc::new(config);
+    let emitter = Arc::new(emit::Emitter::open(&config)?);
+    let backlog = Arc::new(Backlog::default());
+    let stats = Arc::new(Stats::default());
+    let cancel = CancellationToken::new();
+    let tracker = TaskTracker::new();
+    let started = std::time::Instant::now();
+
+    let (senders, workers) = worker::spawn(&config, &emitter, &backlog, &stats, &cancel)?;
+    let (hint_tx, hint_rx) = tokio::sync::mpsc::channel(watch::HINT_QUEUE);
+    let overflow = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let _watcher = match config.watch_mode {
+        crate::config::WatchMode::Notify => Some(
+            watch::start_notify(&config.watch_dir, hint_tx.clone(), overflow.clone())
+                .map_err(|source| DaemonError::Watch { path: config.watch_dir.clone(), source })?,
+        ),
+        crate::config::WatchMode::Poll { .. } => None,
+    };
+    drop(hint_tx);
+    tracing::info!(
+        watch = %config.watch_dir.display(),
+        out = %config.out_dir.display(),
+        state = %config.state_dir.display(),
+        workers = config.workers.get(),
+        "service started"
+    );
+    emitter.event(
+        "service_started",
+        None,
+        serde_json::json!({ "watch": config.watch_dir, "pid": std::process::id() }),
+    );
+    let intake = intake::Intake::new(
+        config.clone(),
+        senders,
+        backlog.clone(),
+        emitter.clone(),
+        stats.clone(),
+        started,
+    );
+    tracker.spawn(intake.run(hint_rx, overflow, cancel.clone()));
+    systemd::ready();
+    tracker.spawn(systemd::supervise(stats.clone(), started, cancel.clone()));
+    tracker.close();
+
+    tokio::select! {
+        () = shutdown => tracing::info!("shutdown requested: finishing the step in hand"),
+        () = cancel.cancelled() => {}
+    }
+    systemd::stopping();
+    cancel.cancel();
+    let grace = config.grace_period;
+    let joined = tokio::task::spawn_blocking(move || {
+        for w in workers {
+            let _ = w.join();
+        }
+    });
+    let finished = tokio::time::timeout(grace, async {
+        tracker.wait().await;
+        let _ = joined.await;
+    })
+    .await;
+    match finished {
+        Ok(()) => tracing::info!("service stopped"),
+        Err(_) => tracing::warn!(grace_ms = grace.as_millis() as u64, "grace period over: stopping mid-step"),
+    }
+    emitter.event("service_stopped", None, serde_json::json!({ "clean": finished.is_ok() }));
+    Ok(())
+}
+
+/// Completes on SIGTERM or SIGINT (Ctrl-C).
+pub async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(s) => s,
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot listen for SIGTERM; only Ctrl-C stops the service");
+                let _ = ctrl_c.await;
+                return;
+            }
+        };
+        tokio::select! {
+            _ = ctrl_c => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = ctrl_c.await;
+    }
+}
+
+fn create_dir(dir: &Path) -> Result<(), DaemonError> {
+    std::fs::create_dir_all(dir).map_err(|source| DaemonError::CreateDir { path: dir.to_owned(), source })
+}
+
+/// How often the intake looks at settling files: often enough to notice a quiet period's
+/// end within a quarter of it.
+pub(crate) fn tick_interval(config: &Config) -> Duration {
+    (config.quiet_period / 4).clamp(Duration::from_millis(20), Duration::from_millis(250))
+}
+
+pub(crate) fn millis_since(start: std::time::Instant) -> u64 {
+    start.elapsed().as_millis() as u64
+}
+
+pub(crate) fn load(stats: &AtomicU64) -> u64 {
+    stats.load(Ordering::Relaxed)
+}

@@ -1,0 +1,167 @@
+//! Which files are candidates, and how they are noticed: the notify watcher and the full
+//! scan (shell layer).
+//!
+//! A candidate is an image directly in the watched folder (session `_root`) or in one of
+//! its sub-folders (the session is the sub-folder's name). Never candidates: names that
+//! start with a dot, names of uploads in progress (`.part`, `.tmp`, `.crdownload`,
+//! `.partial`, `.download`, `~`), other extensions, anything deeper.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use notify::{RecursiveMode, Watcher};
+use tokio::sync::mpsc::Sender;
+use tokio::sync::mpsc::error::TrySendError;
+
+/// Notifications buffered between the watcher and the intake. When full, the watcher
+/// raises the overflow flag and the intake rescans the whole folder instead: a burst of
+/// events costs a scan, never memory, and no file is missed.
+pub const HINT_QUEUE: usize = 1024;
+
+/// The session of images directly in the watched folder.
+pub const ROOT_SESSION: &str = "_root";
+
+/// What a file is to its session.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Role {
+    /// Named `key.<ext>`.
+    Key,
+    /// Named `mask.<ext>` or `<stem>.mask.<ext>` (the mask of the image `<stem>`).
+    Mask,
+    /// Anything else: a view (or the keyframe, when the configuration names it or it is
+    /// the first to arrive).
+    View,
+}
+
+/// A candidate file.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Candidate {
+    pub session: String,
+    pub role: Role,
+}
+
+/// Names of files still being written by common uploaders, or hidden.
+pub fn is_partial_or_hidden(name: &str) -> bool {
+    let lower = name.to_ascii_lowercase();
+    name.starts_with('.')
+        || name.ends_with('~')
+        || [".part", ".tmp", ".crdownload", ".partial", ".download", ".filepart"]
+            .iter()
+            .any(|s| lower.ends_with(s))
+}
+
+/// What `path` (inside `root`) is, or `None` when it is not a candidate.
+pub fn classify(root: &Path, path: &Path, extensions: &[String]) -> Option<Candidate> {
+    let rel = path.strip_prefix(root).ok()?;
+    let parts: Vec<&str> = rel.iter().map(|p| p.to_str()).collect::<Option<_>>()?;
+    let (session, name) = match parts.as_slice() {
+        [name] => (ROOT_SESSION, *name),
+        [dir, name] if !is_partial_or_hidden(dir) => (*dir, *name),
+        _ => return None,
+    };
+    if is_partial_or_hidden(name) {
+        return None;
+    }
+    let (stem, ext) = name.rsplit_once('.')?;
+    if stem.is_empty() || !extensions.iter().any(|e| e.eq_ignore_ascii_case(ext)) {
+        return None;
+    }
+    let role = if stem == "key" {
+        Role::Key
+    } else if stem == "mask" || stem.ends_with(".mask") {
+        Role::Mask
+    } else {
+        Role::View
+    };
+    Some(Candidate { session: session.to_owned(), role })
+}
+
+/// The stem of a file name (`IMG_1.jpg` → `IMG_1`, `key.mask.png` → `key.mask`).
+pub fn stem(name: &str) -> &str {
+    name.rsplit_once('.').map_or(name, |(s, _)| s)
+}
+
+/// Every file directly in `root` or one level below (the candidates among them are
+/// decided by [`classify`]). Unreadable folders are logged and skipped.
+pub fn scan(root: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let entries = match std::fs::read_dir(root) {
+        Ok(e) => e,
+        Err(e) => {
+            tracing::warn!(dir = %root.display(), error = %e, "cannot scan");
+            return out;
+        }
+    };
+    for entry in entries.flatten() {
+        let Ok(kind) = entry.file_type() else { continue };
+        if kind.is_file() {
+            out.push(entry.path());
+        } else if kind.is_dir()
+            && let Ok(inner) = std::fs::read_dir(entry.path())
+        {
+            out.extend(
+                inner.flatten().filter(|e| e.file_type().is_ok_and(|k| k.is_file())).map(|e| e.path()),
+            );
+        }
+    }
+    out.sort();
+    out
+}
+
+/// Starts kernel notifications on `root` (recursive); every touched path becomes a hint.
+pub fn start_notify(
+    root: &Path,
+    hints: Sender<PathBuf>,
+    overflow: Arc<AtomicBool>,
+) -> notify::Result<notify::RecommendedWatcher> {
+    let mut watcher = notify::recommended_watcher(move |res: notify::Result<notify::Event>| match res {
+        Ok(event) => {
+            for path in event.paths {
+                match hints.try_send(path) {
+                    Ok(()) => {}
+                    Err(TrySendError::Full(_)) => overflow.store(true, Ordering::Relaxed),
+                    Err(TrySendError::Closed(_)) => return,
+                }
+            }
+        }
+        Err(e) => {
+            tracing::warn!(error = %e, "file notification error: rescanning");
+            overflow.store(true, Ordering::Relaxed);
+        }
+    })?;
+    watcher.watch(root, RecursiveMode::Recursive)?;
+    Ok(watcher)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn exts() -> Vec<String> {
+        vec!["jpg".into(), "png".into()]
+    }
+
+    #[test]
+    fn sessions_roles_and_ignored_names() {
+        let root = Path::new("/in");
+        let c = |p: &str| classify(root, &root.join(p), &exts());
+        assert_eq!(c("a.JPG"), Some(Candidate { session: ROOT_SESSION.into(), role: Role::View }));
+        assert_eq!(c("s1/key.png"), Some(Candidate { session: "s1".into(), role: Role::Key }));
+        assert_eq!(c("s1/key.mask.png"), Some(Candidate { session: "s1".into(), role: Role::Mask }));
+        assert_eq!(c("s1/mask.png"), Some(Candidate { session: "s1".into(), role: Role::Mask }));
+        for ignored in [
+            "s1/a.jpg.part",
+            "s1/.a.jpg",
+            "s1/a.jpg~",
+            "s1/a.tmp",
+            "s1/a.crdownload",
+            "a.txt",
+            "s1/x/a.jpg",
+            ".s/a.jpg",
+        ] {
+            assert_eq!(c(ignored), None, "{ignored}");
+        }
+        assert_eq!(classify(root, Path::new("/elsewhere/a.jpg"), &exts()), None);
+    }
+}

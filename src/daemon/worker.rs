@@ -1,0 +1,741 @@
+//! The compute threads (shell layer): each owns the sessions hashed to it and turns the
+//! jobs of its bounded crossbeam queue into session changes, results, events and state.
+//! Alignment and fill run here (rayon inside a step); re-reading a buffered view's file
+//! (after a new keyframe or mask) is done inline, as part of the step.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant, SystemTime};
+
+use crossbeam_channel::{Receiver, RecvTimeoutError, Sender, bounded};
+use image::DynamicImage;
+use serde_json::json;
+use tokio_util::sync::CancellationToken;
+
+use super::emit::{Emitter, rfc3339};
+use super::intake::{DecodeOutcome, read_and_decode};
+use super::state::{self, SavedResult, SessionState};
+use super::watch::{self, Role};
+use super::{Backlog, DaemonError, Stats};
+use crate::config::{Config, KeyframeRule, MaskRule};
+use crate::imaging::convert::{to_luminance, to_mask, to_rgb};
+use crate::imaging::decode::DecodeLimits;
+use crate::inpaint::{Observer, Stage};
+use crate::session::{Admission, AlignRecord, Rgb8, Session};
+
+/// A file's identity: name, size and modification time. A file that changes is a new
+/// view; saved alignments are keyed by it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FileId {
+    pub name: String,
+    pub size: u64,
+    pub mtime: SystemTime,
+}
+
+impl FileId {
+    pub fn id(&self) -> String {
+        let ns = self.mtime.duration_since(SystemTime::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
+        format!("{}|{}|{}", self.name, self.size, ns)
+    }
+
+    pub fn of(path: &Path) -> std::io::Result<Self> {
+        let meta = std::fs::metadata(path)?;
+        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
+        Ok(Self { name, size: meta.len(), mtime: meta.modified()? })
+    }
+}
+
+/// A decoded file for a session.
+pub struct Job {
+    pub session: String,
+    pub path: PathBuf,
+    pub role: Role,
+    pub file: FileId,
+    /// 8-bit RGB for keyframes and views, 8-bit grey for masks.
+    pub image: DynamicImage,
+}
+
+/// The workers' queues and threads.
+pub type Workers = (Vec<Sender<Job>>, Vec<JoinHandle<()>>);
+
+/// Starts `config.workers` threads, each with a queue of `config.queue` jobs.
+pub fn spawn(
+    config: &Arc<Config>,
+    emitter: &Arc<Emitter>,
+    backlog: &Arc<Backlog>,
+    stats: &Arc<Stats>,
+    cancel: &CancellationToken,
+) -> Result<Workers, DaemonError> {
+    let mut senders = Vec::new();
+    let mut handles = Vec::new();
+    for i in 0..config.workers.get() {
+        let (tx, rx) = bounded(config.queue.get());
+        let ctx = Ctx {
+            config: config.clone(),
+            emitter: emitter.clone(),
+            backlog: backlog.clone(),
+            stats: stats.clone(),
+        };
+        let cancel = cancel.clone();
+        let handle = std::thread::Builder::new()
+            .name(format!("clearview-worker-{i}"))
+            .spawn(move || Worker { ctx, sessions: HashMap::new() }.run(&rx, &cancel))
+            .map_err(DaemonError::Thread)?;
+        senders.push(tx);
+        handles.push(handle);
+    }
+    Ok((senders, handles))
+}
+
+struct Ctx {
+    config: Arc<Config>,
+    emitter: Arc<Emitter>,
+    backlog: Arc<Backlog>,
+    stats: Arc<Stats>,
+}
+
+/// A view as the result report lists it.
+#[derive(Debug, Clone)]
+struct ViewEntry {
+    id: String,
+    status: &'static str,
+    reason: Option<String>,
+    record: Option<AlignRecord>,
+    from_state: bool,
+    seq: u64,
+}
+
+/// Views listed in a session's report at most (the oldest go first).
+const MAX_LISTED: usize = 1000;
+
+struct Slot {
+    name: String,
+    dir: PathBuf,
+    session: Session,
+    state: SessionState,
+    key_path: Option<PathBuf>,
+    /// 0: named `key`; 1: named by the configuration; 2: first to arrive.
+    key_rank: u8,
+    mask_source: Option<String>,
+    /// Views waiting for their keyframe, by file name.
+    parked: BTreeMap<String, PathBuf>,
+    /// Where each buffered view's file is (to re-read it).
+    paths: HashMap<String, PathBuf>,
+    views: BTreeMap<String, ViewEntry>,
+    seq: u64,
+    state_dirty: bool,
+}
+
+struct Worker {
+    ctx: Ctx,
+    sessions: HashMap<String, Slot>,
+}
+
+impl Worker {
+    fn run(mut self, rx: &Receiver<Job>, cancel: &CancellationToken) {
+        loop {
+            match rx.recv_timeout(Duration::from_millis(100)) {
+                Ok(job) => {
+                    if cancel.is_cancelled() {
+                        let left = rx.len() + 1;
+                        tracing::info!(left, "stopping: queued files are left on disk for the next start");
+                        break;
+                    }
+                    let session = job.session.clone();
+                    self.handle(job);
+                    self.ctx.backlog.done(&session);
+                    self.maybe_fill(&session);
+                }
+                Err(RecvTimeoutError::Timeout) => {
+                    if cancel.is_cancelled() {
+                        break;
+                    }
+                    let names: Vec<String> = self.sessions.keys().cloned().collect();
+                    for name in names {
+                        self.maybe_fill(&name);
+                    }
+                }
+                Err(RecvTimeoutError::Disconnected) => break,
+            }
+            if cancel.is_cancelled() {
+                break;
+            }
+        }
+        for slot in self.sessions.values() {
+            if slot.state_dirty {
+                state::save(&self.ctx.config.state_dir, &slot.name, &slot.state);
+            }
+        }
+    }
+
+    fn slot<'a>(ctx: &Ctx, sessions: &'a mut HashMap<String, Slot>, name: &str) -> &'a mut Slot {
+        sessions.entry(name.to_owned()).or_insert_with(|| {
+            let dir = if name == watch::ROOT_SESSION {
+                ctx.config.watch_dir.clone()
+            } else {
+                ctx.config.watch_dir.join(name)
+            };
+            Slot {
+                name: name.to_owned(),
+                dir,
+                session: Session::new(ctx.config.session.clone()),
+                state: state::load(&ctx.config.state_dir, name),
+                key_path: None,
+                key_rank: u8::MAX,
+                mask_source: None,
+                parked: BTreeMap::new(),
+                paths: HashMap::new(),
+                views: BTreeMap::new(),
+                seq: 0,
+                state_dirty: false,
+            }
+        })
+    }
+
+    fn handle(&mut self, job: Job) {
+        let span = tracing::info_span!("session", session = %job.session);
+        let _enter = span.enter();
+        let Job { session, path, role, file, image } = job;
+        let Self { ctx, sessions } = self;
+        let slot = Self::slot(ctx, sessions, &session);
+        match role {
+            Role::Key => take_key(ctx, slot, &file, &path, &image, 0),
+            Role::Mask => take_mask(ctx, slot, &file, &image),
+            Role::View => match key_rank_for(ctx, slot, &file.name) {
+                Some(rank) => take_key(ctx, slot, &file, &path, &image, rank),
+                None if slot.session.key_id().is_none() => {
+                    tracing::debug!(file = %file.name, "waiting for the keyframe");
+                    slot.parked.insert(file.name.clone(), path);
+                }
+                None => process_view(ctx, slot, &file, &path, &image),
+            },
+        }
+        if slot.state_dirty {
+            state::save(&ctx.config.state_dir, &slot.name, &slot.state);
+            slot.state_dirty = false;
+        }
+    }
+
+    fn maybe_fill(&mut self, name: &str) {
+        let waiting = self.ctx.backlog.get(name);
+        let batch_max = self.ctx.config.batch_max.get();
+        let Some(slot) = self.sessions.get_mut(name) else { return };
+        if !slot.session.needs_fill() || (waiting > 0 && slot.session.admitted_since_fill() < batch_max) {
+            return;
+        }
+        let span = tracing::info_span!("session", session = %name);
+        let _enter = span.enter();
+        fill(&self.ctx, slot);
+        if slot.state_dirty {
+            state::save(&self.ctx.config.state_dir, &slot.name, &slot.state);
+            slot.state_dirty = false;
+        }
+    }
+}
+
+/// The rank at which file `name` would become the keyframe, or `None` if it is a view
+/// (or must wait for the keyframe).
+fn key_rank_for(ctx: &Ctx, slot: &Slot, name: &str) -> Option<u8> {
+    let stem = watch::stem(name);
+    let current = slot.key_path.as_ref().and_then(|p| p.file_name()).and_then(|n| n.to_str());
+    if current == Some(name) {
+        // A new version of the keyframe.
+        return Some(slot.key_rank);
+    }
+    match &ctx.config.keyframe {
+        KeyframeRule::Named(n) if n == stem => (slot.key_rank > 1).then_some(1),
+        KeyframeRule::Named(_) => None,
+        KeyframeRule::First => {
+            if slot.session.key_id().is_some() {
+                return None;
+            }
+            if let Some(saved) = &slot.state.key_file
+                && saved != name
+                && slot.dir.join(saved).is_file()
+            {
+                return None;
+            }
+            if has_named_key(ctx, &slot.dir) {
+                return None;
+            }
+            Some(2)
+        }
+    }
+}
+
+fn has_named_key(ctx: &Ctx, dir: &Path) -> bool {
+    ctx.config.extensions.iter().any(|e| dir.join(format!("key.{e}")).is_file())
+}
+
+fn take_key(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &DynamicImage, rank: u8) {
+    let id = file.id();
+    if slot.session.key_id() == Some(id.as_str()) {
+        return;
+    }
+    let first = slot.session.key_id().is_none();
+    let mut again: Vec<PathBuf> = slot
+        .session
+        .set_key(id.clone(), to_rgb(image))
+        .iter()
+        .filter_map(|i| slot.paths.get(i).cloned())
+        .collect();
+    if let Some(old) = slot.key_path.take()
+        && old != path
+        && rank > 0
+        && watch::classify(&ctx.config.watch_dir, &old, &ctx.config.extensions)
+            .is_some_and(|c| c.role == Role::View)
+    {
+        // The previous keyframe was an ordinary image: it is a view now.
+        again.push(old);
+    }
+    again.extend(std::mem::take(&mut slot.parked).into_values());
+    again.retain(|p| p != path);
+    again.sort();
+    again.dedup();
+    slot.key_path = Some(path.to_owned());
+    slot.key_rank = rank;
+    slot.mask_source = None;
+    slot.paths.clear();
+    for v in slot.views.values_mut() {
+        v.status = "superseded";
+    }
+    if slot.state.key_file.as_deref() != Some(&file.name) {
+        slot.state.key_file = Some(file.name.clone());
+        slot.state_dirty = true;
+    }
+    let (w, h) = (image.width(), image.height());
+    tracing::info!(key = %file.name, width = w, height = h, views = again.len(), "keyframe set");
+    ctx.emitter.event(
+        if first { "session_started" } else { "keyframe_changed" },
+        Some(&slot.name),
+        json!({ "keyframe": file.name, "width": w, "height": h }),
+    );
+    if let Some(mask_path) = find_mask(ctx, &slot.dir, &file.name) {
+        match FileId::of(&mask_path).map_err(|e| DecodeOutcome::Io(e.to_string())).and_then(|f| {
+            read_and_decode(&mask_path, Role::Mask, f.size, f.mtime, &limits(ctx)).map(|img| (f, img))
+        }) {
+            Ok((f, img)) => apply_mask(ctx, slot, &f, &img),
+            Err(e) => skip(ctx, slot, &mask_path, &outcome_reason(&e)),
+        }
+    }
+    for p in again {
+        reprocess(ctx, slot, &p);
+    }
+    auto_mask(ctx, slot);
+}
+
+/// The mask file for the keyframe `key_name` in `dir`: `<stem>.mask.<ext>`, else `mask.<ext>`.
+fn find_mask(ctx: &Ctx, dir: &Path, key_name: &str) -> Option<PathBuf> {
+    let stem = watch::stem(key_name);
+    for base in [format!("{stem}.mask"), "mask".to_owned()] {
+        for e in &ctx.config.extensions {
+            let p = dir.join(format!("{base}.{e}"));
+            if p.is_file() {
+                return Some(p);
+            }
+        }
+    }
+    None
+}
+
+fn take_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
+    let Some(key_path) = &slot.key_path else {
+        tracing::debug!(mask = %file.name, "mask waits for its keyframe");
+        return;
+    };
+    let key_name = key_path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+    let stem = watch::stem(&file.name);
+    let specific = format!("{}.mask", watch::stem(key_name));
+    if stem != specific && stem != "mask" {
+        skip(
+            ctx,
+            slot,
+            &slot.dir.join(&file.name),
+            &format!("a mask for another image than the keyframe {key_name}"),
+        );
+        return;
+    }
+    if stem == "mask"
+        && find_mask(ctx, &slot.dir, key_name)
+            .is_some_and(|p| watch::stem(&p.to_string_lossy()).ends_with(&specific))
+    {
+        tracing::info!(mask = %file.name, "ignored: the keyframe has its own {specific} file");
+        return;
+    }
+    apply_mask(ctx, slot, file, image);
+}
+
+fn apply_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
+    if slot.session.mask_id() == Some(file.id().as_str()) {
+        return;
+    }
+    let mask = to_mask(image);
+    let masked = mask.hole_count();
+    match slot.session.set_mask(file.id(), mask) {
+        Ok(again) => {
+            slot.mask_source = Some(format!("file:{}", file.name));
+            tracing::info!(mask = %file.name, masked, "mask set");
+            ctx.emitter.event(
+                "mask_set",
+                Some(&slot.name),
+                json!({ "mask": file.name, "source": "file", "masked": masked }),
+            );
+            let paths: Vec<PathBuf> = again.iter().filter_map(|i| slot.paths.get(i).cloned()).collect();
+            for p in paths {
+                reprocess(ctx, slot, &p);
+            }
+        }
+        Err(e) => skip(ctx, slot, &slot.dir.join(&file.name), &e.to_string()),
+    }
+}
+
+/// With `mask = "auto"`: once enough views are accepted, the mask from their consensus.
+fn auto_mask(ctx: &Ctx, slot: &mut Slot) {
+    let MaskRule::Auto { views } = ctx.config.mask else { return };
+    if slot.session.mask_id().is_some() || slot.session.key_id().is_none() {
+        return;
+    }
+    let chosen: Vec<(String, PathBuf, crate::geometry::Homography)> = slot
+        .session
+        .buffered()
+        .iter()
+        .filter_map(|b| Some((b.id.clone(), slot.paths.get(&b.id)?.clone(), b.record.homography()?)))
+        .take(views)
+        .collect();
+    if chosen.len() < views {
+        return;
+    }
+    let mut images = Vec::new();
+    for (_, path, h) in &chosen {
+        let Ok(f) = FileId::of(path) else { return };
+        let Ok(img) = read_and_decode(path, Role::View, f.size, f.mtime, &limits(ctx)) else { return };
+        images.push((to_rgb(&img), *h));
+    }
+    let Ok(mask) = slot.session.auto_mask(&images) else { return };
+    drop(images);
+    let masked = mask.hole_count();
+    let id = format!("auto|{}", chosen.iter().map(|c| c.0.as_str()).collect::<Vec<_>>().join("|"));
+    if let Ok(again) = slot.session.set_mask(id, mask) {
+        slot.mask_source = Some("auto".into());
+        tracing::info!(masked, views, "automatic mask set");
+        ctx.emitter.event(
+            "mask_set",
+            Some(&slot.name),
+            json!({ "source": "auto", "masked": masked, "views": views }),
+        );
+        let paths: Vec<PathBuf> = again.iter().filter_map(|i| slot.paths.get(i).cloned()).collect();
+        for p in paths {
+            reprocess(ctx, slot, &p);
+        }
+    }
+}
+
+fn limits(ctx: &Ctx) -> DecodeLimits {
+    DecodeLimits { max_pixels: ctx.config.max_pixels }
+}
+
+fn outcome_reason(e: &DecodeOutcome) -> String {
+    match e {
+        DecodeOutcome::Changed => "changed while being read".into(),
+        DecodeOutcome::Io(r) | DecodeOutcome::Failed(r) => r.clone(),
+    }
+}
+
+fn skip(ctx: &Ctx, slot: &Slot, path: &Path, reason: &str) {
+    ctx.stats.skipped.fetch_add(1, Ordering::Relaxed);
+    tracing::warn!(file = %path.display(), %reason, "file skipped");
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
+    ctx.emitter.event(
+        "file_skipped",
+        Some(&slot.name),
+        json!({ "file": name, "path": path, "reason": reason }),
+    );
+}
+
+/// Reads a view again from disk (after a keyframe or mask change) and offers it.
+fn reprocess(ctx: &Ctx, slot: &mut Slot, path: &Path) {
+    let file = match FileId::of(path) {
+        Ok(f) => f,
+        Err(e) => {
+            tracing::debug!(file = %path.display(), error = %e, "gone before it could be read again");
+            return;
+        }
+    };
+    match read_and_decode(path, Role::View, file.size, file.mtime, &limits(ctx)) {
+        Ok(img) => process_view(ctx, slot, &file, path, &img),
+        // A change means the intake will bring the new version.
+        Err(DecodeOutcome::Changed) => {}
+        Err(e) => skip(ctx, slot, path, &outcome_reason(&e)),
+    }
+}
+
+fn rgb8(image: &DynamicImage) -> Rgb8 {
+    let rgb = match image {
+        DynamicImage::ImageRgb8(c) => std::borrow::Cow::Borrowed(c),
+        other => std::borrow::Cow::Owned(other.to_rgb8()),
+    };
+    let (w, h) = (rgb.width() as usize, rgb.height() as usize);
+    Rgb8::from_vec(w, h, rgb.as_raw().chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect())
+}
+
+fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &DynamicImage) {
+    let span = tracing::info_span!("view", file = %file.name);
+    let _enter = span.enter();
+    let id = file.id();
+    let Some(key_id) = slot.session.key_id().map(str::to_owned) else { return };
+    let start = Instant::now();
+    let (record, from_state) = match slot.state.alignment(&id, &key_id) {
+        Some(r) => (r.clone(), true),
+        None => match slot.session.align(to_luminance(image)) {
+            Ok(r) => {
+                slot.state.remember(id.clone(), key_id, r.clone());
+                slot.state_dirty = true;
+                (r, false)
+            }
+            Err(e) => return skip(ctx, slot, path, &e.to_string()),
+        },
+    };
+    let align_ms = start.elapsed().as_secs_f64() * 1e3;
+    let pixels = (record.accepted && slot.session.mask_id().is_some()).then(|| rgb8(image));
+    let admission = match slot.session.admit(id.clone(), record.clone(), pixels.as_ref()) {
+        Ok(a) => a,
+        Err(e) => return skip(ctx, slot, path, &e.to_string()),
+    };
+    drop(pixels);
+    ctx.stats.views.fetch_add(1, Ordering::Relaxed);
+    slot.paths.insert(id.clone(), path.to_owned());
+    slot.seq += 1;
+    let common = json!({
+        "file": file.name,
+        "from_state": from_state,
+        "from_prior": record.from_prior,
+        "inliers": record.inliers,
+        "matches": record.matches,
+        "median_residual_px": record.median_residual_px,
+        "homography": record.homography,
+        "align_ms": (align_ms * 10.0).round() / 10.0,
+    });
+    let mut fields = common.as_object().cloned().unwrap_or_default();
+    let mut entry = ViewEntry {
+        id: id.clone(),
+        status: "buffered",
+        reason: None,
+        record: Some(record.clone()),
+        from_state,
+        seq: slot.seq,
+    };
+    match &admission {
+        Admission::Rejected { reason } => {
+            entry.status = "rejected";
+            entry.reason = Some(reason.clone());
+            tracing::info!(%reason, from_state, "view rejected");
+            fields.insert("reason".into(), reason.clone().into());
+            ctx.emitter.event("view_rejected", Some(&slot.name), fields.into());
+        }
+        Admission::OutsideMask => {
+            entry.status = "outside_mask";
+            entry.reason = Some("sees none of the mask".into());
+            tracing::info!(from_state, "view accepted, but it sees none of the mask");
+            fields.insert("buffered".into(), false.into());
+            fields.insert("reason".into(), "sees none of the mask".into());
+            ctx.emitter.event("view_accepted", Some(&slot.name), fields.into());
+        }
+        Admission::Accepted { improves, fallback_px, weak_px, dropped } => {
+            tracing::info!(inliers = record.inliers, from_state, improves, "view accepted");
+            fields.insert("buffered".into(), true.into());
+            fields.insert("improves".into(), (*improves).into());
+            fields.insert("fallback_px".into(), (*fallback_px).into());
+            fields.insert("weakly_witnessed_px".into(), (*weak_px).into());
+            ctx.emitter.event("view_accepted", Some(&slot.name), fields.into());
+            for d in dropped {
+                if let Some(v) = slot.views.values_mut().find(|v| &v.id == d) {
+                    v.status = "dropped";
+                    v.reason = Some("contributed least when the buffer was full".into());
+                }
+                let name = d.split('|').next().unwrap_or(d);
+                tracing::info!(dropped = %name, "view dropped from the buffer");
+                ctx.emitter.event(
+                    "view_dropped",
+                    Some(&slot.name),
+                    json!({ "file": name, "reason": "contributed least when the buffer was full" }),
+                );
+            }
+        }
+    }
+    slot.views.insert(file.name.clone(), entry);
+    if slot.views.len() > MAX_LISTED
+        && let Some(oldest) = slot.views.iter().min_by_key(|(_, v)| v.seq).map(|(k, _)| k.clone())
+    {
+        slot.views.remove(&oldest);
+    }
+    let buffered: std::collections::HashSet<&str> =
+        slot.session.buffered().iter().map(|b| b.id.as_str()).collect();
+    slot.paths.retain(|id, _| buffered.contains(id.as_str()));
+    auto_mask(ctx, slot);
+}
+
+/// Times the fill's stages for the log.
+#[derive(Default)]
+struct Timings {
+    current: Option<(Stage, Instant)>,
+    done: Vec<(&'static str, f64)>,
+}
+
+impl Timings {
+    fn close(&mut self) {
+        if let Some((s, t)) = self.current.take() {
+            self.done.push((s.name(), t.elapsed().as_secs_f64() * 1e3));
+        }
+    }
+}
+
+impl Observer for Timings {
+    fn stage(&mut self, stage: Stage) {
+        self.close();
+        self.current = Some((stage, Instant::now()));
+    }
+}
+
+fn fill(ctx: &Ctx, slot: &mut Slot) {
+    let digest = slot.session.inputs_digest();
+    if slot.session.best_score().is_none()
+        && let Some(saved) = &slot.state.result
+        && saved.digest == digest
+    {
+        // Same inputs as the result already on disk (from before a restart).
+        slot.session.assume_result(saved.score);
+        tracing::info!(number = saved.number, "result unchanged since the last run: not rewritten");
+        ctx.emitter.event(
+            "result_unchanged",
+            Some(&slot.name),
+            json!({ "number": saved.number, "score": saved.score }),
+        );
+        return;
+    }
+    let start = Instant::now();
+    let mut timings = Timings::default();
+    let Some(outcome) = slot.session.fill(&mut timings) else { return };
+    timings.close();
+    let fill_ms = start.elapsed().as_secs_f64() * 1e3;
+    let stages: serde_json::Map<String, serde_json::Value> =
+        timings.done.iter().map(|(n, ms)| ((*n).to_owned(), json!((ms * 10.0).round() / 10.0))).collect();
+    tracing::debug!(fill_ms, ?timings.done, "fill done");
+    let r = &outcome.report;
+    let fallback_share = if r.masked == 0 { 0.0 } else { r.fallback as f64 / r.masked as f64 };
+    let Some(image) = &outcome.image else {
+        tracing::info!(score = outcome.score, best = outcome.previous, "new fill scores lower: result kept");
+        ctx.emitter.event(
+            "result_not_better",
+            Some(&slot.name),
+            json!({ "score": outcome.score, "best": outcome.previous, "fill_ms": fill_ms.round() }),
+        );
+        return;
+    };
+    let number = slot.state.last_number + 1;
+    let ext = ctx.emitter.result_name();
+    let report = result_json(ctx, slot, &outcome, number, fallback_share);
+    let write_start = Instant::now();
+    match ctx.emitter.write_result(&slot.name, number, image, &report) {
+        Ok(path) => {
+            let write_ms = write_start.elapsed().as_secs_f64() * 1e3;
+            slot.state.last_number = number;
+            slot.state.result = Some(SavedResult { digest, score: outcome.score, number });
+            slot.state_dirty = true;
+            ctx.stats.results.fetch_add(1, Ordering::Relaxed);
+            tracing::info!(
+                number,
+                from_views = outcome.score,
+                fallback = fallback_share,
+                fill_ms = fill_ms.round(),
+                "result updated"
+            );
+            ctx.emitter.event(
+                "result_updated",
+                Some(&slot.name),
+                json!({
+                    "number": number,
+                    "path": path,
+                    "result": ext,
+                    "views": outcome.views.len(),
+                    "masked": r.masked,
+                    "from_views": outcome.score,
+                    "from_fallback": fallback_share,
+                    "previous_score": outcome.previous,
+                    "fill_ms": fill_ms.round(),
+                    "write_ms": write_ms.round(),
+                    "stages_ms": stages,
+                }),
+            );
+        }
+        Err(e) => {
+            tracing::error!(error = %e, out = %ctx.emitter.session_dir(&slot.name).display(), "cannot write the result");
+            ctx.emitter.event(
+                "result_failed",
+                Some(&slot.name),
+                json!({ "number": number, "reason": e.to_string() }),
+            );
+        }
+    }
+}
+
+fn result_json(
+    ctx: &Ctx,
+    slot: &Slot,
+    outcome: &crate::session::FillOutcome,
+    number: u64,
+    fallback_share: f64,
+) -> serde_json::Value {
+    let r = &outcome.report;
+    let by_id: HashMap<&str, &crate::inpaint::SourceReport> =
+        outcome.views.iter().map(String::as_str).zip(r.sources.iter()).collect();
+    let mut views: Vec<&ViewEntry> = slot.views.values().filter(|v| v.status != "superseded").collect();
+    views.sort_by_key(|v| v.seq);
+    let views: Vec<serde_json::Value> = views
+        .iter()
+        .map(|v| {
+            let name = v.id.split('|').next().unwrap_or(&v.id);
+            let used = by_id.get(v.id.as_str());
+            json!({
+                "file": name,
+                "status": if used.is_some() { "used" } else { v.status },
+                "accepted": v.record.as_ref().is_some_and(|r| r.accepted),
+                "reason": v.reason,
+                "from_state": v.from_state,
+                "homography": v.record.as_ref().and_then(|r| r.homography),
+                "quality": v.record.as_ref().map(|r| json!({
+                    "inliers": r.inliers,
+                    "matches": r.matches,
+                    "checked": r.checked,
+                    "median_residual_px": r.median_residual_px,
+                    "coverage": r.coverage,
+                    "from_prior": r.from_prior,
+                })),
+                "covered": used.map(|s| s.covered),
+                "filled": used.map(|s| s.filled),
+                "gain": used.map(|s| s.gain),
+                "offset": used.map(|s| s.offset),
+            })
+        })
+        .collect();
+    let key_name =
+        slot.key_path.as_ref().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned());
+    json!({
+        "version": 1,
+        "session": slot.name,
+        "number": number,
+        "time": rfc3339(SystemTime::now()),
+        "result": ctx.emitter.result_name(),
+        "keyframe": key_name,
+        "mask": slot.mask_source,
+        "masked": r.masked,
+        "from_views": outcome.score,
+        "from_fallback": fallback_share,
+        "fallback_px": r.fallback,
+        "score": outcome.score,
+        "score_rule": "share of the masked pixels filled from real views; a result is never replaced by one that scores lower",
+        "views": views,
+    })
+}

@@ -1,0 +1,888 @@
+//! A capture session: one keyframe, its mask, a bounded buffer of aligned views reduced
+//! to the mask's neighbourhood, and the current result; it decides when a new view can
+//! improve the result and re-inpaints (pure layer: no files, no clock).
+//!
+//! # Memory
+//! A buffered view keeps only the part of it that maps onto the mask's neighbourhood: the
+//! bounding box of the image, under the view's homography, of the mask's box grown by
+//! [`SessionParams::margin_px`], in 8-bit RGB, with the homography shifted by the crop's
+//! offset. The fill runs on the keyframe's region only and is pasted back. So a session
+//! holds one keyframe (RGB and its alignment pyramid) plus `buffer` small crops, whatever
+//! the size of the photographs and however long it runs.
+//!
+//! # When a view triggers a new fill (the improvement rule)
+//! An accepted view *improves* the result when, among the masked pixels it sees, at least
+//! [`SessionParams::min_new_pixels`] are either
+//! - filled by the single-image fallback in the current result (nobody saw them), or
+//! - seen by fewer than [`SessionParams::witnesses`] buffered views (the fill's consensus
+//!   against views occluded there is weak).
+//!
+//! A view that improves nothing is still buffered (it joins the next fill as a witness)
+//! but does not cost a fill of its own.
+//!
+//! # Score
+//! A result's score is the share of the mask filled from real views
+//! ([`FillReport::from_views`]). A new fill whose score is lower than the best result's
+//! (since the keyframe or mask last changed) is not emitted: a result is never replaced by
+//! a worse one.
+
+use nalgebra::Point2;
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::align::{AlignParams, Alignment, Frame, align};
+use crate::geometry::Homography;
+use crate::imaging::convert::luminance;
+use crate::imaging::{GrayF32, Mask, Plane, RgbF32};
+use crate::inpaint::{self, AutoMaskParams, FALLBACK, FillParams, FillReport, Observer, Provenance, Source};
+
+/// An 8-bit RGB image: what the buffer keeps of a view.
+pub type Rgb8 = Plane<[u8; 3]>;
+
+/// Parameters of a session.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SessionParams {
+    /// Views kept at most.
+    pub buffer: usize,
+    /// Newly served masked pixels a view needs to trigger a fill (see the module docs).
+    pub min_new_pixels: usize,
+    /// Views that must see a masked pixel before it counts as well witnessed.
+    pub witnesses: usize,
+    /// Context kept around the mask's box, in keyframe pixels (and in view pixels around
+    /// its image).
+    pub margin_px: usize,
+    /// Seed of the fill.
+    pub seed: u64,
+    pub align: AlignParams,
+    pub fill: FillParams,
+    pub auto_mask: AutoMaskParams,
+}
+
+impl Default for SessionParams {
+    fn default() -> Self {
+        Self {
+            buffer: 16,
+            min_new_pixels: 64,
+            witnesses: 3,
+            margin_px: 48,
+            seed: 1,
+            align: AlignParams::default(),
+            fill: FillParams::default(),
+            auto_mask: AutoMaskParams::default(),
+        }
+    }
+}
+
+/// Why a session could not take something. The caller's input is at fault.
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum SessionError {
+    #[error("no keyframe yet")]
+    NoKey,
+    #[error("the mask is {mask_w}x{mask_h} but the keyframe is {key_w}x{key_h}")]
+    MaskSize { mask_w: usize, mask_h: usize, key_w: usize, key_h: usize },
+    #[error("the view is {got_w}x{got_h} but was aligned as {want_w}x{want_h}")]
+    ViewSize { got_w: usize, got_h: usize, want_w: usize, want_h: usize },
+}
+
+/// The outcome of aligning one view, in a form that can be saved and reloaded.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AlignRecord {
+    pub accepted: bool,
+    /// Why it was rejected, in words.
+    pub reason: Option<String>,
+    /// Keyframe → view, row-major (also for a rejected view when there was an estimate).
+    pub homography: Option<[[f64; 3]; 3]>,
+    pub inliers: usize,
+    pub matches: usize,
+    pub checked: usize,
+    /// Median transfer distance of the inliers (full-resolution pixels).
+    pub median_residual_px: Option<f64>,
+    /// Inliers' convex hull as a share of the keyframe.
+    pub coverage: f64,
+    /// The estimate started from the previous view's homography.
+    pub from_prior: bool,
+    /// Width and height of the view.
+    pub view_size: (usize, usize),
+}
+
+impl AlignRecord {
+    pub fn from_alignment(a: &Alignment, view_size: (usize, usize)) -> Self {
+        Self {
+            accepted: a.accepted(),
+            reason: a.rejection.as_ref().map(|r| r.to_string()),
+            homography: a.homography.as_ref().map(Homography::rows),
+            inliers: a.inliers,
+            matches: a.matches,
+            checked: a.checked,
+            median_residual_px: a.median_residual_px.is_finite().then_some(a.median_residual_px),
+            coverage: a.coverage,
+            from_prior: a.from_prior,
+            view_size,
+        }
+    }
+
+    pub fn homography(&self) -> Option<Homography> {
+        self.homography.and_then(Homography::from_rows)
+    }
+}
+
+/// Pixels of a view kept in the buffer: a crop and the homography to it.
+#[derive(Debug, Clone)]
+struct Crop {
+    image: Rgb8,
+    /// Keyframe → crop coordinates.
+    homography: Homography,
+}
+
+/// One buffered view.
+#[derive(Debug, Clone)]
+pub struct Buffered {
+    /// The caller's identity for the view (file name, size and time, say).
+    pub id: String,
+    pub record: AlignRecord,
+    homography: Homography,
+    crop: Option<Crop>,
+    /// Masked pixels the last fill took from this view (`None`: not in a fill yet).
+    pub contribution: Option<usize>,
+    seq: u64,
+}
+
+impl Buffered {
+    /// Whether its pixels are in memory (they are not while the mask is unknown).
+    pub fn has_pixels(&self) -> bool {
+        self.crop.is_some()
+    }
+
+    /// Size of the kept crop, if any.
+    pub fn crop_size(&self) -> Option<(usize, usize)> {
+        self.crop.as_ref().map(|c| (c.image.width(), c.image.height()))
+    }
+}
+
+/// What happened to a view offered to [`Session::admit`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum Admission {
+    Rejected {
+        reason: String,
+    },
+    /// Accepted but it sees none of the mask's region: not buffered.
+    OutsideMask,
+    Accepted {
+        /// Whether it triggers a fill (the improvement rule).
+        improves: bool,
+        /// Masked pixels it sees that the fallback filled in the current result.
+        fallback_px: usize,
+        /// Masked pixels it sees that fewer than `witnesses` buffered views see.
+        weak_px: usize,
+        /// Ids dropped from the buffer to make room.
+        dropped: Vec<String>,
+    },
+}
+
+/// A finished fill.
+#[derive(Debug, Clone)]
+pub struct FillOutcome {
+    /// The whole keyframe with its mask filled, `None` when the fill scored lower than the
+    /// current result (which stays).
+    pub image: Option<RgbF32>,
+    pub report: FillReport,
+    /// Ids of the views in the order of `report.sources`.
+    pub views: Vec<String>,
+    pub score: f64,
+    /// The best score before this fill.
+    pub previous: Option<f64>,
+    /// Digest of the inputs ([`Session::inputs_digest`]).
+    pub digest: u64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Rect {
+    x0: usize,
+    y0: usize,
+    x1: usize,
+    y1: usize,
+}
+
+impl Rect {
+    fn width(&self) -> usize {
+        self.x1 - self.x0
+    }
+    fn height(&self) -> usize {
+        self.y1 - self.y0
+    }
+}
+
+struct Key {
+    id: String,
+    rgb: RgbF32,
+    frame: Frame,
+}
+
+struct MaskInfo {
+    id: String,
+    mask: Mask,
+    /// The mask's bounding box grown by the margin, clamped to the keyframe; `None` for an
+    /// empty mask.
+    region: Option<Rect>,
+}
+
+/// The session itself. The daemon feeds it keyframes, masks and views and writes what
+/// [`Session::fill`] returns.
+pub struct Session {
+    params: SessionParams,
+    key: Option<Key>,
+    mask: Option<MaskInfo>,
+    buffer: Vec<Buffered>,
+    /// Provenance of the current result over the mask's region.
+    provenance: Option<Provenance>,
+    best: Option<f64>,
+    dirty: bool,
+    admitted_since_fill: usize,
+    seq: u64,
+}
+
+impl Session {
+    pub fn new(params: SessionParams) -> Self {
+        Self {
+            params,
+            key: None,
+            mask: None,
+            buffer: Vec::new(),
+            provenance: None,
+            best: None,
+            dirty: false,
+            admitted_since_fill: 0,
+            seq: 0,
+        }
+    }
+
+    pub fn params(&self) -> &SessionParams {
+        &self.params
+    }
+
+    pub fn key_id(&self) -> Option<&str> {
+        self.key.as_ref().map(|k| k.id.as_str())
+    }
+
+    pub fn key_size(&self) -> Option<(usize, usize)> {
+        self.key.as_ref().map(|k| (k.rgb.width(), k.rgb.height()))
+    }
+
+    pub fn mask_id(&self) -> Option<&str> {
+        self.mask.as_ref().map(|m| m.id.as_str())
+    }
+
+    pub fn buffered(&self) -> &[Buffered] {
+        &self.buffer
+    }
+
+    /// The best score since the keyframe or mask last changed.
+    pub fn best_score(&self) -> Option<f64> {
+        self.best
+    }
+
+    /// Views admitted with [`Admission::Accepted`]`{ improves: true }` since the last fill.
+    pub fn admitted_since_fill(&self) -> usize {
+        self.admitted_since_fill
+    }
+
+    /// Sets (or replaces) the keyframe. Everything derived from the old one goes: the
+    /// mask (it belongs to a keyframe), the buffer and the result. Returns the ids of the
+    /// views that were buffered, for the caller to offer again (re-aligned to the new key).
+    pub fn set_key(&mut self, id: String, rgb: RgbF32) -> Vec<String> {
+        let frame = Frame::new(luminance(&rgb), &self.params.align);
+        self.key = Some(Key { id, rgb, frame });
+        self.mask = None;
+        self.provenance = None;
+        self.best = None;
+        self.dirty = false;
+        self.admitted_since_fill = 0;
+        self.buffer.drain(..).map(|b| b.id).collect()
+    }
+
+    /// Sets (or replaces) the mask. The crops of buffered views depend on it, so they are
+    /// dropped (alignments stay): the caller offers the returned ids again with their
+    /// pixels. The result restarts from the buffered views.
+    pub fn set_mask(&mut self, id: String, mask: Mask) -> Result<Vec<String>, SessionError> {
+        let key = self.key.as_ref().ok_or(SessionError::NoKey)?;
+        let (kw, kh) = (key.rgb.width(), key.rgb.height());
+        if (mask.width(), mask.height()) != (kw, kh) {
+            return Err(SessionError::MaskSize {
+                mask_w: mask.width(),
+                mask_h: mask.height(),
+                key_w: kw,
+                key_h: kh,
+            });
+        }
+        let region = hole_box(&mask).map(|r| grow(r, self.params.margin_px, kw, kh));
+        self.mask = Some(MaskInfo { id, mask, region });
+        self.provenance = None;
+        self.best = None;
+        self.dirty = true;
+        self.admitted_since_fill = 0;
+        for b in &mut self.buffer {
+            b.crop = None;
+            b.contribution = None;
+        }
+        Ok(self.buffer.iter().map(|b| b.id.clone()).collect())
+    }
+
+    /// The prior for the next view: the homography of the most recently admitted accepted
+    /// view (consecutive shots are close, so its `H` predicts the next one's).
+    pub fn prior(&self) -> Option<Homography> {
+        self.buffer.iter().max_by_key(|b| b.seq).map(|b| b.homography)
+    }
+
+    /// Aligns a view (its luminance) to the keyframe, starting from [`Session::prior`] and
+    /// falling back to a full alignment when the prior does not lead to an accepted one.
+    pub fn align(&self, gray: GrayF32) -> Result<AlignRecord, SessionError> {
+        let key = self.key.as_ref().ok_or(SessionError::NoKey)?;
+        let size = (gray.width(), gray.height());
+        let frame = Frame::new(gray, &self.params.align);
+        let prior = self.prior();
+        let mut a = align(&key.frame, &frame, &self.params.align, prior.as_ref());
+        if !a.accepted() && prior.is_some() {
+            // `align` already retries from descriptors; only the bookkeeping differs.
+            a.from_prior = false;
+        }
+        Ok(AlignRecord::from_alignment(&a, size))
+    }
+
+    /// Offers an aligned view. `pixels` are the whole view (they are cropped here); without
+    /// them, or without a mask yet, only the alignment is kept. A view already buffered
+    /// under `id` is replaced.
+    pub fn admit(
+        &mut self,
+        id: String,
+        record: AlignRecord,
+        pixels: Option<&Rgb8>,
+    ) -> Result<Admission, SessionError> {
+        if self.key.is_none() {
+            return Err(SessionError::NoKey);
+        }
+        let homography = match (record.accepted, record.homography()) {
+            (true, Some(h)) => h,
+            _ => {
+                let reason = record.reason.clone().unwrap_or_else(|| "no homography".into());
+                return Ok(Admission::Rejected { reason });
+            }
+        };
+        if let Some(p) = pixels
+            && (p.width(), p.height()) != record.view_size
+        {
+            return Err(SessionError::ViewSize {
+                got_w: p.width(),
+                got_h: p.height(),
+                want_w: record.view_size.0,
+                want_h: record.view_size.1,
+            });
+        }
+        self.buffer.retain(|b| b.id != id);
+        let mut crop = None;
+        let (mut fallback_px, mut weak_px) = (0, 0);
+        let mut improves = true;
+        if let Some(mask) = &self.mask {
+            let Some(region) = mask.region else {
+                // An empty mask: nothing to fill, nothing to keep.
+                return Ok(Admission::OutsideMask);
+            };
+            let Some(rect) = view_crop(&homography, region, record.view_size, self.params.margin_px) else {
+                return Ok(Admission::OutsideMask);
+            };
+            let seen;
+            (seen, fallback_px, weak_px) = self.gain(&homography, record.view_size);
+            if seen == 0 {
+                return Ok(Admission::OutsideMask);
+            }
+            improves = fallback_px.max(weak_px) >= self.params.min_new_pixels;
+            if let Some(p) = pixels {
+                crop = Some(Crop {
+                    image: crop_rgb8(p, rect),
+                    homography: Homography::translation(-(rect.x0 as f64), -(rect.y0 as f64))
+                        .after(&homography),
+                });
+            }
+        }
+        self.seq += 1;
+        let ready = crop.is_some();
+        self.buffer.push(Buffered { id, record, homography, crop, contribution: None, seq: self.seq });
+        let dropped = self.evict(improves);
+        if improves && ready {
+            self.dirty = true;
+            self.admitted_since_fill += 1;
+        }
+        Ok(Admission::Accepted { improves, fallback_px, weak_px, dropped })
+    }
+
+    /// Ids of buffered views whose pixels are not in memory (the mask arrived, or changed,
+    /// after them): the caller offers them again with pixels.
+    pub fn missing_pixels(&self) -> Vec<String> {
+        if self.mask.is_none() {
+            return Vec::new();
+        }
+        self.buffer.iter().filter(|b| b.crop.is_none()).map(|b| b.id.clone()).collect()
+    }
+
+    /// Whether a fill would produce something new: a keyframe, a mask and a change since
+    /// the last fill that the improvement rule let through.
+    pub fn needs_fill(&self) -> bool {
+        self.dirty && self.key.is_some() && self.mask.is_some()
+    }
+
+    /// Drops views beyond the buffer's capacity: least contribution first (a view not in
+    /// a fill yet counts 0, except the newest when it `protect`s), oldest first among
+    /// equals.
+    fn evict(&mut self, protect_newest: bool) -> Vec<String> {
+        let mut dropped = Vec::new();
+        while self.buffer.len() > self.params.buffer.max(1) {
+            let newest = self.seq;
+            let victim = self
+                .buffer
+                .iter()
+                .enumerate()
+                .filter(|(_, b)| !(protect_newest && b.seq == newest))
+                .min_by_key(|(_, b)| (b.contribution.unwrap_or(0), b.seq))
+                .map(|(i, _)| i)
+                .expect("capacity is at least 1, so something besides the newest is there");
+            dropped.push(self.buffer.remove(victim).id);
+        }
+        dropped
+    }
+
+    /// Masked pixels a view with keyframe → view map `h` sees: (all of them, those the
+    /// fallback filled in the current result, those fewer than `witnesses` buffered views
+    /// see). Large masks are sampled every other pixel and the counts scaled.
+    fn gain(&self, h: &Homography, view_size: (usize, usize)) -> (usize, usize, usize) {
+        let (Some(mask), Some(_)) = (&self.mask, &self.key) else { return (0, 0, 0) };
+        let Some(region) = mask.region else { return (0, 0, 0) };
+        let step = if mask.mask.hole_count() > 250_000 { 2 } else { 1 };
+        let others: Vec<(&Homography, (usize, usize))> = self
+            .buffer
+            .iter()
+            .filter(|b| b.crop.is_some())
+            .map(|b| (&b.homography, b.record.view_size))
+            .collect();
+        let (mut seen, mut fallback, mut weak) = (0, 0, 0);
+        for y in (region.y0..region.y1).step_by(step) {
+            for x in (region.x0..region.x1).step_by(step) {
+                if !mask.mask.is_hole(x, y) || !sees(h, view_size, x, y) {
+                    continue;
+                }
+                seen += 1;
+                let from_fallback = match &self.provenance {
+                    None => true,
+                    Some(p) => p.get(x - region.x0, y - region.y0) == FALLBACK,
+                };
+                if from_fallback {
+                    fallback += 1;
+                }
+                let witnesses =
+                    others.iter().filter(|(g, s)| sees(g, *s, x, y)).take(self.params.witnesses).count();
+                if witnesses < self.params.witnesses {
+                    weak += 1;
+                }
+            }
+        }
+        let s = step * step;
+        (seen * s, fallback * s, weak * s)
+    }
+
+    /// Digest of what a fill would be made of: keyframe, mask, the buffered views with
+    /// pixels (in any order) and the seed. Equal digests, equal results.
+    pub fn inputs_digest(&self) -> u64 {
+        let mut ids: Vec<&str> =
+            self.buffer.iter().filter(|b| b.crop.is_some()).map(|b| b.id.as_str()).collect();
+        ids.sort_unstable();
+        let mut h = Fnv::new();
+        h.write(self.key_id().unwrap_or("").as_bytes());
+        h.write(&[0]);
+        h.write(self.mask_id().unwrap_or("").as_bytes());
+        h.write(&[0]);
+        for id in ids {
+            h.write(id.as_bytes());
+            h.write(&[0]);
+        }
+        h.write(&self.params.seed.to_le_bytes());
+        h.finish()
+    }
+
+    /// Records that a result with this score already exists for the current inputs (from
+    /// a previous run): no fill is needed until something changes.
+    pub fn assume_result(&mut self, score: f64) {
+        self.best = Some(score);
+        self.dirty = false;
+        self.admitted_since_fill = 0;
+    }
+
+    /// Re-inpaints the keyframe's masked region from the buffered views and updates their
+    /// contributions. `None` without a keyframe and mask.
+    pub fn fill(&mut self, observer: &mut dyn Observer) -> Option<FillOutcome> {
+        let key = self.key.as_ref()?;
+        let mask = self.mask.as_ref()?;
+        let digest = self.inputs_digest();
+        let previous = self.best;
+        self.dirty = false;
+        self.admitted_since_fill = 0;
+        let Some(region) = mask.region else {
+            // Nothing to fill: the keyframe is the result.
+            let report = FillReport { masked: 0, sources: Vec::new(), fallback: 0 };
+            self.best = Some(1.0);
+            let image = previous.is_none().then(|| key.rgb.clone());
+            return Some(FillOutcome { image, report, views: Vec::new(), score: 1.0, previous, digest });
+        };
+        let key_region = crop_plane(&key.rgb, region);
+        let mask_region = crop_plane(&mask.mask, region);
+        let into_region = Homography::translation(region.x0 as f64, region.y0 as f64);
+        let used: Vec<usize> = (0..self.buffer.len()).filter(|&i| self.buffer[i].crop.is_some()).collect();
+        let images: Vec<RgbF32> = used
+            .iter()
+            .map(|&i| {
+                self.buffer[i].crop.as_ref().expect("filtered").image.map(|p| p.map(|v| f32::from(v) / 255.0))
+            })
+            .collect();
+        let sources: Vec<Source<'_>> = used
+            .iter()
+            .zip(&images)
+            .map(|(&i, image)| Source {
+                image,
+                homography: self.buffer[i].crop.as_ref().expect("filtered").homography.after(&into_region),
+            })
+            .collect();
+        let filled =
+            inpaint::fill(&key_region, &mask_region, &sources, &self.params.fill, self.params.seed, observer);
+        drop(sources);
+        drop(images);
+        for (&i, s) in used.iter().zip(&filled.report.sources) {
+            self.buffer[i].contribution = Some(s.filled);
+        }
+        let views = used.iter().map(|&i| self.buffer[i].id.clone()).collect();
+        let score = filled.report.from_views();
+        let better = previous.is_none_or(|b| score >= b - 1e-9);
+        let image = if better {
+            self.best = Some(score);
+            self.provenance = Some(filled.provenance);
+            let mut full = key.rgb.clone();
+            paste(&mut full, &filled.image, region);
+            Some(full)
+        } else {
+            None
+        };
+        Some(FillOutcome { image, report: filled.report, views, score, previous, digest })
+    }
+
+    /// The automatic mask from whole views and their keyframe → view homographies.
+    pub fn auto_mask(&self, views: &[(RgbF32, Homography)]) -> Result<Mask, SessionError> {
+        let key = self.key.as_ref().ok_or(SessionError::NoKey)?;
+        let sources: Vec<Source<'_>> =
+            views.iter().map(|(image, h)| Source { image, homography: *h }).collect();
+        Ok(inpaint::auto_mask(&key.rgb, &sources, &self.params.auto_mask))
+    }
+}
+
+/// Whether keyframe pixel `(x, y)` lands inside a `size` view under `h`.
+fn sees(h: &Homography, size: (usize, usize), x: usize, y: usize) -> bool {
+    h.apply(Point2::new(x as f64, y as f64))
+        .is_some_and(|p| p.x >= 0.0 && p.y >= 0.0 && p.x <= (size.0 - 1) as f64 && p.y <= (size.1 - 1) as f64)
+}
+
+/// The bounding box of the mask's holes (exclusive ends).
+fn hole_box(mask: &Mask) -> Option<Rect> {
+    let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
+    for y in 0..mask.height() {
+        for (x, &v) in mask.row(y).iter().enumerate() {
+            if v > 127 {
+                x0 = x0.min(x);
+                y0 = y0.min(y);
+                x1 = x1.max(x + 1);
+                y1 = y1.max(y + 1);
+            }
+        }
+    }
+    (x1 > 0).then_some(Rect { x0, y0, x1, y1 })
+}
+
+fn grow(r: Rect, margin: usize, width: usize, height: usize) -> Rect {
+    Rect {
+        x0: r.x0.saturating_sub(margin),
+        y0: r.y0.saturating_sub(margin),
+        x1: (r.x1 + margin).min(width),
+        y1: (r.y1 + margin).min(height),
+    }
+}
+
+/// The part of a `view_size` view that the keyframe `region` maps onto under `h`, grown by
+/// `margin` (and 2 pixels for interpolation), clamped to the view; `None` when empty.
+fn view_crop(h: &Homography, region: Rect, view_size: (usize, usize), margin: usize) -> Option<Rect> {
+    let (vw, vh) = view_size;
+    let corners = [
+        (region.x0, region.y0),
+        (region.x1 - 1, region.y0),
+        (region.x0, region.y1 - 1),
+        (region.x1 - 1, region.y1 - 1),
+    ];
+    let mut mapped = Vec::with_capacity(4);
+    for (x, y) in corners {
+        let p = Point2::new(x as f64, y as f64);
+        if h.w(p) <= 0.0 {
+            // Part of the region maps behind the camera: its image is unbounded.
+            return Some(Rect { x0: 0, y0: 0, x1: vw, y1: vh });
+        }
+        mapped.push(h.apply(p)?);
+    }
+    let m = (margin + 2) as f64;
+    let min_x = mapped.iter().map(|p| p.x).fold(f64::INFINITY, f64::min) - m;
+    let max_x = mapped.iter().map(|p| p.x).fold(f64::NEG_INFINITY, f64::max) + m;
+    let min_y = mapped.iter().map(|p| p.y).fold(f64::INFINITY, f64::min) - m;
+    let max_y = mapped.iter().map(|p| p.y).fold(f64::NEG_INFINITY, f64::max) + m;
+    let x0 = min_x.floor().clamp(0.0, vw as f64) as usize;
+    let y0 = min_y.floor().clamp(0.0, vh as f64) as usize;
+    let x1 = (max_x.ceil() + 1.0).clamp(0.0, vw as f64) as usize;
+    let y1 = (max_y.ceil() + 1.0).clamp(0.0, vh as f64) as usize;
+    (x1 > x0 + 1 && y1 > y0 + 1).then_some(Rect { x0, y0, x1, y1 })
+}
+
+fn crop_plane<T: Copy>(img: &Plane<T>, r: Rect) -> Plane<T> {
+    let mut data = Vec::with_capacity(r.width() * r.height());
+    for y in r.y0..r.y1 {
+        data.extend_from_slice(&img.row(y)[r.x0..r.x1]);
+    }
+    Plane::from_vec(r.width(), r.height(), data)
+}
+
+fn crop_rgb8(img: &Rgb8, r: Rect) -> Rgb8 {
+    crop_plane(img, r)
+}
+
+fn paste(dst: &mut RgbF32, src: &RgbF32, r: Rect) {
+    for y in 0..r.height() {
+        dst.row_mut(r.y0 + y)[r.x0..r.x1].copy_from_slice(src.row(y));
+    }
+}
+
+/// FNV-1a, 64 bits: a stable digest (the standard hasher's output may change between
+/// Rust releases, and digests are saved across restarts).
+struct Fnv(u64);
+
+impl Fnv {
+    fn new() -> Self {
+        Self(0xcbf2_9ce4_8422_2325)
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 ^= u64::from(b);
+            self.0 = self.0.wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+    fn finish(&self) -> u64 {
+        self.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::imaging::bilinear_rgb;
+    use crate::synth;
+
+    const W: usize = 96;
+    const H: usize = 72;
+
+    fn params() -> SessionParams {
+        SessionParams {
+            buffer: 3,
+            min_new_pixels: 10,
+            witnesses: 2,
+            margin_px: 4,
+            ..SessionParams::default()
+        }
+    }
+
+    fn to8(img: &RgbF32) -> Rgb8 {
+        img.map(|p| p.map(|v| (v * 255.0).round() as u8))
+    }
+
+    fn square_mask(x0: usize, y0: usize, side: usize) -> Mask {
+        Mask::from_fn(W, H, |x, y| {
+            if (x0..x0 + side).contains(&x) && (y0..y0 + side).contains(&y) { 255 } else { 0 }
+        })
+    }
+
+    fn record(h: &Homography) -> AlignRecord {
+        AlignRecord {
+            accepted: true,
+            reason: None,
+            homography: Some(h.rows()),
+            inliers: 50,
+            matches: 60,
+            checked: 70,
+            median_residual_px: Some(0.3),
+            coverage: 0.5,
+            from_prior: false,
+            view_size: (W, H),
+        }
+    }
+
+    fn session_with_key() -> Session {
+        let mut s = Session::new(params());
+        s.set_key("key".into(), synth::facade(W, H, 5));
+        s
+    }
+
+    #[test]
+    fn a_crop_keeps_what_maps_onto_the_mask_with_a_shifted_homography() {
+        let mut s = session_with_key();
+        s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+        let h = Homography::translation(-12.0, 5.0);
+        let view = synth::facade(W, H, 9);
+        let a = s.admit("v".into(), record(&h), Some(&to8(&view))).unwrap();
+        assert!(matches!(a, Admission::Accepted { improves: true, .. }), "{a:?}");
+        let b = &s.buffered()[0];
+        let (cw, ch) = b.crop_size().unwrap();
+        assert!(cw < W / 2 && ch < H / 2, "crop {cw}x{ch} is not small");
+        let crop = &b.crop.as_ref().unwrap();
+        let crop_f = crop.image.map(|p| p.map(|v| f32::from(v) / 255.0));
+        let view8 = to8(&view).map(|p| p.map(|v| f32::from(v) / 255.0));
+        for (x, y) in [(40, 30), (49, 39), (44, 35)] {
+            let p = Point2::new(x as f64, y as f64);
+            let (v, c) = (h.apply(p).unwrap(), crop.homography.apply(p).unwrap());
+            let a = bilinear_rgb(&view8, v.x as f32, v.y as f32).unwrap();
+            let b = bilinear_rgb(&crop_f, c.x as f32, c.y as f32).unwrap();
+            assert!((0..3).all(|k| (a[k] - b[k]).abs() < 1e-5), "{a:?} vs {b:?} at ({x},{y})");
+        }
+    }
+
+    #[test]
+    fn a_view_that_misses_the_mask_is_not_kept() {
+        let mut s = session_with_key();
+        s.set_mask("mask".into(), square_mask(4, 4, 8)).unwrap();
+        // Everything shifted far away: the mask lands outside the view.
+        let h = Homography::translation(200.0, 0.0);
+        let a = s.admit("v".into(), record(&h), Some(&to8(&synth::facade(W, H, 9)))).unwrap();
+        assert_eq!(a, Admission::OutsideMask);
+        assert!(s.buffered().is_empty());
+    }
+
+    #[test]
+    fn rejected_views_are_not_buffered() {
+        let mut s = session_with_key();
+        let mut r = record(&Homography::identity());
+        r.accepted = false;
+        r.reason = Some("not the same scene".into());
+        let a = s.admit("v".into(), r, None).unwrap();
+        assert_eq!(a, Admission::Rejected { reason: "not the same scene".into() });
+        assert!(s.buffered().is_empty());
+    }
+
+    #[test]
+    fn the_improvement_rule_counts_fallback_and_weakly_witnessed_pixels() {
+        let mut s = session_with_key();
+        s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+        let view = to8(&synth::facade(W, H, 9));
+        let h = Homography::translation(1.0, 1.0);
+        // Two witnesses (the rule's threshold), then a result that used no fallback.
+        for id in ["a", "b"] {
+            let a = s.admit(id.into(), record(&h), Some(&view)).unwrap();
+            assert!(matches!(a, Admission::Accepted { improves: true, .. }), "{a:?}");
+        }
+        let region = s.mask.as_ref().unwrap().region.unwrap();
+        s.provenance = Some(Provenance::new(region.width(), region.height(), 1));
+        s.dirty = false;
+        let a = s.admit("c".into(), record(&h), Some(&view)).unwrap();
+        assert_eq!(a, Admission::Accepted { improves: false, fallback_px: 0, weak_px: 0, dropped: vec![] });
+        assert!(!s.needs_fill());
+        // The fallback made part of the result: a view seeing it improves things.
+        let mut p = Provenance::new(region.width(), region.height(), 1);
+        for y in 0..region.height() {
+            for x in 0..region.width() / 2 {
+                p.set(x, y, FALLBACK);
+            }
+        }
+        s.provenance = Some(p);
+        let a = s.admit("d".into(), record(&h), Some(&view)).unwrap();
+        match a {
+            Admission::Accepted { improves: true, fallback_px, weak_px: 0, .. } => {
+                assert!((40..=60).contains(&fallback_px), "{fallback_px}")
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(s.needs_fill());
+    }
+
+    #[test]
+    fn the_buffer_is_bounded_and_drops_the_least_contributing_view() {
+        let mut s = session_with_key();
+        s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+        let view = to8(&synth::facade(W, H, 9));
+        let h = Homography::identity();
+        for id in ["a", "b", "c"] {
+            s.admit(id.into(), record(&h), Some(&view)).unwrap();
+        }
+        for (b, c) in s.buffer.iter_mut().zip([30, 5, 20]) {
+            b.contribution = Some(c);
+        }
+        let a = s.admit("d".into(), record(&h), Some(&view)).unwrap();
+        match a {
+            Admission::Accepted { dropped, .. } => assert_eq!(dropped, vec!["b".to_owned()]),
+            other => panic!("{other:?}"),
+        }
+        let ids: Vec<&str> = s.buffered().iter().map(|b| b.id.as_str()).collect();
+        assert_eq!(ids, ["a", "c", "d"]);
+    }
+
+    #[test]
+    fn a_worse_fill_is_not_emitted() {
+        let mut s = session_with_key();
+        s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+        let first = s.fill(&mut ()).unwrap();
+        let image = first.image.expect("the first result is always emitted");
+        // Outside the mask the keyframe is untouched.
+        assert_eq!(image.get(5, 5), s.key.as_ref().unwrap().rgb.get(5, 5));
+        s.best = Some(first.score + 0.5);
+        s.dirty = true;
+        let second = s.fill(&mut ()).unwrap();
+        assert!(second.image.is_none(), "a lower score replaced the result");
+    }
+
+    #[test]
+    fn a_new_key_hands_back_the_buffer_and_a_new_mask_asks_for_pixels_again() {
+        let mut s = session_with_key();
+        let view = to8(&synth::facade(W, H, 9));
+        // Before the mask: alignments only.
+        s.admit("a".into(), record(&Homography::identity()), Some(&view)).unwrap();
+        assert!(!s.buffered()[0].has_pixels());
+        assert!(!s.needs_fill());
+        let again = s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+        assert_eq!(again, vec!["a".to_owned()]);
+        assert_eq!(s.missing_pixels(), vec!["a".to_owned()]);
+        s.admit("a".into(), record(&Homography::identity()), Some(&view)).unwrap();
+        assert!(s.missing_pixels().is_empty());
+        assert_eq!(s.buffered().len(), 1);
+        let back = s.set_key("key2".into(), synth::facade(W, H, 6));
+        assert_eq!(back, vec!["a".to_owned()]);
+        assert!(s.buffered().is_empty() && s.mask_id().is_none());
+    }
+
+    #[test]
+    fn the_digest_follows_the_inputs_not_their_order() {
+        let view = to8(&synth::facade(W, H, 9));
+        let h = Homography::identity();
+        let build = |ids: &[&str]| {
+            let mut s = session_with_key();
+            s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+            for id in ids {
+                s.admit((*id).into(), record(&h), Some(&view)).unwrap();
+            }
+            s.inputs_digest()
+        };
+        assert_eq!(build(&["a", "b"]), build(&["b", "a"]));
+        assert_ne!(build(&["a", "b"]), build(&["a", "c"]));
+        assert_ne!(build(&["a"]), build(&["a", "b"]));
+    }
+
+    #[test]
+    fn a_mask_of_the_wrong_size_is_refused() {
+        let mut s = session_with_key();
+        let e = s.set_mask("m".into(), Mask::new(10, 10, 255)).unwrap_err();
+        assert!(matches!(e, SessionError::MaskSize { .. }));
+    }
+}

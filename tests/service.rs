@@ -1,0 +1,429 @@
+//! End-to-end tests of `clearview run` and `clearview check-config`: the real binary on a
+//! temporary folder, fed like a camera would feed it.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use clearview::geometry::Homography;
+use clearview::imaging::convert::{mask_to_luma8, to_rgb8};
+use clearview::imaging::{Mask, RgbF32};
+use clearview::synth::{self, Occluder};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde_json::Value;
+
+const W: usize = 400;
+const H: usize = 300;
+
+fn bin() -> &'static str {
+    env!("CARGO_BIN_EXE_clearview")
+}
+
+/// A facade, its keyframe with a tree in front (and the truth without it), and views.
+struct Scene {
+    scene: RgbF32,
+    centre: Homography,
+    truth: RgbF32,
+    key: RgbF32,
+    mask: Mask,
+    rng: ChaCha8Rng,
+}
+
+impl Scene {
+    fn new(seed: u64) -> Self {
+        let scene = synth::facade(W * 3 / 2, H * 3 / 2, seed);
+        let centre = Homography::translation(W as f64 / 4.0, H as f64 / 4.0);
+        let truth = synth::render_view(&scene, &centre, W, H, [0.5; 3]);
+        let mut key = truth.clone();
+        let mut mask = Mask::new(W, H, 0);
+        synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Tree, 200.0, 160.0, 110.0, 3);
+        Self { scene, centre, truth, key, mask, rng: ChaCha8Rng::seed_from_u64(seed) }
+    }
+
+    /// A view from elsewhere with its own occluder at `(cx, cy)` (keyframe coordinates
+    /// roughly) of `size` (0: none).
+    fn view(&mut self, i: u64, cx: f32, size: f32) -> RgbF32 {
+        let key_to_view = synth::random_homography(&mut self.rng, W, H, 0.1, 0.2, (0.9, 1.1));
+        let view_to_scene = self.centre.after(&key_to_view.inverse().unwrap());
+        let mut v = synth::render_view(&self.scene, &view_to_scene, W, H, [0.5; 3]);
+        if size > 0.0 {
+            synth::paint_occluder(&mut v, None, Occluder::Person, cx, 170.0, size, 100 + i);
+        }
+        synth::expose(&mut v, 0.9 + 0.03 * i as f32, 0.01);
+        v
+    }
+
+    /// Mean absolute error over the masked pixels of `img` against the truth.
+    fn masked_error(&self, img: &image::RgbImage) -> f64 {
+        let (mut sum, mut n) = (0.0, 0usize);
+        for y in 0..H {
+            for x in 0..W {
+                if self.mask.is_hole(x, y) {
+                    let t = self.truth.get(x, y);
+                    let p = img.get_pixel(x as u32, y as u32).0;
+                    sum += (0..3).map(|c| (t[c] as f64 - p[c] as f64 / 255.0).abs()).sum::<f64>() / 3.0;
+                    n += 1;
+                }
+            }
+        }
+        sum / n.max(1) as f64
+    }
+}
+
+fn png_bytes(img: &RgbF32) -> Vec<u8> {
+    let mut out = std::io::Cursor::new(Vec::new());
+    to_rgb8(img).write_to(&mut out, image::ImageFormat::Png).unwrap();
+    out.into_inner()
+}
+
+/// Writes under a hidden name and renames: what a careful uploader does.
+fn put(path: &Path, bytes: &[u8]) {
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    let tmp = path.with_file_name(format!(".{}.upload", path.file_name().unwrap().to_string_lossy()));
+    std::fs::write(&tmp, bytes).unwrap();
+    std::fs::rename(&tmp, path).unwrap();
+}
+
+fn put_key_and_mask(dir: &Path, s: &Scene) {
+    let mut mask_png = std::io::Cursor::new(Vec::new());
+    mask_to_luma8(&s.mask).write_to(&mut mask_png, image::ImageFormat::Png).unwrap();
+    put(&dir.join("key.mask.png"), &mask_png.into_inner());
+    put(&dir.join("key.png"), &png_bytes(&s.key));
+}
+
+struct Folders {
+    _tmp: tempfile::TempDir,
+    root: PathBuf,
+    inbox: PathBuf,
+    outbox: PathBuf,
+    state: PathBuf,
+    config: PathBuf,
+}
+
+fn folders(extra: &str) -> Folders {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().to_owned();
+    let (inbox, outbox, state) = (root.join("inbox"), root.join("outbox"), root.join("state"));
+    let config = root.join("clearview.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[watch]\ndir = {:?}\nquiet_period_ms = 300\n[output]\ndir = {:?}\nhistory = 3\n[state]\ndir = {:?}\n\
+             [compute]\ngrace_period_ms = 15000\n{extra}",
+            inbox, outbox, state
+        ),
+    )
+    .unwrap();
+    Folders { _tmp: tmp, root, inbox, outbox, state, config }
+}
+
+/// The running service; killed if a test fails before stopping it.
+struct Service {
+    child: Child,
+}
+
+impl Service {
+    fn start(f: &Folders, run: usize) -> Self {
+        let log = std::fs::File::create(f.root.join(format!("service-{run}.log"))).unwrap();
+        let child = Command::new(bin())
+            .args(["run", "--config"])
+            .arg(&f.config)
+            .env("CLEARVIEW_LOG", "clearview=debug")
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .unwrap();
+        Self { child }
+    }
+
+    /// SIGTERM, then the exit code.
+    fn terminate(mut self) -> i32 {
+        let ok = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status().unwrap();
+        assert!(ok.success());
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return status.code().expect("exited, not killed by a signal");
+            }
+            assert!(Instant::now() < deadline, "the service did not stop within 30 s of SIGTERM");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+impl Drop for Service {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn events(f: &Folders) -> Vec<Value> {
+    let Ok(text) = std::fs::read_to_string(f.outbox.join("events.jsonl")) else { return Vec::new() };
+    text.lines().map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON: {l}: {e}"))).collect()
+}
+
+fn of_kind<'a>(events: &'a [Value], kind: &str) -> Vec<&'a Value> {
+    events.iter().filter(|e| e["event"] == kind).collect()
+}
+
+/// Waits until `pred` holds on the events, or fails with the log.
+fn wait_for(f: &Folders, what: &str, secs: u64, pred: impl Fn(&[Value]) -> bool) -> Vec<Value> {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        let ev = events(f);
+        if pred(&ev) {
+            return ev;
+        }
+        if Instant::now() > deadline {
+            let mut logs: Vec<PathBuf> = std::fs::read_dir(&f.root)
+                .unwrap()
+                .flatten()
+                .map(|e| e.path())
+                .filter(|p| p.extension().is_some_and(|e| e == "log"))
+                .collect();
+            logs.sort();
+            let log = logs.last().map(|p| std::fs::read_to_string(p).unwrap_or_default()).unwrap_or_default();
+            panic!("timed out waiting for {what}\nevents:\n{ev:#?}\nlog:\n{log}");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Events about `file` (its `file` field).
+fn about<'a>(events: &'a [Value], file: &str) -> Vec<&'a Value> {
+    events.iter().filter(|e| e["file"] == file).collect()
+}
+
+fn no_temporaries(dir: &Path) {
+    for entry in std::fs::read_dir(dir).unwrap().flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        assert!(!name.contains("clearview-tmp"), "temporary left behind: {}", entry.path().display());
+        if entry.file_type().unwrap().is_dir() {
+            no_temporaries(&entry.path());
+        }
+    }
+}
+
+#[test]
+fn check_config_accepts_the_shipped_file_and_refuses_bad_ones() {
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/clearview.toml");
+    let s = Command::new(bin()).arg("check-config").arg(&shipped).output().unwrap();
+    assert_eq!(s.status.code(), Some(0), "{}", String::from_utf8_lossy(&s.stderr));
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(&bad, "[watch]\nquiet_period = 3\n").unwrap();
+    let s = Command::new(bin()).arg("check-config").arg(&bad).output().unwrap();
+    assert_eq!(s.status.code(), Some(64));
+    assert!(String::from_utf8_lossy(&s.stderr).contains("quiet_period"), "the error names the key");
+    let s = Command::new(bin()).args(["run", "--config"]).arg(&bad).output().unwrap();
+    assert_eq!(s.status.code(), Some(64), "run refuses a bad configuration with 64");
+    let s = Command::new(bin()).arg("check-config").arg(dir.path().join("missing.toml")).output().unwrap();
+    assert_eq!(s.status.code(), Some(64));
+}
+
+#[test]
+fn a_session_improves_as_views_arrive_and_bad_files_are_skipped() {
+    let f = folders("");
+    let service = Service::start(&f, 1);
+    let mut scene = Scene::new(11);
+    let session = f.inbox.join("facade");
+    put_key_and_mask(&session, &scene);
+    wait_for(&f, "the session to start", 20, |e| !of_kind(e, "mask_set").is_empty());
+
+    // View 1 arrives slowly, in pieces, under its final name: it must not be read early.
+    let v1 = png_bytes(&scene.view(1, 120.0, 70.0));
+    let mut file = std::fs::File::create(session.join("v1.png")).unwrap();
+    for chunk in v1.chunks(v1.len() / 4 + 1) {
+        file.write_all(chunk).unwrap();
+        file.flush().unwrap();
+        std::thread::sleep(Duration::from_millis(120));
+    }
+    drop(file);
+    let ev = wait_for(&f, "a result from v1", 20, |e| !of_kind(e, "result_updated").is_empty());
+    assert!(about(&ev, "v1.png").iter().all(|e| e["event"] != "file_skipped"), "v1 was read half-written");
+
+    // View 2 uploaded as .part and renamed; a corrupt file, an empty one, another scene.
+    let v2 = png_bytes(&scene.view(2, 300.0, 60.0));
+    std::fs::write(session.join("v2.png.part"), &v2).unwrap();
+    std::thread::sleep(Duration::from_millis(400));
+    std::fs::rename(session.join("v2.png.part"), session.join("v2.png")).unwrap();
+    let mut corrupt = png_bytes(&scene.view(9, 0.0, 0.0));
+    corrupt.truncate(corrupt.len() / 3);
+    put(&session.join("corrupt.png"), &corrupt);
+    put(&session.join("empty.png"), b"");
+    let other = Scene::new(999);
+    put(&session.join("other.png"), &png_bytes(&other.key));
+    put(&session.join("v3.png"), &png_bytes(&scene.view(3, 60.0, 50.0)));
+
+    let ev = wait_for(&f, "every file to be handled", 40, |e| {
+        ["v2.png", "v3.png", "corrupt.png", "empty.png", "other.png"].iter().all(|n| !about(e, n).is_empty())
+    });
+    assert!(about(&ev, "v2.png.part").is_empty(), "a .part file was read");
+    for bad in ["corrupt.png", "empty.png"] {
+        let e = about(&ev, bad);
+        assert_eq!(e.len(), 1, "{bad} reported once: {e:?}");
+        assert_eq!(e[0]["event"], "file_skipped");
+        assert!(e[0]["reason"].as_str().is_some_and(|r| !r.is_empty()));
+    }
+    let other_ev = about(&ev, "other.png");
+    assert_eq!(other_ev[0]["event"], "view_rejected", "{other_ev:?}");
+    for good in ["v1.png", "v2.png", "v3.png"] {
+        assert_eq!(about(&ev, good)[0]["event"], "view_accepted", "{good}");
+    }
+    // Wait for the result that used all three views.
+    let ev = wait_for(&f, "a result from all three views", 30, |e| {
+        std::fs::read(f.outbox.join("facade/result.json"))
+            .ok()
+            .and_then(|b| serde_json::from_slice::<Value>(&b).ok())
+            .is_some_and(|j| {
+                j["views"].as_array().unwrap().iter().filter(|v| v["status"] == "used").count() == 3
+            })
+            && !of_kind(e, "result_updated").is_empty()
+    });
+    let report: Value =
+        serde_json::from_slice(&std::fs::read(f.outbox.join("facade/result.json")).unwrap()).unwrap();
+    assert_eq!(report["version"], 1);
+    assert_eq!(report["keyframe"], "key.png");
+    assert_eq!(report["mask"], "file:key.mask.png");
+    assert_eq!(report["masked"].as_u64().unwrap() as usize, scene.mask.hole_count());
+    let from_views = report["from_views"].as_f64().unwrap();
+    let from_fallback = report["from_fallback"].as_f64().unwrap();
+    assert!((from_views + from_fallback - 1.0).abs() < 1e-6, "{from_views} + {from_fallback}");
+    let listed: Vec<&Value> = report["views"].as_array().unwrap().iter().collect();
+    let other_listed = listed.iter().find(|v| v["file"] == "other.png").expect("the rejected view is listed");
+    assert_eq!(other_listed["accepted"], false);
+    assert!(other_listed["reason"].as_str().is_some());
+    let used = listed.iter().find(|v| v["file"] == "v3.png").unwrap();
+    assert!(used["homography"].is_array() && used["quality"]["inliers"].as_u64().unwrap() >= 20);
+
+    // The results are valid images of the keyframe's size; history is numbered.
+    let result = image::open(f.outbox.join("facade/result.png")).unwrap().to_rgb8();
+    assert_eq!((result.width() as usize, result.height() as usize), (W, H));
+    let numbers: Vec<u64> =
+        of_kind(&ev, "result_updated").iter().map(|e| e["number"].as_u64().unwrap()).collect();
+    assert!(numbers.windows(2).all(|w| w[1] == w[0] + 1), "{numbers:?}");
+    let last = *numbers.last().unwrap();
+    assert!(f.outbox.join(format!("facade/history/result-{last:04}.png")).is_file());
+    // Outside the mask the keyframe is untouched.
+    let key8 = to_rgb8(&scene.key);
+    for (x, y) in [(5, 5), (W - 3, H - 3), (20, 250)] {
+        assert_eq!(result.get_pixel(x as u32, y as u32), key8.get_pixel(x as u32, y as u32));
+    }
+    // The masked region's error against the truth falls as views arrive (when views fill
+    // it: with the placeholder fill everything comes from the fallback).
+    let scores: Vec<f64> =
+        of_kind(&ev, "result_updated").iter().map(|e| e["from_views"].as_f64().unwrap()).collect();
+    assert!(
+        scores.windows(2).all(|w| w[1] >= w[0] - 1e-9),
+        "a result was replaced by a worse one: {scores:?}"
+    );
+    if from_views > 0.5 {
+        let first = image::open(
+            f.outbox.join(format!("facade/history/result-{:04}.png", numbers[0].max(last.saturating_sub(2)))),
+        )
+        .unwrap()
+        .to_rgb8();
+        let (e_first, e_last) = (scene.masked_error(&first), scene.masked_error(&result));
+        assert!(e_last <= e_first + 1e-3, "error rose from {e_first} to {e_last}");
+        assert!(e_last < 0.08, "masked error {e_last} against the truth");
+    } else {
+        eprintln!("note: the fill took only {from_views:.2} of the mask from views (placeholder fill?)");
+    }
+    for e in &ev {
+        eprintln!("{e}");
+    }
+    assert_eq!(service.terminate(), 0);
+    no_temporaries(&f.outbox);
+    no_temporaries(&f.state);
+}
+
+#[test]
+fn sigterm_mid_session_exits_0_and_leaves_nothing_half_written() {
+    let f = folders("");
+    let service = Service::start(&f, 1);
+    let mut scene = Scene::new(21);
+    let session = f.inbox.join("s");
+    put_key_and_mask(&session, &scene);
+    for i in 1..=4 {
+        put(&session.join(format!("v{i}.png")), &png_bytes(&scene.view(i, 100.0 + 60.0 * i as f32, 60.0)));
+    }
+    wait_for(&f, "a first view", 30, |e| !of_kind(e, "view_accepted").is_empty());
+    assert_eq!(service.terminate(), 0, "SIGTERM is a clean stop");
+    let ev = events(&f);
+    let stopped = of_kind(&ev, "service_stopped");
+    assert_eq!(stopped.len(), 1);
+    assert_eq!(stopped[0]["clean"], true);
+    no_temporaries(&f.outbox);
+    no_temporaries(&f.state);
+    // Whatever was written is whole.
+    if f.outbox.join("s/result.png").exists() {
+        image::open(f.outbox.join("s/result.png")).expect("a complete image");
+        let _: Value =
+            serde_json::from_slice(&std::fs::read(f.outbox.join("s/result.json")).unwrap()).unwrap();
+    }
+    for entry in std::fs::read_dir(f.state.join("sessions")).unwrap().flatten() {
+        let _: Value =
+            serde_json::from_slice(&std::fs::read(entry.path()).unwrap()).expect("whole state file");
+    }
+}
+
+#[test]
+fn a_restart_resumes_from_saved_alignments_without_rewriting_results() {
+    let f = folders("");
+    let mut scene = Scene::new(31);
+    let session = f.inbox.join("s");
+    put_key_and_mask(&session, &scene);
+    let views: Vec<Vec<u8>> = (1..=4).map(|i| png_bytes(&scene.view(i, 90.0 * i as f32, 60.0))).collect();
+    for (i, v) in views.iter().take(3).enumerate() {
+        put(&session.join(format!("v{}.png", i + 1)), v);
+    }
+    let service = Service::start(&f, 1);
+    let ev = wait_for(&f, "a result from three views", 30, |e| {
+        of_kind(e, "result_updated").iter().any(|r| r["views"] == 3)
+    });
+    let first_run_results = of_kind(&ev, "result_updated").len();
+    let first_views = of_kind(&ev, "view_accepted").len();
+    assert_eq!(first_views, 3);
+    assert!(of_kind(&ev, "view_accepted").iter().all(|e| e["from_state"] == false));
+    assert_eq!(service.terminate(), 0);
+    let before = std::fs::read(f.outbox.join("s/result.json")).unwrap();
+
+    // Second run: the same files, nothing new.
+    let lines_before = events(&f).len();
+    let service = Service::start(&f, 2);
+    let ev = wait_for(&f, "the session to resume", 30, |e| {
+        e.len() > lines_before && !of_kind(&e[lines_before..], "result_unchanged").is_empty()
+    });
+    let resumed = &ev[lines_before..];
+    let accepted = of_kind(resumed, "view_accepted");
+    assert_eq!(accepted.len(), 3, "{resumed:#?}");
+    assert!(accepted.iter().all(|e| e["from_state"] == true), "an alignment was recomputed: {accepted:#?}");
+    assert!(of_kind(resumed, "result_updated").is_empty(), "an unchanged result was written again");
+    assert_eq!(std::fs::read(f.outbox.join("s/result.json")).unwrap(), before);
+
+    // A new view after the restart: a new result, numbered on from the last.
+    put(&session.join("v4.png"), &views[3]);
+    let ev = wait_for(&f, "a result with the new view", 30, |e| {
+        of_kind(&e[lines_before..], "result_updated").iter().any(|r| r["views"] == 4)
+    });
+    let new = of_kind(&ev[lines_before..], "result_updated");
+    assert_eq!(new[0]["number"].as_u64().unwrap() as usize, first_run_results + 1);
+    assert_eq!(service.terminate(), 0);
+
+    // A corrupt state file is ignored and rebuilt: alignments are recomputed, nothing fails.
+    let state_file = f.state.join("sessions/s.json");
+    std::fs::write(&state_file, b"{\"version\": 1, \"alignments\": {\"v1.png").unwrap();
+    let lines_before = events(&f).len();
+    let service = Service::start(&f, 3);
+    let ev = wait_for(&f, "the session to be rebuilt", 30, |e| {
+        e.len() > lines_before
+            && of_kind(&e[lines_before..], "view_accepted").len() == 4
+            && !of_kind(&e[lines_before..], "result_updated").is_empty()
+    });
+    assert!(of_kind(&ev[lines_before..], "view_accepted").iter().all(|e| e["from_state"] == false));
+    assert_eq!(service.terminate(), 0);
+    let _: Value = serde_json::from_slice(&std::fs::read(&state_file).unwrap()).expect("rebuilt state");
+}
