@@ -1,12 +1,12 @@
-//! Writing results (edge layer): encode in memory, write to a temporary name beside the
-//! target, sync, rename. A reader never sees half a file, and a failed write leaves what
-//! was there before untouched.
+//! Writing results (edge layer): encode in memory, then write atomically (a reader never
+//! sees half a file, and a failed write leaves what was there before untouched).
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use image::{DynamicImage, ImageFormat};
 use thiserror::Error;
+
+use crate::daemon::emit::atomic_write;
 
 /// A result that could not be written.
 #[derive(Debug, Error)]
@@ -36,34 +36,10 @@ pub fn save_image(path: &Path, img: &DynamicImage) -> Result<(), SaveError> {
     write_atomic(path, bytes.get_ref())
 }
 
-/// Writes `bytes` to `path` through a temporary file in the same folder, synced and then
-/// renamed into place (and the folder synced, so the rename survives a power cut).
+/// Writes `bytes` to `path` atomically (the daemon's writer: temporary name beside it,
+/// synced, renamed), naming the path in the error.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), SaveError> {
-    let io = |source| SaveError::Io { path: path.to_owned(), source };
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let name = path.file_name().ok_or_else(|| io(std::io::Error::other("not a file name")))?;
-    let mut tmp_name = std::ffi::OsString::from(".");
-    tmp_name.push(name);
-    tmp_name.push(format!(".{}.tmp", std::process::id()));
-    let tmp = dir.join(tmp_name);
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        drop(f);
-        std::fs::rename(&tmp, path)?;
-        if let Ok(d) = std::fs::File::open(dir) {
-            let _ = d.sync_all();
-        }
-        Ok(())
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result.map_err(io)
+    atomic_write(path, bytes).map_err(|source| SaveError::Io { path: path.to_owned(), source })
 }
 
 #[cfg(test)]
