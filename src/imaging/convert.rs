@@ -1,6 +1,7 @@
 //! Conversions between the `image` crate's types and the core's planes (pure layer).
 
 use image::{DynamicImage, GrayImage, Rgb, RgbImage};
+use rayon::prelude::*;
 
 use super::{GrayF32, Mask, RgbF32};
 
@@ -32,24 +33,45 @@ pub fn luminance_into(rgb: &RgbF32, out: &mut GrayF32) {
     }
 }
 
-/// Luminance straight from a decoded image, without an intermediate RGB plane.
+/// Luminance straight from a decoded image, without an intermediate RGB plane. The 8-bit
+/// layouts (what cameras write) go through lookup tables, rows in parallel: for a 12 MP
+/// photograph this is a few milliseconds rather than the largest sequential step of an
+/// alignment.
 pub fn to_luminance(img: &DynamicImage) -> GrayF32 {
     match img {
         DynamicImage::ImageLuma8(g) => {
-            let (w, h) = (g.width() as usize, g.height() as usize);
-            GrayF32::from_vec(w, h, g.as_raw().iter().map(|&v| v as f32 / 255.0).collect())
+            let lut: [f32; 256] = std::array::from_fn(|v| v as f32 / 255.0);
+            map_rows(g.width() as usize, g.height() as usize, g.as_raw(), 1, |p| lut[p[0] as usize])
         }
         DynamicImage::ImageRgb8(c) => {
-            let (w, h) = (c.width() as usize, c.height() as usize);
-            let data = c
-                .as_raw()
-                .chunks_exact(3)
-                .map(|p| (LUMA[0] * p[0] as f32 + LUMA[1] * p[1] as f32 + LUMA[2] * p[2] as f32) / 255.0)
-                .collect();
-            GrayF32::from_vec(w, h, data)
+            let lut: [[f32; 256]; 3] =
+                std::array::from_fn(|k| std::array::from_fn(|v| LUMA[k] * v as f32 / 255.0));
+            map_rows(c.width() as usize, c.height() as usize, c.as_raw(), 3, |p| {
+                lut[0][p[0] as usize] + lut[1][p[1] as usize] + lut[2][p[2] as usize]
+            })
         }
         other => luminance(&to_rgb(other)),
     }
+}
+
+/// A grey plane from interleaved 8-bit pixels of `channels` samples, one row per task.
+fn map_rows(
+    width: usize,
+    height: usize,
+    raw: &[u8],
+    channels: usize,
+    f: impl Fn(&[u8]) -> f32 + Sync,
+) -> GrayF32 {
+    let mut out = GrayF32::new(width, height, 0.0);
+    if width == 0 {
+        return out;
+    }
+    out.as_mut_slice().par_chunks_mut(width).zip(raw.par_chunks(width * channels)).for_each(|(dst, src)| {
+        for (d, p) in dst.iter_mut().zip(src.chunks_exact(channels)) {
+            *d = f(p);
+        }
+    });
+    out
 }
 
 /// RGB plane to an 8-bit image, rounding and clamping.
