@@ -436,6 +436,9 @@ struct Group<'a> {
     /// For filled pixels, the image index they were copied from (the NNF).
     copied_from: Vec<usize>,
     heap: BinaryHeap<Entry>,
+    /// When the heap grows past this, its stale entries are dropped (then the limit
+    /// doubles from what is left): the heap stays near the front's size.
+    heap_limit: usize,
     /// The source − target offsets of the last few copies, tried first by the next
     /// search: a texture copied coherently tends to continue at the same offset.
     recent: Vec<(isize, isize)>,
@@ -571,6 +574,12 @@ impl Group<'_> {
                     self.priority[i] = p;
                     if p >= 0.0 {
                         self.heap.push(Entry { priority: p, index: i });
+                        if self.heap.len() > self.heap_limit {
+                            let (state, priority) = (&self.state, &self.priority);
+                            self.heap
+                                .retain(|e| state[e.index] == UNKNOWN && priority[e.index] == e.priority);
+                            self.heap_limit = (2 * self.heap.len()).max(4096);
+                        }
                     }
                 }
             }
@@ -769,6 +778,7 @@ fn fill_group(
         priority: vec![-1.0; n],
         copied_from: vec![usize::MAX; n],
         heap: BinaryHeap::new(),
+        heap_limit: 4096,
         recent: Vec::with_capacity(RECENT),
     };
     for y in region.y0..region.y1 {
