@@ -18,7 +18,8 @@
 //!    gradient turned by 90°, 0..=1 units) against the front normal `n` (Sobel on the
 //!    known/unknown indicator). `ε` only breaks ties in flat regions, where `D` is 0;
 //! 2. the highest-priority front pixel `p̂` is taken from a max-heap (lazy deletion: an
-//!    entry whose priority is no longer the pixel's is skipped);
+//!    entry whose priority is no longer the pixel's is skipped, and stale entries are
+//!    pruned whenever the heap doubles);
 //! 3. its best exemplar is the fully known source patch with the least SSD over the known
 //!    (or already filled) pixels of `Ψp̂`;
 //! 4. the unknown pixels of `Ψp̂` are copied from it and take `C(p̂)` as confidence; the
@@ -30,22 +31,36 @@
 //! a *search window*: the group's bounding box grown by `search_margin` times its larger
 //! side (at least `min_search_margin` pixels), clamped to the image, so that a small hole
 //! in a 12 MP frame looks at a few hundred pixels around it, not at 12 MP. A source patch
-//! must lie wholly in the window and wholly outside the original mask. Within it each
-//! target patch tries, in PatchMatch's manner (Barnes et al. 2009), with the nearest-
-//! neighbour field being "where each filled pixel was copied from":
+//! must lie wholly in the window and wholly outside the original mask (pixels filled
+//! earlier are never sources). Within it each target patch tries, in PatchMatch's manner
+//! (Barnes et al. 2009), with the nearest-neighbour field being "where each filled pixel
+//! was copied from", in this order (the first of equal SSDs wins):
 //! - *propagation*: the source offsets of the already filled pixels of `Ψp̂` (a coherent
-//!   copy continues where its neighbours' copy came from);
+//!   copy continues where its neighbours' copy came from), then the offsets of the last
+//!   8 copies;
+//! - *structure*: the patches 1, 2 and 3 patch widths away along the front normal (into
+//!   the known region) and both ways along the isophote, where an edge or a course that
+//!   enters the hole here comes from;
 //! - `random_samples` uniform samples of the window;
 //! - `search_rounds` rounds of random search around the best so far, the radius halving
-//!   from the window's size down to one pixel.
+//!   from the window's size down to one pixel, then the best's 8 neighbours.
+//!
+//! The SSD is computed on an 8-bit copy of the window (source pixels never change) with
+//! the "may be a centre" flag in the fourth byte, and stops as soon as it exceeds the best
+//! so far: on a large window every random candidate is a cache miss, and this is what
+//! bounds their cost.
 //!
 //! PatchMatch proper iterates over a fixed set of targets; here each target is solved
 //! once, when it is reached, and its known pixels change from one step to the next, so
 //! the field lives on the filled pixels instead. The cost of a step is bounded
 //! (`O(log window)` candidates of at most `(2r + 1)²` pixels, with early termination),
-//! whatever the size of the window: the whole fill is linear in the hole's area. That is
-//! the strategy for large holes (a 15 % mask of a 12 MP frame): no cap, no pyramid, just
-//! a bounded step; `benches/exemplar.rs` measures it.
+//! whatever the size of the window: the whole fill is linear in the hole's area (about
+//! 30 pixels per step with `r = 4`). That is the strategy for large holes (a 15 % mask of
+//! a 12 MP frame): no cap, no pyramid, just a bounded step; `benches/exemplar.rs`
+//! measures it (about 60 000 steps, some 3 s of one core's CPU time for that worst case
+//! on the project's build machine, about 100 MB of scratch beside the image). A pyramid
+//! would help the *quality* of such large fills (structure at a coarse scale first) more
+//! than their cost.
 //!
 //! # Degenerate holes
 //!
@@ -436,6 +451,9 @@ struct Group<'a> {
     /// For filled pixels, the image index they were copied from (the NNF).
     copied_from: Vec<usize>,
     heap: BinaryHeap<Entry>,
+    /// When the heap grows past this, its stale entries are dropped (then the limit
+    /// doubles from what is left): the heap stays near the front's size.
+    heap_limit: usize,
     /// The source − target offsets of the last few copies, tried first by the next
     /// search: a texture copied coherently tends to continue at the same offset.
     recent: Vec<(isize, isize)>,
@@ -571,6 +589,12 @@ impl Group<'_> {
                     self.priority[i] = p;
                     if p >= 0.0 {
                         self.heap.push(Entry { priority: p, index: i });
+                        if self.heap.len() > self.heap_limit {
+                            let (state, priority) = (&self.state, &self.priority);
+                            self.heap
+                                .retain(|e| state[e.index] == UNKNOWN && priority[e.index] == e.priority);
+                            self.heap_limit = (2 * self.heap.len()).max(4096);
+                        }
                     }
                 }
             }
@@ -769,6 +793,7 @@ fn fill_group(
         priority: vec![-1.0; n],
         copied_from: vec![usize::MAX; n],
         heap: BinaryHeap::new(),
+        heap_limit: 4096,
         recent: Vec::with_capacity(RECENT),
     };
     for y in region.y0..region.y1 {
