@@ -351,7 +351,8 @@ fn sample_view(
         for o in &mut out[j * stride..j * stride + side] {
             let inv = view_scale / hw;
             let (x, y) = ((hx * inv) as f32, (hy * inv) as f32);
-            let (x0, y0) = (x as usize, y as usize);
+            // In range by the check above, so the cheaper i32 conversion is exact.
+            let (x0, y0) = (x as i32 as usize, y as i32 as usize);
             let (fx, fy) = (x - x0 as f32, y - y0 as f32);
             let i0 = y0 * iw + x0;
             let (a, b) = (data[i0], data[i0 + 1]);
