@@ -58,6 +58,8 @@ print("\n".join(rows))
 EOF
 SPEED=$($PY bench/align_peer.py speed "$PAIRS/1mp" "$PAIRS/12mp" --runs 5)
 conditions "after the OpenCV peer" >> "$OUT.tmp"
+CPU=$(target/release/examples/align_cpu 1155 866 40; RAYON_NUM_THREADS=1 target/release/examples/align_cpu 1155 866 40 | sed 's/$/ (one thread)/'; target/release/examples/align_cpu 4000 3000 8)
+conditions "after the CPU-time run" >> "$OUT.tmp"
 MEM=$( { /usr/bin/time -v target/release/examples/align_12mp 2>&1; } | grep -E "^4000x3000|Maximum resident" )
 conditions "after the memory run" >> "$OUT.tmp"
 
@@ -68,6 +70,12 @@ conditions "after the memory run" >> "$OUT.tmp"
     cat "$OUT.tmp.crit"
     echo
     echo "$SPEED"
+    echo
+    echo "### Wall and CPU time per pair (\`target/release/examples/align_cpu\`, same work as the criterion loop)"
+    echo
+    echo '```'
+    echo "$CPU"
+    echo '```'
     echo
     echo "### Peak memory, 12 MP pair (\`/usr/bin/time -v target/release/examples/align_12mp\`)"
     echo
