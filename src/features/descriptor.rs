@@ -65,11 +65,12 @@ pub fn describe(
     let ratio = 0.5f32;
     let spacing = params.spacing * ratio;
     let sigma = params.orientation_sigma * ratio;
+    let window = OrientationWindow::new(sigma);
     corners
         .par_iter()
         .filter_map(|c| {
             let (sx, sy) = (c.x * ratio, c.y * ratio);
-            let angle = if params.upright { 0.0 } else { orientation(source, sx, sy, sigma)? };
+            let angle = if params.upright { 0.0 } else { orientation(source, sx, sy, &window)? };
             let d = sample(source, sx, sy, angle, spacing)?;
             let kp = Keypoint {
                 x: c.x * scale,
@@ -84,23 +85,44 @@ pub fn describe(
         .collect()
 }
 
+/// The Gaussian weights of [`orientation`]'s window, computed once per call of
+/// [`describe`] rather than once per sample.
+struct OrientationWindow {
+    r: isize,
+    /// Row-major `(2r+1)²` weights.
+    weights: Vec<f32>,
+}
+
+impl OrientationWindow {
+    fn new(sigma: f32) -> Self {
+        let r = (2.0 * sigma).ceil() as isize;
+        let inv = -1.0 / (2.0 * sigma * sigma);
+        let weights = (-r..=r)
+            .flat_map(|dy| (-r..=r).map(move |dx| ((dx * dx + dy * dy) as f32 * inv).exp()))
+            .collect();
+        Self { r, weights }
+    }
+}
+
 /// Direction of the Gaussian-weighted mean gradient around `(x, y)`; `None` near the
 /// border or where the gradient vanishes.
-fn orientation(img: &GrayF32, x: f32, y: f32, sigma: f32) -> Option<f32> {
-    let r = (2.0 * sigma).ceil() as isize;
+fn orientation(img: &GrayF32, x: f32, y: f32, window: &OrientationWindow) -> Option<f32> {
+    let r = window.r;
     let (cx, cy) = (x.round() as isize, y.round() as isize);
     let (w, h) = (img.width() as isize, img.height() as isize);
     if cx - r - 1 < 0 || cy - r - 1 < 0 || cx + r + 1 >= w || cy + r + 1 >= h {
         return None;
     }
-    let inv = -1.0 / (2.0 * sigma * sigma);
+    let side = (2 * r + 1) as usize;
     let (mut gx, mut gy) = (0.0f32, 0.0f32);
-    for dy in -r..=r {
-        for dx in -r..=r {
-            let (px, py) = ((cx + dx) as usize, (cy + dy) as usize);
-            let wgt = ((dx * dx + dy * dy) as f32 * inv).exp();
-            gx += wgt * (img.get(px + 1, py) - img.get(px - 1, py));
-            gy += wgt * (img.get(px, py + 1) - img.get(px, py - 1));
+    for (j, weights) in window.weights.chunks_exact(side).enumerate() {
+        let py = (cy - r) as usize + j;
+        let (up, row, down) = (img.row(py - 1), img.row(py), img.row(py + 1));
+        let x0 = (cx - r) as usize;
+        for (i, &wgt) in weights.iter().enumerate() {
+            let px = x0 + i;
+            gx += wgt * (row[px + 1] - row[px - 1]);
+            gy += wgt * (down[px] - up[px]);
         }
     }
     (gx * gx + gy * gy > 1e-12).then(|| gy.atan2(gx))

@@ -73,12 +73,7 @@ pub fn response(img: &GrayF32, params: &HarrisParams) -> GrayF32 {
             let y0 = b * BAND;
             let rows = dst.len() / w;
             band.tensor(img, y0 as isize - r as isize, rows + 2 * r);
-            band.window(&kernel, rows);
-            for (i, d) in dst.iter_mut().enumerate() {
-                let (a, bb, c) = (band.sxx[i], band.syy[i], band.sxy[i]);
-                let tr = a + bb;
-                *d = a * bb - c * c - k * tr * tr;
-            }
+            band.window(&kernel, rows, k, dst);
         },
     );
     out
@@ -92,10 +87,11 @@ struct Band {
     xx: Vec<f32>,
     yy: Vec<f32>,
     xy: Vec<f32>,
-    /// After the vertical pass (band rows only), then reused for the horizontal one.
+    /// After the vertical pass (band rows only).
     vxx: Vec<f32>,
     vyy: Vec<f32>,
     vxy: Vec<f32>,
+    /// One row of each product after both passes, and a padded row for the horizontal one.
     sxx: Vec<f32>,
     syy: Vec<f32>,
     sxy: Vec<f32>,
@@ -114,9 +110,9 @@ impl Band {
             vxx: vec![0.0; n],
             vyy: vec![0.0; n],
             vxy: vec![0.0; n],
-            sxx: vec![0.0; n],
-            syy: vec![0.0; n],
-            sxy: vec![0.0; n],
+            sxx: vec![0.0; w],
+            syy: vec![0.0; w],
+            sxy: vec![0.0; w],
             padded: vec![0.0; w + 2 * r],
         }
     }
@@ -153,41 +149,60 @@ impl Band {
         }
     }
 
-    /// The Gaussian window over the products: vertical, then horizontal, for the band's
-    /// `rows` output rows; results in `sxx`, `syy`, `sxy`.
-    fn window(&mut self, kernel: &[f32], rows: usize) {
+    /// The Gaussian window over the products (vertical, then horizontal) for the band's
+    /// `rows` output rows, and the response `det − k·trace²` into `dst`. The kernel is
+    /// symmetric, so mirrored taps are added before multiplying.
+    fn window(&mut self, kernel: &[f32], rows: usize, k: f32, dst: &mut [f32]) {
         let (w, r) = (self.w, self.r);
-        for (src, dst) in [(&self.xx, &mut self.vxx), (&self.yy, &mut self.vyy), (&self.xy, &mut self.vxy)] {
-            let dst = &mut dst[..rows * w];
-            dst.iter_mut().for_each(|v| *v = 0.0);
+        for (src, out) in [(&self.xx, &mut self.vxx), (&self.yy, &mut self.vyy), (&self.xy, &mut self.vxy)] {
             for j in 0..rows {
-                let d = &mut dst[j * w..(j + 1) * w];
-                for (i, &kv) in kernel.iter().enumerate() {
-                    let s = &src[(j + i) * w..(j + i + 1) * w];
-                    for (a, b) in d.iter_mut().zip(s) {
-                        *a += kv * b;
-                    }
+                let d = &mut out[j * w..(j + 1) * w];
+                let centre = &src[(j + r) * w..(j + r + 1) * w];
+                for (a, &b) in d.iter_mut().zip(centre) {
+                    *a = kernel[r] * b;
+                }
+                for (i, &kv) in kernel[..r].iter().enumerate() {
+                    let (above, below) =
+                        (&src[(j + i) * w..(j + i + 1) * w], &src[(j + 2 * r - i) * w..][..w]);
+                    add_symmetric_tap(d, above, below, kv);
                 }
             }
         }
         let padded = &mut self.padded;
-        for (src, dst) in [(&self.vxx, &mut self.sxx), (&self.vyy, &mut self.syy), (&self.vxy, &mut self.sxy)]
-        {
-            for j in 0..rows {
+        for j in 0..rows {
+            for (src, out) in
+                [(&self.vxx, &mut self.sxx), (&self.vyy, &mut self.syy), (&self.vxy, &mut self.sxy)]
+            {
                 let row = &src[j * w..(j + 1) * w];
                 padded[r..r + w].copy_from_slice(row);
                 let (first, last) = (row[0], row[w - 1]);
                 padded[..r].iter_mut().for_each(|v| *v = first);
                 padded[r + w..].iter_mut().for_each(|v| *v = last);
-                let d = &mut dst[j * w..(j + 1) * w];
-                d.iter_mut().for_each(|v| *v = 0.0);
-                for (i, &kv) in kernel.iter().enumerate() {
-                    for (a, b) in d.iter_mut().zip(&padded[i..i + w]) {
-                        *a += kv * b;
-                    }
+                for (a, &b) in out.iter_mut().zip(&padded[r..r + w]) {
+                    *a = kernel[r] * b;
+                }
+                for (i, &kv) in kernel[..r].iter().enumerate() {
+                    let (left, right) = (&padded[i..i + w], &padded[2 * r - i..2 * r - i + w]);
+                    add_symmetric_tap(out, left, right, kv);
                 }
             }
+            let d = &mut dst[j * w..(j + 1) * w];
+            for (((d, &a), &bb), &c) in d.iter_mut().zip(&self.sxx).zip(&self.syy).zip(&self.sxy) {
+                let tr = a + bb;
+                *d = a * bb - c * c - k * tr * tr;
+            }
         }
+    }
+}
+
+/// `d += k·(a + b)` elementwise: a pair of mirrored taps of a symmetric kernel. Its own
+/// function, so the three slices are known not to overlap and the loop vectorises.
+#[inline(never)]
+fn add_symmetric_tap(d: &mut [f32], a: &[f32], b: &[f32], k: f32) {
+    let n = d.len();
+    let (a, b) = (&a[..n], &b[..n]);
+    for i in 0..n {
+        d[i] += k * (a[i] + b[i]);
     }
 }
 
@@ -202,27 +217,29 @@ pub fn harris(img: &GrayF32, params: &HarrisParams) -> Vec<Corner> {
     let max = r.as_slice().iter().copied().fold(0.0f32, f32::max);
     let threshold = (params.relative_threshold * max).max(params.absolute_threshold);
     let nr = params.nms_radius as isize;
+    // Neighbour offsets, nearest ring first: most pixels lose to a direct neighbour, so
+    // they are rejected after a comparison or two.
+    let mut offsets: Vec<(isize, isize)> =
+        (-nr..=nr).flat_map(|dy| (-nr..=nr).map(move |dx| (dx, dy))).filter(|&o| o != (0, 0)).collect();
+    offsets.sort_by_key(|&(dx, dy)| (dx.abs().max(dy.abs()), dy, dx));
 
     // Local maxima, row-parallel.
     let candidates: Vec<Corner> = (b..h - b)
         .into_par_iter()
         .flat_map_iter(|y| {
-            let r = &r;
+            let (r, offsets) = (&r, &offsets);
+            let data = r.as_slice();
             (b..w - b).filter_map(move |x| {
-                let v = r.get(x, y);
+                let i = y * w + x;
+                let v = data[i];
                 if v <= threshold {
                     return None;
                 }
-                for dy in -nr..=nr {
-                    for dx in -nr..=nr {
-                        if dx == 0 && dy == 0 {
-                            continue;
-                        }
-                        let u = r.get((x as isize + dx) as usize, (y as isize + dy) as usize);
-                        // Ties are broken towards the earlier pixel, so plateaus yield one.
-                        if u > v || (u == v && (dy < 0 || (dy == 0 && dx < 0))) {
-                            return None;
-                        }
+                for &(dx, dy) in offsets {
+                    let u = data[(i as isize + dy * w as isize + dx) as usize];
+                    // Ties are broken towards the earlier pixel, so plateaus yield one.
+                    if u > v || (u == v && (dy < 0 || (dy == 0 && dx < 0))) {
+                        return None;
                     }
                 }
                 let (ox, oy) = subpixel_offset(r, x, y);

@@ -183,47 +183,70 @@ fn match_one(
     let s = params.search as isize;
     let side = (2 * r + 1) as usize;
     let big = (2 * (r + s) + 1) as usize;
+    // Rows are padded with zeros to whole SIMD chunks so the correlation below runs on
+    // fixed-width chunks the compiler vectorises: template rows to `tw`, view rows to
+    // `vw` (every shift's `tw`-wide slice stays inside its row).
+    let tw = side.next_multiple_of(LANES);
+    let vw = big - side + tw;
 
     // Template from the key at its octave.
     let (kx, ky) = (p.x / step, p.y / step);
-    let mut t = Vec::with_capacity(side * side);
-    for dy in -r..=r {
-        for dx in -r..=r {
-            t.push(bilinear(key_img, (kx + dx as f64) as f32, (ky + dy as f64) as f32)?);
-        }
+    let mut t = vec![0.0f32; side * tw];
+    sample_template(key_img, kx, ky, r, &mut t, tw)?;
+    let mut valid = vec![0.0f32; side * side];
+    for (dst, src) in valid.chunks_exact_mut(side).zip(t.chunks_exact(tw)) {
+        dst.copy_from_slice(&src[..side]);
     }
-    if !normalise(&mut t) {
+    if !normalise(&mut valid) {
         return None;
     }
+    for (dst, src) in t.chunks_exact_mut(tw).zip(valid.chunks_exact(side)) {
+        dst[..side].copy_from_slice(src);
+    }
     // View samples over the template plus the search margin, through h.
-    let mut v = Vec::with_capacity(big * big);
-    for dy in -(r + s)..=(r + s) {
-        for dx in -(r + s)..=(r + s) {
-            let q = Point2::new(p.x + dx as f64 * step, p.y + dy as f64 * step);
-            let m = h.apply(q)?;
-            v.push(bilinear(view_img, (m.x * view_scale) as f32, (m.y * view_scale) as f32)?);
+    let mut v = vec![0.0f32; big * vw];
+    sample_view(view_img, h, p, r + s, step, view_scale, &mut v, vw)?;
+    // Window sums of the view samples and their squares (summed-area tables, in f64 so
+    // the variance keeps its digits).
+    let n = (side * side) as f64;
+    let stride = big + 1;
+    let mut sat = vec![0.0f64; stride * stride];
+    let mut sat2 = vec![0.0f64; stride * stride];
+    for y in 0..big {
+        let (mut row, mut row2) = (0.0f64, 0.0f64);
+        for x in 0..big {
+            let a = v[y * vw + x] as f64;
+            row += a;
+            row2 += a * a;
+            sat[(y + 1) * stride + x + 1] = sat[y * stride + x + 1] + row;
+            sat2[(y + 1) * stride + x + 1] = sat2[y * stride + x + 1] + row2;
         }
     }
+    let window = |t: &[f64], x: usize, y: usize| {
+        t[(y + side) * stride + x + side] - t[y * stride + x + side] - t[(y + side) * stride + x]
+            + t[y * stride + x]
+    };
     // NCC at every integer shift.
-    let n = (side * side) as f32;
     let shifts = (2 * s + 1) as usize;
     let mut scores = vec![f32::MIN; shifts * shifts];
     for sy in 0..shifts {
         for sx in 0..shifts {
-            let (mut sum, mut sum2, mut cross) = (0.0f32, 0.0f32, 0.0f32);
+            let mut acc = [0.0f32; LANES];
             for ty in 0..side {
-                let row = &v[(sy + ty) * big + sx..(sy + ty) * big + sx + side];
-                let trow = &t[ty * side..(ty + 1) * side];
-                for (a, b) in row.iter().zip(trow) {
-                    sum += a;
-                    sum2 += a * a;
-                    cross += a * b;
+                let row = &v[(sy + ty) * vw + sx..][..tw];
+                let trow = &t[ty * tw..][..tw];
+                for (a, b) in row.chunks_exact(LANES).zip(trow.chunks_exact(LANES)) {
+                    for k in 0..LANES {
+                        acc[k] += a[k] * b[k];
+                    }
                 }
             }
-            let var = sum2 - sum * sum / n;
+            let cross: f32 = acc.iter().sum();
+            let sum = window(&sat, sx, sy);
+            let var = window(&sat2, sx, sy) - sum * sum / n;
             // The template has zero mean and unit norm, so the cross term needs no mean
             // correction.
-            scores[sy * shifts + sx] = if var > 1e-12 { cross / var.sqrt() } else { f32::MIN };
+            scores[sy * shifts + sx] = if var > 1e-12 { cross / (var.sqrt() as f32) } else { f32::MIN };
         }
     }
     let (best, &score) = scores.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1))?;
@@ -241,6 +264,108 @@ fn match_one(
     let dy = (by as f32 - s as f32 + oy) as f64 * step;
     let matched = h.apply(Point2::new(p.x + dx, p.y + dy))?;
     Some(Correspondence::new(p, matched))
+}
+
+/// Lanes of the correlation's accumulators (two SSE or one AVX register of f32).
+const LANES: usize = 8;
+
+/// The `(2r+1)²` template centred on `(x, y)` of `img`, row `j` into `out[j * stride..]`;
+/// `None` if it leaves the image. The offsets are whole pixels, so all samples share one
+/// set of bilinear weights.
+fn sample_template(img: &GrayF32, x: f64, y: f64, r: isize, out: &mut [f32], stride: usize) -> Option<()> {
+    let side = (2 * r + 1) as usize;
+    let (x0, y0) = (x - r as f64, y - r as f64);
+    let (w, h) = (img.width() as f64, img.height() as f64);
+    if x0 >= 0.0 && y0 >= 0.0 && x0.floor() + side as f64 <= w - 1.0 && y0.floor() + side as f64 <= h - 1.0 {
+        let (ix, iy) = (x0.floor() as usize, y0.floor() as usize);
+        let (fx, fy) = ((x0 - x0.floor()) as f32, (y0 - y0.floor()) as f32);
+        for j in 0..side {
+            let (top, bottom) =
+                (&img.row(iy + j)[ix..ix + side + 1], &img.row(iy + j + 1)[ix..ix + side + 1]);
+            for (i, o) in out[j * stride..j * stride + side].iter_mut().enumerate() {
+                let t = top[i] + (top[i + 1] - top[i]) * fx;
+                let b = bottom[i] + (bottom[i + 1] - bottom[i]) * fx;
+                *o = t + (b - t) * fy;
+            }
+        }
+        return Some(());
+    }
+    for j in 0..side {
+        for i in 0..side {
+            let (dx, dy) = (i as isize - r, j as isize - r);
+            out[j * stride + i] = bilinear(img, (x + dx as f64) as f32, (y + dy as f64) as f32)?;
+        }
+    }
+    Some(())
+}
+
+/// The view through `h` on the key's grid around `p`: sample `(i, j)` (row `j` into
+/// `out[j * stride..]`) shows key point `p + ((i, j) − reach)·step`, read at
+/// `view_scale` × its view position; `None` if any sample leaves the view.
+#[allow(clippy::too_many_arguments)]
+fn sample_view(
+    img: &GrayF32,
+    h: &Homography,
+    p: Point2<f64>,
+    reach: isize,
+    step: f64,
+    view_scale: f64,
+    out: &mut [f32],
+    stride: usize,
+) -> Option<()> {
+    let side = (2 * reach + 1) as usize;
+    let key_at =
+        |i: isize, j: isize| Point2::new(p.x + (i - reach) as f64 * step, p.y + (j - reach) as f64 * step);
+    // The window is a square and h keeps it in front of the camera (w > 0 at its corners,
+    // so everywhere in it), so its image is the convex hull of the corners' images: if
+    // those are inside (with a margin for rounding), every sample is.
+    let (w, hgt) = (img.width() as f64, img.height() as f64);
+    let inside =
+        [(0, 0), (side as isize - 1, 0), (0, side as isize - 1), (side as isize - 1, side as isize - 1)]
+            .iter()
+            .all(|&(i, j)| {
+                let q = key_at(i, j);
+                h.w(q) > 1e-9
+                    && h.apply(q).is_some_and(|m| {
+                        let (x, y) = (m.x * view_scale, m.y * view_scale);
+                        x >= 0.5 && y >= 0.5 && x <= w - 2.5 && y <= hgt - 2.5
+                    })
+            });
+    if !inside {
+        for j in 0..side {
+            for i in 0..side {
+                let m = h.apply(key_at(i as isize, j as isize))?;
+                out[j * stride + i] = bilinear(img, (m.x * view_scale) as f32, (m.y * view_scale) as f32)?;
+            }
+        }
+        return Some(());
+    }
+    let m = h.matrix();
+    let (iw, data) = (img.width(), img.as_slice());
+    for j in 0..side {
+        let q = key_at(0, j as isize);
+        let mut hx = m[(0, 0)] * q.x + m[(0, 1)] * q.y + m[(0, 2)];
+        let mut hy = m[(1, 0)] * q.x + m[(1, 1)] * q.y + m[(1, 2)];
+        let mut hw = m[(2, 0)] * q.x + m[(2, 1)] * q.y + m[(2, 2)];
+        let (dx, dy, dw) = (m[(0, 0)] * step, m[(1, 0)] * step, m[(2, 0)] * step);
+        for o in &mut out[j * stride..j * stride + side] {
+            let inv = view_scale / hw;
+            let (x, y) = ((hx * inv) as f32, (hy * inv) as f32);
+            // In range by the check above, so the cheaper i32 conversion is exact.
+            let (x0, y0) = (x as i32 as usize, y as i32 as usize);
+            let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+            let i0 = y0 * iw + x0;
+            let (a, b) = (data[i0], data[i0 + 1]);
+            let (c, e) = (data[i0 + iw], data[i0 + iw + 1]);
+            let top = a + (b - a) * fx;
+            let bottom = c + (e - c) * fx;
+            *o = top + (bottom - top) * fy;
+            hx += dx;
+            hy += dy;
+            hw += dw;
+        }
+    }
+    Some(())
 }
 
 #[cfg(test)]

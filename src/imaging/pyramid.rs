@@ -23,14 +23,23 @@ pub fn half(src: &GrayF32) -> GrayF32 {
                     *c += k * s;
                 }
             }
-            for (nx, d) in dst.iter_mut().enumerate() {
+            // Interior without index clamping (the taps of output nx are 2nx−2..=2nx+2),
+            // then the few border outputs with it.
+            let clamped = |nx: usize| {
                 let x = 2 * nx as isize;
-                let mut acc = 0.0;
-                for (i, k) in K.iter().enumerate() {
-                    let xx = (x + i as isize - 2).clamp(0, w as isize - 1) as usize;
-                    acc += k * col[xx];
-                }
-                *d = acc;
+                K.iter()
+                    .enumerate()
+                    .map(|(i, k)| k * col[(x + i as isize - 2).clamp(0, w as isize - 1) as usize])
+                    .sum::<f32>()
+            };
+            let inner = if w >= 5 { 1..(w - 3) / 2 + 1 } else { 0..0 };
+            for (nx, d) in dst.iter_mut().enumerate() {
+                *d = if inner.contains(&nx) {
+                    let c = &col[2 * nx - 2..2 * nx + 3];
+                    K[0] * c[0] + K[1] * c[1] + K[2] * c[2] + K[3] * c[3] + K[4] * c[4]
+                } else {
+                    clamped(nx)
+                };
             }
         },
     );
