@@ -4,7 +4,7 @@
 //! The pixels a fit sees are never all of the same surface: a ring around a hole holds
 //! bits of the occluder's halo, the view may have its own tree there. So the fit starts
 //! from quantiles (robust to a quarter of outliers) and refines by iteratively reweighted
-//! least squares with Tukey's biweight, whose weight is zero for gross outliers.
+//! moment matching with Tukey's biweight, whose weight is zero for gross outliers.
 
 /// `key ≈ gain · view + offset`, per channel.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -81,7 +81,7 @@ fn quantile(v: &[f32], q: f32) -> f32 {
     *m
 }
 
-/// Robust `y ≈ g·x + b`: quantile start, then Tukey IRLS.
+/// Robust `y ≈ g·x + b`: quantile start, then Tukey-weighted moment matching.
 fn fit_line(x: &[f32], y: &[f32], params: &GainParams) -> (f32, f32) {
     let (lo, hi) = (1.0 / params.max_gain, params.max_gain);
     let spread_x = quantile(x, 0.75) - quantile(x, 0.25);
@@ -95,7 +95,7 @@ fn fit_line(x: &[f32], y: &[f32], params: &GainParams) -> (f32, f32) {
         }
         let mad = quantile(&r, 0.5);
         let scale = (1.4826 * mad).max(1e-3) * params.tukey_c;
-        let (mut sw, mut sx, mut sy, mut sxx, mut sxy) = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64);
+        let (mut sw, mut sx, mut sy, mut sxx, mut syy) = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64);
         for i in 0..x.len() {
             let u = r[i] / scale;
             if u >= 1.0 {
@@ -107,15 +107,18 @@ fn fit_line(x: &[f32], y: &[f32], params: &GainParams) -> (f32, f32) {
             sx += w * xi;
             sy += w * yi;
             sxx += w * xi * xi;
-            sxy += w * xi * yi;
+            syy += w * yi * yi;
         }
         if sw < 3.0 {
             break;
         }
-        let var = sxx - sx * sx / sw;
-        let (ng, nb) = if var > 1e-9 * sw {
-            let ng = ((sxy - sx * sy / sw) / var) as f32;
-            let ng = ng.clamp(lo, hi);
+        let var_x = sxx - sx * sx / sw;
+        let var_y = syy - sy * sy / sw;
+        // Moments, not a regression: pairs that are slightly misregistered correlate
+        // weakly, and a regression slope would shrink towards zero (attenuation), while the
+        // spread of a texture is the same in both images.
+        let (ng, nb) = if var_x > 1e-9 * sw {
+            let ng = ((var_y / var_x).sqrt() as f32).clamp(lo, hi);
             (ng, ((sy - ng as f64 * sx) / sw) as f32)
         } else {
             // No spread in the view's values: only an offset can be known.

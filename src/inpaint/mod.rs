@@ -481,6 +481,11 @@ fn fill_one(key: &RgbF32, part: &Part, warps: &[Warped], params: &MultiviewParam
     RegionFill { pixels, state, pick }
 }
 
+/// Radius of the median that smooths the border's demand along the border.
+const BORDER_MEDIAN: usize = 5;
+/// The largest step between two views' colours that blending removes at a seam inside.
+const SEAM_STEP: f32 = 0.03;
+
 /// Squared RGB disagreement with the consensus beyond which a view is simply "occluded".
 const OCCLUSION_TRUNCATE: f32 = 0.1;
 
@@ -559,11 +564,83 @@ fn blend_one(image: &mut RgbF32, part: &Part, warps: &[Warped], res: &RegionFill
         let img = wv.image.as_slice();
         Some(std::array::from_fn(|c| img[a][c] - img[b][c]))
     };
+    // What the border asks of the correction: the keyframe minus the view that filled the
+    // neighbouring hole pixel, at each border pixel. Its fine detail is misregistration and
+    // resampling, not exposure; a median along the border keeps only the exposure part, so
+    // a dark mortar line that one side has and the other has not does not bleed inwards.
+    let mut border: Vec<Option<[f32; 3]>> = vec![None; w * h];
+    let neighbours = |i: usize| {
+        let (x, y) = (i % w, i / w);
+        [
+            (x > 0).then(|| i - 1),
+            (x + 1 < w).then(|| i + 1),
+            (y > 0).then(|| i - w),
+            (y + 1 < h).then(|| i + w),
+        ]
+    };
+    let mut border_pixels = Vec::new();
+    for q in 0..w * h {
+        if omega[q] {
+            continue;
+        }
+        let mut d = None;
+        let mut touches = false;
+        for p in neighbours(q).into_iter().flatten() {
+            if omega[p] {
+                touches = true;
+                if d.is_none() {
+                    d = view_diff(res.pick[p], p, q)
+                        .map(|g| std::array::from_fn(|c| g[c] - (u[p][c] - u[q][c])));
+                }
+            }
+        }
+        if touches {
+            border[q] = Some(d.unwrap_or([0.0; 3]));
+            border_pixels.push(q);
+        }
+    }
+    let smooth: Vec<(usize, [f32; 3])> = border_pixels
+        .par_iter()
+        .map(|&q| {
+            let (x, y) = (q % w, q / w);
+            let mut vals: [Vec<f32>; 3] = Default::default();
+            for yy in y.saturating_sub(BORDER_MEDIAN)..(y + BORDER_MEDIAN + 1).min(h) {
+                for xx in x.saturating_sub(BORDER_MEDIAN)..(x + BORDER_MEDIAN + 1).min(w) {
+                    if let Some(d) = border[yy * w + xx] {
+                        for c in 0..3 {
+                            vals[c].push(d[c]);
+                        }
+                    }
+                }
+            }
+            let med = std::array::from_fn(|c| {
+                let v = &mut vals[c];
+                let k = v.len() / 2;
+                *v.select_nth_unstable_by(k, f32::total_cmp).1
+            });
+            (q, med)
+        })
+        .collect();
+    for (q, m) in smooth {
+        border[q] = Some(m);
+    }
     let u_ref = &u;
+    let border_ref = &border;
     let guide = |p: usize, q: usize| -> [f32; 3] {
-        view_diff(res.pick[p], p, q)
-            .or_else(|| if omega[q] { view_diff(res.pick[q], p, q) } else { None })
-            .unwrap_or_else(|| std::array::from_fn(|c| u_ref[p][c] - u_ref[q][c]))
+        let own: [f32; 3] = std::array::from_fn(|c| u_ref[p][c] - u_ref[q][c]);
+        if !omega[q] {
+            let d = border_ref[q].unwrap_or([0.0; 3]);
+            return std::array::from_fn(|c| own[c] + d[c]);
+        }
+        // Inside: across a seam, the mean of the two views' gradients (the same value seen
+        // from either side, so the field has no spurious sources), and only as far as an
+        // exposure step goes (a larger jump is detail the two views disagree on).
+        let g = match (view_diff(res.pick[p], p, q), view_diff(res.pick[q], p, q)) {
+            (Some(a), Some(b)) => std::array::from_fn(|c| 0.5 * (a[c] + b[c])),
+            (Some(a), None) | (None, Some(a)) => a,
+            (None, None) => return own,
+        };
+        std::array::from_fn(|c| own[c] + (g[c] - own[c]).clamp(-SEAM_STEP, SEAM_STEP))
     };
     let b = guidance_rhs(w, h, omega, &u, guide);
     let c = solve_membrane(w, h, omega, &b, params);

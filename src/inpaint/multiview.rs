@@ -53,6 +53,9 @@ pub struct MultiviewParams {
     pub occlusion_weight: f32,
     /// Cost per pixel² of shift away from the prediction (keeps neighbours coherent).
     pub shift_penalty: f32,
+    /// A shifted candidate must cost less than this share of the same view unshifted: a
+    /// shift is taken for a clear gain, not to chase noise and aliasing.
+    pub search_gain: f32,
     /// Squared error charged for a known target pixel the candidate view does not cover.
     pub miss_penalty: f32,
 }
@@ -65,6 +68,7 @@ impl Default for MultiviewParams {
             search_views: 2,
             occlusion_weight: 1.0,
             shift_penalty: 2e-4,
+            search_gain: 0.7,
             miss_penalty: 0.05,
         }
     }
@@ -273,10 +277,11 @@ pub fn fill_region(region: &mut Region<'_>, views: &[ViewData<'_>], params: &Mul
         }
         if !offsets.is_empty() && params.search_views > 0 {
             ranked.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-            for &(_, vi) in ranked.iter().take(params.search_views) {
+            for &(c0, vi) in ranked.iter().take(params.search_views) {
                 for &(dx, dy) in &offsets {
-                    let c = eval(&views[vi], dx, dy, best.0);
-                    if c < best.0 {
+                    let bound = best.0.min(params.search_gain * c0);
+                    let c = eval(&views[vi], dx, dy, bound);
+                    if c < bound {
                         best = (c, vi, dx, dy);
                     }
                 }
