@@ -114,6 +114,9 @@ impl FillReport {
 pub struct FillParams {
     /// Patches are `(2·r + 1)²` pixels (the paper's window; 4 gives 9×9).
     pub patch_radius: usize,
+    /// Each front step copies the chosen view's pixels within this radius (see
+    /// [`multiview::MultiviewParams::copy_radius`]); larger is faster.
+    pub copy_radius: usize,
     /// Candidate patches are searched up to this many pixels around the homography's
     /// prediction (misregistration, parallax); 0 trusts the homography exactly.
     pub search_radius: usize,
@@ -147,6 +150,7 @@ impl Default for FillParams {
     fn default() -> Self {
         Self {
             patch_radius: 4,
+            copy_radius: 8,
             search_radius: 2,
             occlusion: true,
             occlusion_weight: 1.0,
@@ -167,6 +171,7 @@ impl FillParams {
     fn multiview(&self) -> MultiviewParams {
         MultiviewParams {
             patch_radius: self.patch_radius,
+            copy_radius: self.copy_radius,
             search_radius: self.search_radius,
             occlusion_weight: if self.occlusion { self.occlusion_weight } else { 0.0 },
             ..MultiviewParams::default()
@@ -175,7 +180,8 @@ impl FillParams {
 
     /// How far around the hole the views are needed.
     fn margin(&self) -> usize {
-        (self.patch_radius + self.search_radius + 1).max(self.ring_gap + self.ring_width)
+        (self.patch_radius.max(self.copy_radius) + self.search_radius + 1)
+            .max(self.ring_gap + self.ring_width)
     }
 }
 

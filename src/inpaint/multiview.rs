@@ -41,8 +41,13 @@ impl Pick {
 /// Parameters of [`fill_region`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct MultiviewParams {
-    /// Patches are `(2·r + 1)²` pixels (the paper's window).
+    /// Patches are `(2·r + 1)²` pixels (the paper's window): the SSD is taken on these.
     pub patch_radius: usize,
+    /// The chosen candidate's hole pixels are copied within this radius (at least
+    /// `patch_radius`). The views are registered, so the patch only decides *which* view
+    /// (and shift) to take; copying a larger block from it costs nothing in accuracy and
+    /// divides the number of front steps.
+    pub copy_radius: usize,
     /// Candidates are searched up to this many pixels around the homography's prediction
     /// (absorbs small misregistration and parallax); 0 takes the prediction as is.
     pub search_radius: usize,
@@ -64,6 +69,7 @@ impl Default for MultiviewParams {
     fn default() -> Self {
         Self {
             patch_radius: 4,
+            copy_radius: 4,
             search_radius: 2,
             search_views: 2,
             occlusion_weight: 1.0,
@@ -164,6 +170,7 @@ pub fn fill_region(region: &mut Region<'_>, views: &[ViewData<'_>], params: &Mul
     let n = w * h;
     assert!(region.pixels.len() == n && region.state.len() == n && region.pick.len() == n);
     let r = params.patch_radius;
+    let rc = params.copy_radius.max(r);
     let mut known: Vec<bool> = region.state.iter().map(|&s| s == KNOWN || s == FILLED).collect();
     let mut conf: Vec<f32> = known.iter().map(|&k| if k { 1.0 } else { 0.0 }).collect();
     let mut gray: Vec<f32> = region.pixels.iter().map(|&p| luma(p)).collect();
@@ -196,7 +203,7 @@ pub fn fill_region(region: &mut Region<'_>, views: &[ViewData<'_>], params: &Mul
         }
     }
     let mut known_list: Vec<(usize, [f32; 3])> = Vec::with_capacity((2 * r + 1).pow(2));
-    let mut hole_list: Vec<usize> = Vec::with_capacity((2 * r + 1).pow(2));
+    let mut hole_list: Vec<usize> = Vec::with_capacity((2 * rc + 1).pow(2));
     let mut ranked: Vec<(f32, usize)> = Vec::with_capacity(views.len());
     let mut filled = 0usize;
 
@@ -222,12 +229,20 @@ pub fn fill_region(region: &mut Region<'_>, views: &[ViewData<'_>], params: &Mul
                 if known[j] {
                     known_list.push((j, region.pixels[j]));
                     conf_sum += conf[j];
-                } else if region.state[j] == HOLE {
-                    hole_list.push(j);
                 }
             }
         }
         let c_p = conf_sum / ((x1 - x0) * (y1 - y0)) as f32;
+        let (x0, x1) = (x.saturating_sub(rc), (x + rc + 1).min(w));
+        let (y0, y1) = (y.saturating_sub(rc), (y + rc + 1).min(h));
+        for yy in y0..y1 {
+            for xx in x0..x1 {
+                let j = yy * w + xx;
+                if region.state[j] == HOLE {
+                    hole_list.push(j);
+                }
+            }
+        }
         let inv_known = if known_list.is_empty() { 0.0 } else { 1.0 / known_list.len() as f32 };
         let inv_hole = 1.0 / hole_list.len() as f32;
         let bounds = (x0 as isize, x1 as isize, y0 as isize, y1 as isize);
