@@ -426,4 +426,72 @@ mod tests {
             assert!((d.x - 2.4).abs() < 0.15 && (d.y + 1.7).abs() < 0.15, "{d:?}");
         }
     }
+
+    /// The incremental view sampling and the shared-weight template sampling against
+    /// per-sample `bilinear` through the homography, inside the image and near its border
+    /// (where the checked path is taken).
+    #[test]
+    fn window_sampling_matches_per_sample_bilinear() {
+        let img = GrayF32::from_fn(160, 120, |x, y| {
+            let (xf, yf) = (x as f32, y as f32);
+            0.5 + 0.4 * (xf * 0.31 + yf * 0.07).sin() * (yf * 0.19).cos()
+        });
+        let h = Homography::from_rows([[0.93, 0.12, 6.3], [-0.08, 1.04, 2.7], [4e-4, -2e-4, 1.0]]).unwrap();
+        // A grid of points over the whole key, so windows well inside (the incremental
+        // path), straddling the border (the checked path, some of them all inside) and
+        // leaving the image are all met, at two octave combinations.
+        let (mut sampled, mut refused) = (0, 0);
+        for (reach, step, view_scale) in [(6isize, 1.0, 1.0), (5, 2.0, 0.5)] {
+            let side = (2 * reach + 1) as usize;
+            let stride = side + 3;
+            for p in (0..44).flat_map(|i| (0..33).map(move |j| Point2::new(i as f64 * 3.7, j as f64 * 3.7))) {
+                let mut got = vec![0.0f32; side * stride];
+                let ok = sample_view(&img, &h, p, reach, step, view_scale, &mut got, stride);
+                let mut all = true;
+                for j in 0..side {
+                    for i in 0..side {
+                        let q = Point2::new(
+                            p.x + (i as f64 - reach as f64) * step,
+                            p.y + (j as f64 - reach as f64) * step,
+                        );
+                        let m = h.apply(q).unwrap();
+                        match bilinear(&img, (m.x * view_scale) as f32, (m.y * view_scale) as f32) {
+                            Some(want) if ok.is_some() => {
+                                let d = (got[j * stride + i] - want).abs();
+                                assert!(d < 1e-4, "{p:?} ({i}, {j}): {} vs {want}", got[j * stride + i]);
+                            }
+                            Some(_) => {}
+                            None => all = false,
+                        }
+                    }
+                }
+                assert_eq!(ok.is_some(), all, "{p:?}: sampled {ok:?}, all inside {all}");
+                if all {
+                    sampled += 1;
+                } else {
+                    refused += 1;
+                }
+            }
+        }
+        assert!(sampled > 100 && refused > 100, "{sampled} sampled, {refused} refused");
+        for (x, y) in [(40.37, 30.81), (7.0, 7.5), (3.2, 50.0), (152.9, 60.0)] {
+            let r = 7isize;
+            let side = (2 * r + 1) as usize;
+            let mut got = vec![0.0f32; side * 16];
+            let ok = sample_template(&img, x, y, r, &mut got, 16);
+            let want: Option<Vec<f32>> = (0..side * side)
+                .map(|k| {
+                    let (i, j) = ((k % side) as f64 - r as f64, (k / side) as f64 - r as f64);
+                    bilinear(&img, (x + i) as f32, (y + j) as f32)
+                })
+                .collect();
+            assert_eq!(ok.is_some(), want.is_some(), "({x}, {y})");
+            if let Some(want) = want {
+                for (k, w) in want.iter().enumerate() {
+                    let g = got[(k / side) * 16 + k % side];
+                    assert!((g - w).abs() < 1e-5, "({x}, {y}) sample {k}: {g} vs {w}");
+                }
+            }
+        }
+    }
 }
