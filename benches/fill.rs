@@ -65,6 +65,18 @@ fn scene() -> Scene {
     Scene { key, mask, views, homographies }
 }
 
+/// CPU seconds this process has used (user + system), from /proc; 0 where unavailable. On a
+/// machine shared with other builds the wall clock swings by several times, the CPU time
+/// much less.
+fn cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else { return 0.0 };
+    let after = stat.rsplit(')').next().unwrap_or("");
+    let f: Vec<&str> = after.split_whitespace().collect();
+    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    // Fields 14 and 15 of stat (utime, stime), counted after the command name.
+    (ticks(11) + ticks(12)) / 100.0
+}
+
 /// Prints how long each stage took.
 struct Timer(Option<(Stage, Instant)>);
 
@@ -99,9 +111,15 @@ fn benches(c: &mut Criterion) {
     let params = FillParams::default();
     let mut timer = Timer(None);
     let t = Instant::now();
+    let cpu = cpu_seconds();
     let out = fill(&s.key, &s.mask, &sources, &params, 1, &mut timer);
     timer.end();
-    eprintln!("one run: {:.0} ms; {:?}", t.elapsed().as_secs_f64() * 1e3, out.report);
+    eprintln!(
+        "one run: {:.0} ms wall, {:.2} s CPU; {:?}",
+        t.elapsed().as_secs_f64() * 1e3,
+        cpu_seconds() - cpu,
+        out.report
+    );
     drop(out);
     c.bench_function("fill 12 MP, 15 % masked, 6 views", |b| {
         b.iter(|| fill(&s.key, &s.mask, &sources, &params, 1, &mut ()))

@@ -257,7 +257,7 @@ pub fn fill(
                     }
                 }
             }
-            let step = (pairs.len() / 50_000).max(1);
+            let step = (pairs.len() / GAIN_SAMPLES).max(1);
             let sample: Vec<_> = pairs.into_iter().step_by(step).collect();
             let gain = fit_gain(&sample, &params.gain);
             report.sources[v].gain = gain.gain;
@@ -325,9 +325,27 @@ pub fn fill(
     // Blend: each region's fill into the keyframe, guided by its views' own gradients.
     observer.stage(Stage::Blend);
     if params.blend {
-        for (k, ((part, ws), res)) in parts.iter().zip(&warps).zip(&results).enumerate() {
-            blend_one(&mut image, part, ws, res, &params.blend_params);
-            observer.progress(k + 1, parts.len());
+        let mut done = 0;
+        for ((pb, wb), rb) in parts.chunks(batch).zip(warps.chunks(batch)).zip(results.chunks(batch)) {
+            let blended: Vec<Vec<[f32; 3]>> = pb
+                .par_iter()
+                .zip(wb.par_iter())
+                .zip(rb.par_iter())
+                .map(|((part, ws), res)| blend_one(&image, part, ws, res, &params.blend_params))
+                .collect();
+            for (part, u) in pb.iter().zip(&blended) {
+                let r = part.rect;
+                for y in 0..r.height {
+                    let row = &mut image.row_mut(r.y + y)[r.x..r.x + r.width];
+                    for (x, px) in row.iter_mut().enumerate() {
+                        if part.hole.get(x, y) {
+                            *px = u[y * r.width + x];
+                        }
+                    }
+                }
+            }
+            done += pb.len();
+            observer.progress(done, parts.len());
         }
     }
     for (part, _) in parts.iter().zip(&results) {
@@ -488,6 +506,9 @@ fn fill_one(key: &RgbF32, part: &Part, warps: &[Warped], params: &MultiviewParam
     RegionFill { pixels, state, pick }
 }
 
+/// The gain fit sees at most about this many ring pixels per view (evenly spread).
+const GAIN_SAMPLES: usize = 12_000;
+
 /// Radius of the median that smooths the border's demand along the border.
 const BORDER_MEDIAN: usize = 5;
 /// The largest step between two views' colours that blending removes at a seam inside.
@@ -546,7 +567,14 @@ fn fallback(
 /// Poisson-blends one region of `image`. The guidance across an edge `p–q` is the gradient
 /// of the view (at its chosen shift) that filled `p`, or else `q`; so seams between views
 /// and the border with the keyframe are dissolved without flattening the views' detail.
-fn blend_one(image: &mut RgbF32, part: &Part, warps: &[Warped], res: &RegionFill, params: &BlendParams) {
+/// Returns the region's pixels after blending (only the hole's are meant to be used).
+fn blend_one(
+    image: &RgbF32,
+    part: &Part,
+    warps: &[Warped],
+    res: &RegionFill,
+    params: &BlendParams,
+) -> Vec<[f32; 3]> {
     let r = part.rect;
     let (w, h) = (r.width, r.height);
     let mut u: Vec<[f32; 3]> = Vec::with_capacity(r.area());
@@ -651,13 +679,5 @@ fn blend_one(image: &mut RgbF32, part: &Part, warps: &[Warped], res: &RegionFill
     };
     let b = guidance_rhs(w, h, omega, &u, guide);
     let c = solve_membrane(w, h, omega, &b, params);
-    for y in 0..h {
-        let row = &mut image.row_mut(r.y + y)[r.x..r.x + w];
-        for (x, px) in row.iter_mut().enumerate() {
-            let i = y * w + x;
-            if omega[i] {
-                *px = std::array::from_fn(|k| u[i][k] + c[i][k]);
-            }
-        }
-    }
+    u.iter().zip(&c).map(|(p, d)| std::array::from_fn(|k| p[k] + d[k])).collect()
 }
