@@ -427,3 +427,34 @@ fn a_restart_resumes_from_saved_alignments_without_rewriting_results() {
     assert_eq!(service.terminate(), 0);
     let _: Value = serde_json::from_slice(&std::fs::read(&state_file).unwrap()).expect("rebuilt state");
 }
+
+#[test]
+fn a_burst_on_a_polled_folder_with_a_tiny_queue_is_batched_and_nothing_is_lost() {
+    // One worker with a queue of one: a burst of views cannot all be queued. The decision
+    // under test: the files wait on disk, every one is handled in the end, and the fills
+    // are batched (fewer fills than views).
+    let f = folders("workers = 1\nqueue = 1\n");
+    let text = std::fs::read_to_string(&f.config).unwrap();
+    let polled = text
+        .replace("quiet_period_ms = 300", "quiet_period_ms = 200\nmode = \"poll\"\npoll_interval_ms = 100");
+    std::fs::write(&f.config, polled).unwrap();
+    let mut scene = Scene::new(41);
+    let session = f.inbox.join("burst");
+    put_key_and_mask(&session, &scene);
+    let service = Service::start(&f, 1);
+    wait_for(&f, "the first result", 30, |e| !of_kind(e, "result_updated").is_empty());
+    let names: Vec<String> = (1..=6).map(|i| format!("b{i}.png")).collect();
+    for (i, name) in names.iter().enumerate() {
+        put(&session.join(name), &png_bytes(&scene.view(i as u64 + 1, 80.0 + 50.0 * i as f32, 50.0)));
+    }
+    let ev = wait_for(&f, "every view to be handled and filled", 60, |e| {
+        names.iter().all(|n| !about(e, n).is_empty())
+            && of_kind(e, "result_updated").last().is_some_and(|r| r["views"] == 6)
+    });
+    for n in &names {
+        assert_eq!(about(&ev, n).len(), 1, "{n} handled once");
+    }
+    let fills_for_burst = of_kind(&ev, "result_updated").len() - 1;
+    assert!(fills_for_burst < names.len(), "{fills_for_burst} fills for {} views: not batched", names.len());
+    assert_eq!(service.terminate(), 0);
+}
