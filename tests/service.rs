@@ -458,3 +458,47 @@ fn a_burst_on_a_polled_folder_with_a_tiny_queue_is_batched_and_nothing_is_lost()
     assert!(fills_for_burst < names.len(), "{fills_for_burst} fills for {} views: not batched", names.len());
     assert_eq!(service.terminate(), 0);
 }
+
+#[test]
+fn a_late_mask_fills_from_the_buffered_views_and_a_new_keyframe_restarts_the_session() {
+    let f = folders("");
+    let mut scene = Scene::new(51);
+    let session = f.inbox.join("late");
+    put(&session.join("key.png"), &png_bytes(&scene.key));
+    let service = Service::start(&f, 1);
+    wait_for(&f, "the session to start", 30, |e| !of_kind(e, "session_started").is_empty());
+    for i in 1..=2 {
+        put(&session.join(format!("v{i}.png")), &png_bytes(&scene.view(i, 100.0 * i as f32, 60.0)));
+    }
+    let ev = wait_for(&f, "both views", 30, |e| of_kind(e, "view_accepted").len() == 2);
+    assert!(of_kind(&ev, "result_updated").is_empty(), "a result without a mask");
+
+    // The mask arrives after the views: they are filled from then, not realigned.
+    let mut mask_png = std::io::Cursor::new(Vec::new());
+    mask_to_luma8(&scene.mask).write_to(&mut mask_png, image::ImageFormat::Png).unwrap();
+    put(&session.join("key.mask.png"), &mask_png.into_inner());
+    let ev = wait_for(&f, "a result from the buffered views", 30, |e| {
+        of_kind(e, "result_updated").iter().any(|r| r["views"] == 2)
+    });
+    let after_mask: Vec<&Value> = ev
+        .iter()
+        .skip_while(|e| e["event"] != "mask_set")
+        .filter(|e| e["event"] == "view_accepted")
+        .collect();
+    assert_eq!(after_mask.len(), 2, "the views are offered again with their pixels");
+    assert!(after_mask.iter().all(|e| e["from_state"] == true), "realigned after a mask change");
+
+    // A new keyframe (same name, new contents): realigned, and a fresh result.
+    let seen = ev.len();
+    let mut brighter = scene.key.clone();
+    synth::expose(&mut brighter, 1.1, 0.0);
+    put(&session.join("key.png"), &png_bytes(&brighter));
+    let ev = wait_for(&f, "a result for the new keyframe", 30, |e| {
+        e.len() > seen
+            && !of_kind(&e[seen..], "keyframe_changed").is_empty()
+            && of_kind(&e[seen..], "result_updated").iter().any(|r| r["views"] == 2)
+    });
+    let realigned = of_kind(&ev[seen..], "view_accepted");
+    assert!(realigned.iter().filter(|e| e["from_state"] == false).count() >= 2, "{realigned:#?}");
+    assert_eq!(service.terminate(), 0);
+}
