@@ -8,7 +8,9 @@
 pub mod convert;
 pub mod decode;
 pub mod filter;
+pub mod photometric;
 pub mod pyramid;
+pub mod warp;
 
 use std::fmt;
 

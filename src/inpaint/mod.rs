@@ -7,10 +7,20 @@
 //! (CLI progress bar, daemon timings) supplies.
 
 pub mod automask;
+pub mod blend;
 pub mod exemplar;
+pub mod multiview;
+pub mod priority;
+
+use rayon::prelude::*;
 
 use crate::geometry::Homography;
+use crate::imaging::photometric::{GainParams, fit_gain};
+use crate::imaging::warp::{Interpolation, Rect, Warped, warp};
 use crate::imaging::{Mask, Plane, RgbF32};
+use automask::dilate;
+use blend::{BlendParams, guidance_rhs, solve_membrane};
+use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region, occlusion_costs};
 
 pub use automask::{AutoMaskParams, auto_mask};
 pub use exemplar::{ExemplarParams, exemplar_fill};
@@ -98,10 +108,81 @@ impl FillReport {
     }
 }
 
-/// Parameters of [`fill`].
-#[derive(Debug, Clone, Default, PartialEq)]
+/// Parameters of [`fill`]. The switches (`occlusion`, `photometric`, `blend`) exist so that
+/// each piece can be shown to matter; all are on by default.
+#[derive(Debug, Clone, PartialEq)]
 pub struct FillParams {
+    /// Patches are `(2·r + 1)²` pixels (the paper's window; 4 gives 9×9).
+    pub patch_radius: usize,
+    /// Each front step copies the chosen view's pixels within this radius (see
+    /// [`multiview::MultiviewParams::copy_radius`]); larger is faster.
+    pub copy_radius: usize,
+    /// Candidate patches are searched up to this many pixels around the homography's
+    /// prediction (misregistration, parallax); 0 trusts the homography exactly.
+    pub search_radius: usize,
+    /// Occlusion reasoning: a candidate that disagrees with the other views' consensus
+    /// (it sees its own tree there) is penalised by `occlusion_weight`.
+    pub occlusion: bool,
+    /// Penalty per unit of squared RGB disagreement with the consensus (see
+    /// [`multiview::MultiviewParams::occlusion_weight`]).
+    pub occlusion_weight: f32,
+    /// Per-view gain and offset fitted on a ring of keyframe pixels around the hole.
+    pub photometric: bool,
+    /// The ring starts this many pixels away from the hole (skips the occluder's halo)...
+    pub ring_gap: usize,
+    /// ...and is this many pixels wide.
+    pub ring_width: usize,
+    /// The robust gain fit.
+    pub gain: GainParams,
+    /// Gradient-domain (Poisson) blending of the filled region into the keyframe.
+    pub blend: bool,
+    pub blend_params: BlendParams,
+    /// How views are sampled between pixel centres.
+    pub interpolation: Interpolation,
+    /// The single-image fallback for pixels no view saw.
     pub exemplar: ExemplarParams,
+    /// The fallback sees this many pixels of context around what it fills (plus half the
+    /// unseen area's extent).
+    pub fallback_margin: usize,
+}
+
+impl Default for FillParams {
+    fn default() -> Self {
+        Self {
+            patch_radius: 4,
+            copy_radius: 8,
+            search_radius: 2,
+            occlusion: true,
+            occlusion_weight: 1.0,
+            photometric: true,
+            ring_gap: 2,
+            ring_width: 6,
+            gain: GainParams::default(),
+            blend: true,
+            blend_params: BlendParams::default(),
+            interpolation: Interpolation::Bilinear,
+            exemplar: ExemplarParams::default(),
+            fallback_margin: 32,
+        }
+    }
+}
+
+impl FillParams {
+    fn multiview(&self) -> MultiviewParams {
+        MultiviewParams {
+            patch_radius: self.patch_radius,
+            copy_radius: self.copy_radius,
+            search_radius: self.search_radius,
+            occlusion_weight: if self.occlusion { self.occlusion_weight } else { 0.0 },
+            ..MultiviewParams::default()
+        }
+    }
+
+    /// How far around the hole the views are needed.
+    fn margin(&self) -> usize {
+        (self.patch_radius.max(self.copy_radius) + self.search_radius + 1)
+            .max(self.ring_gap + self.ring_width)
+    }
 }
 
 /// A filled keyframe: the image, where each pixel came from, and the figures.
@@ -115,6 +196,10 @@ pub struct Filled {
 /// Fills the pixels of `key` that `mask` marks from `sources`, then what they could not
 /// see by the single-image fallback. An empty mask returns `key` unchanged.
 ///
+/// The hole is cut into regions (connected parts, with the margin the patches need); each
+/// view is warped only over those, compensated, and the regions are filled independently
+/// (in parallel), then blended.
+///
 /// # Panics
 /// If `mask` is not the size of `key` (the edge checks and reports that).
 pub fn fill(
@@ -125,14 +210,453 @@ pub fn fill(
     seed: u64,
     observer: &mut dyn Observer,
 ) -> Filled {
-    // Placeholder until the multi-view fill lands: everything from the fallback.
-    assert_eq!((mask.width(), mask.height()), (key.width(), key.height()), "mask size");
-    let _ = sources;
-    observer.stage(Stage::Fallback);
+    let (w, h) = (key.width(), key.height());
+    assert_eq!((mask.width(), mask.height()), (w, h), "mask size");
+    let nv = sources.len();
+    let masked = mask.hole_count();
+    let mut report = FillReport {
+        masked,
+        sources: vec![SourceReport { gain: [1.0; 3], ..SourceReport::default() }; nv],
+        fallback: 0,
+    };
     let mut image = key.clone();
-    let masked = exemplar_fill(&mut image, mask, &params.exemplar, seed);
-    let provenance = mask.map(|&m| if m > 127 { FALLBACK } else { KEYFRAME });
-    let report =
-        FillReport { masked, sources: vec![SourceReport::default(); sources.len()], fallback: masked };
+    let mut provenance = Provenance::new(w, h, KEYFRAME);
+    if masked == 0 {
+        return Filled { image, provenance, report };
+    }
+    let parts = regions(mask, params.margin(), params.ring_gap, params.ring_width);
+
+    // Warp: every view over every region's needed pixels.
+    observer.stage(Stage::Warp);
+    let mut warps: Vec<Vec<Warped>> = Vec::with_capacity(parts.len());
+    for (k, part) in parts.iter().enumerate() {
+        let ws: Vec<Warped> = sources
+            .par_iter()
+            .map(|s| warp(s.image, &s.homography, part.rect, Some(&part.need), params.interpolation))
+            .collect();
+        for (v, wv) in ws.iter().enumerate() {
+            report.sources[v].covered +=
+                part.hole.as_slice().iter().zip(wv.valid.as_slice()).filter(|&(&hh, &ok)| hh && ok).count();
+        }
+        warps.push(ws);
+        observer.progress(k + 1, parts.len());
+    }
+
+    // Photometric: one gain per view from the rings around all regions.
+    observer.stage(Stage::Photometric);
+    if params.photometric {
+        for v in 0..nv {
+            let mut pairs = Vec::new();
+            for (part, ws) in parts.iter().zip(&warps) {
+                let rw = part.rect.width;
+                for (i, &ring) in part.ring.as_slice().iter().enumerate() {
+                    if ring && ws[v].valid.as_slice()[i] {
+                        let (x, y) = (part.rect.x + i % rw, part.rect.y + i / rw);
+                        pairs.push((ws[v].image.as_slice()[i], key.get(x, y)));
+                    }
+                }
+            }
+            let step = (pairs.len() / 50_000).max(1);
+            let sample: Vec<_> = pairs.into_iter().step_by(step).collect();
+            let gain = fit_gain(&sample, &params.gain);
+            report.sources[v].gain = gain.gain;
+            report.sources[v].offset = gain.offset;
+            for ws in &mut warps {
+                let wv = &mut ws[v];
+                wv.image.as_mut_slice().par_iter_mut().zip(wv.valid.as_slice().par_iter()).for_each(
+                    |(p, &ok)| {
+                        if ok {
+                            *p = gain.apply(*p);
+                        }
+                    },
+                );
+            }
+            observer.progress(v + 1, nv);
+        }
+    }
+
+    // Fill: regions in parallel, in batches so that progress can be told.
+    observer.stage(Stage::Fill);
+    let mparams = params.multiview();
+    let mut results: Vec<RegionFill> = Vec::with_capacity(parts.len());
+    let batch = rayon::current_num_threads().max(1);
+    let mut done = 0;
+    for (pb, wb) in parts.chunks(batch).zip(warps.chunks(batch)) {
+        let out: Vec<RegionFill> =
+            pb.par_iter().zip(wb.par_iter()).map(|(part, ws)| fill_one(key, part, ws, &mparams)).collect();
+        done += pb.iter().map(|p| p.holes).sum::<usize>();
+        results.extend(out);
+        observer.progress(done, masked);
+    }
+    for (part, res) in parts.iter().zip(&results) {
+        let rw = part.rect.width;
+        for (i, (&st, pk)) in res.state.iter().zip(&res.pick).enumerate() {
+            if st == multiview::FILLED {
+                let (x, y) = (part.rect.x + i % rw, part.rect.y + i / rw);
+                image.set(x, y, res.pixels[i]);
+                provenance.set(x, y, 1 + pk.view);
+                report.sources[pk.view as usize].filled += 1;
+            }
+        }
+    }
+
+    // Fallback: what no view saw, from the image itself (with the views' fill as context).
+    observer.stage(Stage::Fallback);
+    let mut pending = Mask::new(w, h, 0);
+    let mut any_pending = false;
+    for (part, res) in parts.iter().zip(&results) {
+        let rw = part.rect.width;
+        for (i, &st) in res.state.iter().enumerate() {
+            if part.hole.as_slice()[i] && st != multiview::FILLED {
+                pending.set(part.rect.x + i % rw, part.rect.y + i / rw, 255);
+                any_pending = true;
+            }
+        }
+    }
+    if any_pending {
+        for (k, part) in parts.iter().enumerate() {
+            report.fallback +=
+                fallback(&mut image, &mut pending, &mut provenance, part.rect, params, seed ^ k as u64);
+            observer.progress(k + 1, parts.len());
+        }
+    }
+
+    // Blend: each region's fill into the keyframe, guided by its views' own gradients.
+    observer.stage(Stage::Blend);
+    if params.blend {
+        for (k, ((part, ws), res)) in parts.iter().zip(&warps).zip(&results).enumerate() {
+            blend_one(&mut image, part, ws, res, &params.blend_params);
+            observer.progress(k + 1, parts.len());
+        }
+    }
+    for (part, _) in parts.iter().zip(&results) {
+        let rw = part.rect.width;
+        for (i, &hh) in part.hole.as_slice().iter().enumerate() {
+            if hh {
+                let (x, y) = (part.rect.x + i % rw, part.rect.y + i / rw);
+                image.set(x, y, image.get(x, y).map(|v| v.clamp(0.0, 1.0)));
+            }
+        }
+    }
     Filled { image, provenance, report }
+}
+
+/// One connected part of the hole with the margin around it that the fill reads.
+struct Part {
+    /// Keyframe pixels of the part (the margin included, clipped to the image).
+    rect: Rect,
+    /// `rect`-sized: this part's hole pixels.
+    hole: Plane<bool>,
+    /// `rect`-sized: the hole grown by the margin (where the views are warped).
+    need: Plane<bool>,
+    /// `rect`-sized: the keyframe ring the photometric fit uses.
+    ring: Plane<bool>,
+    /// `rect`-sized: hole pixels of other parts inside `rect`.
+    blocked: Plane<bool>,
+    holes: usize,
+}
+
+/// Cuts the mask into parts: 8-connected components of the hole grown by `margin`.
+fn regions(mask: &Mask, margin: usize, ring_gap: usize, ring_width: usize) -> Vec<Part> {
+    let (w, h) = (mask.width(), mask.height());
+    let (mut x0, mut y0, mut x1, mut y1) = (w, h, 0, 0);
+    for y in 0..h {
+        for (x, &m) in mask.row(y).iter().enumerate() {
+            if m > 127 {
+                x0 = x0.min(x);
+                x1 = x1.max(x + 1);
+                y0 = y0.min(y);
+                y1 = y1.max(y + 1);
+            }
+        }
+    }
+    if x1 <= x0 {
+        return Vec::new();
+    }
+    let work = Rect { x: x0, y: y0, width: x1 - x0, height: y1 - y0 }.grown(margin + 1, w, h);
+    let hole = Plane::from_fn(work.width, work.height, |x, y| mask.is_hole(work.x + x, work.y + y));
+    let need = dilate(&hole, margin);
+    let (ww, wh) = (work.width, work.height);
+    let mut label = vec![u32::MAX; ww * wh];
+    let mut parts = Vec::new();
+    let mut stack = Vec::new();
+    let mut members: Vec<usize> = Vec::new();
+    for start in 0..ww * wh {
+        if !need.as_slice()[start] || label[start] != u32::MAX {
+            continue;
+        }
+        let id = parts.len() as u32;
+        label[start] = id;
+        stack.push(start);
+        members.clear();
+        let (mut bx0, mut by0, mut bx1, mut by1) = (ww, wh, 0, 0);
+        while let Some(i) = stack.pop() {
+            members.push(i);
+            let (x, y) = (i % ww, i / ww);
+            bx0 = bx0.min(x);
+            bx1 = bx1.max(x + 1);
+            by0 = by0.min(y);
+            by1 = by1.max(y + 1);
+            for dy in -1isize..=1 {
+                for dx in -1isize..=1 {
+                    let (nx, ny) = (x as isize + dx, y as isize + dy);
+                    if nx < 0 || ny < 0 || nx >= ww as isize || ny >= wh as isize {
+                        continue;
+                    }
+                    let j = ny as usize * ww + nx as usize;
+                    if need.as_slice()[j] && label[j] == u32::MAX {
+                        label[j] = id;
+                        stack.push(j);
+                    }
+                }
+            }
+        }
+        let rect = Rect { x: work.x + bx0, y: work.y + by0, width: bx1 - bx0, height: by1 - by0 };
+        let mut p_need = Plane::new(rect.width, rect.height, false);
+        let mut p_hole = Plane::new(rect.width, rect.height, false);
+        for &i in &members {
+            let (x, y) = (i % ww - bx0, i / ww - by0);
+            p_need.set(x, y, true);
+            p_hole.set(x, y, hole.as_slice()[i]);
+        }
+        parts.push(Part {
+            rect,
+            holes: p_hole.as_slice().iter().filter(|&&b| b).count(),
+            hole: p_hole,
+            need: p_need,
+            ring: Plane::new(0, 0, false),
+            blocked: Plane::new(0, 0, false),
+        });
+    }
+    parts.par_iter_mut().for_each(|p| p.finish(mask, ring_gap, ring_width));
+    parts
+}
+
+impl Part {
+    fn finish(&mut self, mask: &Mask, gap: usize, width: usize) {
+        let inner = dilate(&self.hole, gap);
+        let outer = dilate(&self.hole, gap + width);
+        let r = self.rect;
+        self.blocked =
+            Plane::from_fn(r.width, r.height, |x, y| mask.is_hole(r.x + x, r.y + y) && !self.hole.get(x, y));
+        self.ring = Plane::from_fn(r.width, r.height, |x, y| {
+            outer.get(x, y) && !inner.get(x, y) && self.need.get(x, y) && !mask.is_hole(r.x + x, r.y + y)
+        });
+    }
+}
+
+/// A region after the multi-view fill (region-sized buffers).
+struct RegionFill {
+    pixels: Vec<[f32; 3]>,
+    state: Vec<u8>,
+    pick: Vec<Pick>,
+}
+
+fn fill_one(key: &RgbF32, part: &Part, warps: &[Warped], params: &MultiviewParams) -> RegionFill {
+    let r = part.rect;
+    let n = r.area();
+    let mut pixels = Vec::with_capacity(n);
+    let mut state = Vec::with_capacity(n);
+    for y in 0..r.height {
+        pixels.extend_from_slice(&key.row(r.y + y)[r.x..r.x + r.width]);
+        for x in 0..r.width {
+            state.push(if part.hole.get(x, y) {
+                multiview::HOLE
+            } else if part.blocked.get(x, y) {
+                multiview::BLOCKED
+            } else {
+                multiview::KNOWN
+            });
+        }
+    }
+    let mut pick = vec![Pick::NONE; n];
+    let occ: Vec<Vec<f32>> = if params.occlusion_weight > 0.0 {
+        let refs: Vec<_> = warps.iter().map(|wv| (wv.image.as_slice(), wv.valid.as_slice())).collect();
+        occlusion_costs(&refs, part.need.as_slice(), r.width, OCCLUSION_TRUNCATE)
+    } else {
+        vec![vec![0.0; n]; warps.len()]
+    };
+    let views: Vec<ViewData<'_>> = warps
+        .iter()
+        .zip(&occ)
+        .map(|(wv, o)| ViewData { image: wv.image.as_slice(), valid: wv.valid.as_slice(), occlusion: o })
+        .collect();
+    let mut region =
+        Region { width: r.width, height: r.height, pixels: &mut pixels, state: &mut state, pick: &mut pick };
+    fill_region(&mut region, &views, params);
+    RegionFill { pixels, state, pick }
+}
+
+/// Radius of the median that smooths the border's demand along the border.
+const BORDER_MEDIAN: usize = 5;
+/// The largest step between two views' colours that blending removes at a seam inside.
+const SEAM_STEP: f32 = 0.03;
+
+/// Squared RGB disagreement with the consensus beyond which a view is simply "occluded".
+const OCCLUSION_TRUNCATE: f32 = 0.1;
+
+/// The single-image fallback for the pending pixels of `rect`, on a crop with context;
+/// returns how many it filled.
+fn fallback(
+    image: &mut RgbF32,
+    pending: &mut Mask,
+    provenance: &mut Provenance,
+    rect: Rect,
+    params: &FillParams,
+    seed: u64,
+) -> usize {
+    let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
+    for y in rect.y..rect.y + rect.height {
+        for x in rect.x..rect.x + rect.width {
+            if pending.is_hole(x, y) {
+                x0 = x0.min(x);
+                x1 = x1.max(x + 1);
+                y0 = y0.min(y);
+                y1 = y1.max(y + 1);
+            }
+        }
+    }
+    if x1 <= x0 {
+        return 0;
+    }
+    let extent = (x1 - x0).max(y1 - y0);
+    let crop = Rect { x: x0, y: y0, width: x1 - x0, height: y1 - y0 }.grown(
+        params.fallback_margin + extent / 2,
+        image.width(),
+        image.height(),
+    );
+    let mut sub = RgbF32::from_fn(crop.width, crop.height, |x, y| image.get(crop.x + x, crop.y + y));
+    let hole = Mask::from_fn(crop.width, crop.height, |x, y| pending.get(crop.x + x, crop.y + y));
+    exemplar_fill(&mut sub, &hole, &params.exemplar, seed);
+    let mut count = 0;
+    for y in 0..crop.height {
+        for x in 0..crop.width {
+            if hole.is_hole(x, y) {
+                image.set(crop.x + x, crop.y + y, sub.get(x, y));
+                provenance.set(crop.x + x, crop.y + y, FALLBACK);
+                pending.set(crop.x + x, crop.y + y, 0);
+                count += 1;
+            }
+        }
+    }
+    count
+}
+
+/// Poisson-blends one region of `image`. The guidance across an edge `p–q` is the gradient
+/// of the view (at its chosen shift) that filled `p`, or else `q`; so seams between views
+/// and the border with the keyframe are dissolved without flattening the views' detail.
+fn blend_one(image: &mut RgbF32, part: &Part, warps: &[Warped], res: &RegionFill, params: &BlendParams) {
+    let r = part.rect;
+    let (w, h) = (r.width, r.height);
+    let mut u: Vec<[f32; 3]> = Vec::with_capacity(r.area());
+    for y in 0..h {
+        u.extend_from_slice(&image.row(r.y + y)[r.x..r.x + w]);
+    }
+    let omega = part.hole.as_slice();
+    let view_diff = |pick: Pick, p: usize, q: usize| -> Option<[f32; 3]> {
+        if pick.view == NO_VIEW {
+            return None;
+        }
+        let wv = &warps[pick.view as usize];
+        let shift = |i: usize| -> Option<usize> {
+            let (x, y) = ((i % w) as isize + pick.dx as isize, (i / w) as isize + pick.dy as isize);
+            (x >= 0 && y >= 0 && x < w as isize && y < h as isize).then(|| y as usize * w + x as usize)
+        };
+        let (a, b) = (shift(p)?, shift(q)?);
+        let valid = wv.valid.as_slice();
+        if !(valid[a] && valid[b]) {
+            return None;
+        }
+        let img = wv.image.as_slice();
+        Some(std::array::from_fn(|c| img[a][c] - img[b][c]))
+    };
+    // What the border asks of the correction: the keyframe minus the view that filled the
+    // neighbouring hole pixel, at each border pixel. Its fine detail is misregistration and
+    // resampling, not exposure; a median along the border keeps only the exposure part, so
+    // a dark mortar line that one side has and the other has not does not bleed inwards.
+    let mut border: Vec<Option<[f32; 3]>> = vec![None; w * h];
+    let neighbours = |i: usize| {
+        let (x, y) = (i % w, i / w);
+        [
+            (x > 0).then(|| i - 1),
+            (x + 1 < w).then(|| i + 1),
+            (y > 0).then(|| i - w),
+            (y + 1 < h).then(|| i + w),
+        ]
+    };
+    let mut border_pixels = Vec::new();
+    for q in 0..w * h {
+        if omega[q] {
+            continue;
+        }
+        let mut d = None;
+        let mut touches = false;
+        for p in neighbours(q).into_iter().flatten() {
+            if omega[p] {
+                touches = true;
+                if d.is_none() {
+                    d = view_diff(res.pick[p], p, q)
+                        .map(|g| std::array::from_fn(|c| g[c] - (u[p][c] - u[q][c])));
+                }
+            }
+        }
+        if touches {
+            border[q] = Some(d.unwrap_or([0.0; 3]));
+            border_pixels.push(q);
+        }
+    }
+    let smooth: Vec<(usize, [f32; 3])> = border_pixels
+        .par_iter()
+        .map(|&q| {
+            let (x, y) = (q % w, q / w);
+            let mut vals: [Vec<f32>; 3] = Default::default();
+            for yy in y.saturating_sub(BORDER_MEDIAN)..(y + BORDER_MEDIAN + 1).min(h) {
+                for xx in x.saturating_sub(BORDER_MEDIAN)..(x + BORDER_MEDIAN + 1).min(w) {
+                    if let Some(d) = border[yy * w + xx] {
+                        for c in 0..3 {
+                            vals[c].push(d[c]);
+                        }
+                    }
+                }
+            }
+            let med = std::array::from_fn(|c| {
+                let v = &mut vals[c];
+                let k = v.len() / 2;
+                *v.select_nth_unstable_by(k, f32::total_cmp).1
+            });
+            (q, med)
+        })
+        .collect();
+    for (q, m) in smooth {
+        border[q] = Some(m);
+    }
+    let u_ref = &u;
+    let border_ref = &border;
+    let guide = |p: usize, q: usize| -> [f32; 3] {
+        let own: [f32; 3] = std::array::from_fn(|c| u_ref[p][c] - u_ref[q][c]);
+        if !omega[q] {
+            let d = border_ref[q].unwrap_or([0.0; 3]);
+            return std::array::from_fn(|c| own[c] + d[c]);
+        }
+        // Inside: across a seam, the mean of the two views' gradients (the same value seen
+        // from either side, so the field has no spurious sources), and only as far as an
+        // exposure step goes (a larger jump is detail the two views disagree on).
+        let g = match (view_diff(res.pick[p], p, q), view_diff(res.pick[q], p, q)) {
+            (Some(a), Some(b)) => std::array::from_fn(|c| 0.5 * (a[c] + b[c])),
+            (Some(a), None) | (None, Some(a)) => a,
+            (None, None) => return own,
+        };
+        std::array::from_fn(|c| own[c] + (g[c] - own[c]).clamp(-SEAM_STEP, SEAM_STEP))
+    };
+    let b = guidance_rhs(w, h, omega, &u, guide);
+    let c = solve_membrane(w, h, omega, &b, params);
+    for y in 0..h {
+        let row = &mut image.row_mut(r.y + y)[r.x..r.x + w];
+        for (x, px) in row.iter_mut().enumerate() {
+            let i = y * w + x;
+            if omega[i] {
+                *px = std::array::from_fn(|k| u[i][k] + c[i][k]);
+            }
+        }
+    }
 }

@@ -1,0 +1,116 @@
+//! Fill speed on a rendered 12 MP keyframe (4000×3000) with trees over 15 % of the frame
+//! and six decoded, aligned views (true homographies); the target is 1.5 s median
+//! and 1.5 GB peak on a 2-core machine.
+//!
+//! `cargo bench --bench fill` (prints the stage timings of one run first).
+
+use std::time::Instant;
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use clearview::geometry::Homography;
+use clearview::imaging::{Mask, RgbF32};
+use clearview::inpaint::{FillParams, Observer, Source, Stage, fill};
+use clearview::synth::{self, Occluder};
+
+const W: usize = 4000;
+const H: usize = 3000;
+
+struct Scene {
+    key: RgbF32,
+    mask: Mask,
+    views: Vec<RgbF32>,
+    homographies: Vec<Homography>,
+}
+
+fn scene() -> Scene {
+    let truth = synth::facade(W, H, 42);
+    let mut key = truth.clone();
+    let mut mask = Mask::new(W, H, 0);
+    let spots = [
+        (900.0, 1900.0),
+        (2300.0, 2100.0),
+        (3400.0, 1200.0),
+        (1700.0, 900.0),
+        (3000.0, 2500.0),
+        (500.0, 800.0),
+    ];
+    for (k, &(cx, cy)) in spots.iter().enumerate() {
+        if mask.hole_count() >= W * H * 15 / 100 {
+            break;
+        }
+        synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Tree, cx, cy, 1100.0, k as u64);
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let mut views = Vec::new();
+    let mut homographies = Vec::new();
+    for v in 0..6 {
+        let hm = synth::random_homography(&mut rng, W, H, 0.05, 0.1, (0.95, 1.05));
+        let mut view = synth::render_view(&truth, &hm.inverse().expect("regular"), W, H, [0.5; 3]);
+        synth::paint_occluder(
+            &mut view,
+            None,
+            Occluder::Person,
+            600.0 + 500.0 * v as f32,
+            1800.0,
+            900.0,
+            100 + v,
+        );
+        synth::expose(&mut view, 0.85 + 0.05 * v as f32, 0.01);
+        views.push(view);
+        homographies.push(hm);
+    }
+    Scene { key, mask, views, homographies }
+}
+
+/// Prints how long each stage took.
+struct Timer(Option<(Stage, Instant)>);
+
+impl Observer for Timer {
+    fn stage(&mut self, stage: Stage) {
+        self.end();
+        self.0 = Some((stage, Instant::now()));
+    }
+}
+
+impl Timer {
+    fn end(&mut self) {
+        if let Some((s, t)) = self.0.take() {
+            eprintln!("  {:<12} {:>8.1} ms", s.name(), t.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+}
+
+fn benches(c: &mut Criterion) {
+    let t = Instant::now();
+    let s = scene();
+    eprintln!(
+        "scene: {}x{}, {:.1} % masked, {} views (built in {:.1} s)",
+        W,
+        H,
+        100.0 * s.mask.hole_count() as f64 / (W * H) as f64,
+        s.views.len(),
+        t.elapsed().as_secs_f64()
+    );
+    let sources: Vec<Source<'_>> =
+        s.views.iter().zip(&s.homographies).map(|(v, &homography)| Source { image: v, homography }).collect();
+    let params = FillParams::default();
+    let mut timer = Timer(None);
+    let t = Instant::now();
+    let out = fill(&s.key, &s.mask, &sources, &params, 1, &mut timer);
+    timer.end();
+    eprintln!("one run: {:.0} ms; {:?}", t.elapsed().as_secs_f64() * 1e3, out.report);
+    drop(out);
+    c.bench_function("fill 12 MP, 15 % masked, 6 views", |b| {
+        b.iter(|| fill(&s.key, &s.mask, &sources, &params, 1, &mut ()))
+    });
+}
+
+criterion_group! {
+    name = fill_benches;
+    config = Criterion::default().sample_size(10).measurement_time(std::time::Duration::from_secs(20));
+    targets = benches
+}
+criterion_main!(fill_benches);
