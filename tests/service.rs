@@ -498,3 +498,28 @@ fn a_late_mask_fills_from_the_buffered_views_and_a_new_keyframe_restarts_the_ses
     assert!(realigned.iter().filter(|e| e["from_state"] == false).count() >= 2, "{realigned:#?}");
     assert_eq!(service.terminate(), 0);
 }
+
+#[test]
+fn without_a_key_file_the_first_image_is_the_keyframe_and_its_mask_follows_its_name() {
+    let f = folders("");
+    let mut scene = Scene::new(61);
+    let service = Service::start(&f, 1);
+    // Directly in the watched folder: the `_root` session.
+    put(&f.inbox.join("IMG_0001.png"), &png_bytes(&scene.key));
+    let ev = wait_for(&f, "the session to start", 30, |e| !of_kind(e, "session_started").is_empty());
+    let started = of_kind(&ev, "session_started");
+    assert_eq!(started[0]["keyframe"], "IMG_0001.png");
+    assert_eq!(started[0]["session"], "_root");
+    let mut mask_png = std::io::Cursor::new(Vec::new());
+    mask_to_luma8(&scene.mask).write_to(&mut mask_png, image::ImageFormat::Png).unwrap();
+    put(&f.inbox.join("IMG_0001.mask.png"), &mask_png.into_inner());
+    put(&f.inbox.join("IMG_0002.png"), &png_bytes(&scene.view(1, 120.0, 60.0)));
+    let ev = wait_for(&f, "a result with the view", 30, |e| {
+        of_kind(e, "result_updated").iter().any(|r| r["views"] == 1)
+    });
+    assert_eq!(of_kind(&ev, "mask_set")[0]["mask"], "IMG_0001.mask.png");
+    let report: Value =
+        serde_json::from_slice(&std::fs::read(f.outbox.join("_root/result.json")).unwrap()).unwrap();
+    assert_eq!(report["keyframe"], "IMG_0001.png");
+    assert_eq!(service.terminate(), 0);
+}
