@@ -523,3 +523,31 @@ fn without_a_key_file_the_first_image_is_the_keyframe_and_its_mask_follows_its_n
     assert_eq!(report["keyframe"], "IMG_0001.png");
     assert_eq!(service.terminate(), 0);
 }
+
+#[test]
+fn with_an_automatic_mask_the_occluder_is_found_and_removed() {
+    let f = folders("[session]\nmask = \"auto\"\nauto_mask_views = 2\n");
+    let mut scene = Scene::new(71);
+    let session = f.inbox.join("auto");
+    put(&session.join("key.png"), &png_bytes(&scene.key));
+    let service = Service::start(&f, 1);
+    wait_for(&f, "the session to start", 30, |e| !of_kind(e, "session_started").is_empty());
+    for i in 1..=3 {
+        put(&session.join(format!("v{i}.png")), &png_bytes(&scene.view(i, 60.0 + 130.0 * i as f32, 50.0)));
+    }
+    let ev = wait_for(&f, "a result from the automatic mask", 40, |e| {
+        of_kind(e, "result_updated").iter().any(|r| r["views"] == 3)
+    });
+    let mask_set = of_kind(&ev, "mask_set");
+    assert_eq!(mask_set[0]["source"], "auto");
+    assert!(mask_set[0]["masked"].as_u64().unwrap() > 1000, "{mask_set:?}");
+    let report: Value =
+        serde_json::from_slice(&std::fs::read(f.outbox.join("auto/result.json")).unwrap()).unwrap();
+    assert_eq!(report["mask"], "auto");
+    // Where the tree stood, the result is close to the facade behind it.
+    let result = image::open(f.outbox.join("auto/result.png")).unwrap().to_rgb8();
+    let (e_key, e_result) = (scene.masked_error(&to_rgb8(&scene.key)), scene.masked_error(&result));
+    eprintln!("error where the tree stood: keyframe {e_key:.4}, result {e_result:.4}");
+    assert!(e_result < 0.5 * e_key, "the tree is still there: {e_key} -> {e_result}");
+    assert_eq!(service.terminate(), 0);
+}
