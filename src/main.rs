@@ -16,7 +16,9 @@ fn main() -> ExitCode {
             return ExitCode::from(code);
         }
     };
-    init_logging(cli.log_json);
+    // The service logs its lifecycle (INFO); one-shot commands only what went wrong.
+    let default = if matches!(cli.command, Command::Run(_)) { "info" } else { "warn" };
+    init_logging(cli.log_json, default);
     let code = match &cli.command {
         Command::Align(args) => align::run(args),
         Command::Fill(args) => fill::run(args),
@@ -27,9 +29,9 @@ fn main() -> ExitCode {
     ExitCode::from(code)
 }
 
-fn init_logging(json: bool) {
+fn init_logging(json: bool, default: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_env("CLEARVIEW_LOG")
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
     let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
     if json {
         builder.json().init();

@@ -242,7 +242,9 @@ fn a_session_improves_as_views_arrive_and_bad_files_are_skipped() {
         std::thread::sleep(Duration::from_millis(120));
     }
     drop(file);
-    let ev = wait_for(&f, "a result from v1", 20, |e| !of_kind(e, "result_updated").is_empty());
+    let ev = wait_for(&f, "a first result", 20, |e| !of_kind(e, "result_updated").is_empty());
+    let first = image::open(f.outbox.join("facade/history/result-0001.png")).unwrap().to_rgb8();
+    let e_invented = scene.masked_error(&first);
     assert!(about(&ev, "v1.png").iter().all(|e| e["event"] != "file_skipped"), "v1 was read half-written");
 
     // View 2 uploaded as .part and renamed; a corrupt file, an empty one, another scene.
@@ -312,26 +314,20 @@ fn a_session_improves_as_views_arrive_and_bad_files_are_skipped() {
     for (x, y) in [(5, 5), (W - 3, H - 3), (20, 250)] {
         assert_eq!(result.get_pixel(x as u32, y as u32), key8.get_pixel(x as u32, y as u32));
     }
-    // The masked region's error against the truth falls as views arrive (when views fill
-    // it: with the placeholder fill everything comes from the fallback).
+    // A result is never replaced by a worse one, and the masked region's error against the
+    // truth falls from the keyframe-only result (everything invented) as views arrive.
     let scores: Vec<f64> =
         of_kind(&ev, "result_updated").iter().map(|e| e["from_views"].as_f64().unwrap()).collect();
     assert!(
         scores.windows(2).all(|w| w[1] >= w[0] - 1e-9),
         "a result was replaced by a worse one: {scores:?}"
     );
-    if from_views > 0.5 {
-        let first = image::open(
-            f.outbox.join(format!("facade/history/result-{:04}.png", numbers[0].max(last.saturating_sub(2)))),
-        )
-        .unwrap()
-        .to_rgb8();
-        let (e_first, e_last) = (scene.masked_error(&first), scene.masked_error(&result));
-        assert!(e_last <= e_first + 1e-3, "error rose from {e_first} to {e_last}");
-        assert!(e_last < 0.08, "masked error {e_last} against the truth");
-    } else {
-        eprintln!("note: the fill took only {from_views:.2} of the mask from views (placeholder fill?)");
-    }
+    let e_last = scene.masked_error(&result);
+    eprintln!(
+        "masked error: keyframe only {e_invented:.4}, after three views {e_last:.4}; from views {scores:?}"
+    );
+    assert!(from_views > 0.9, "only {from_views} of the mask from views");
+    assert!(e_last < 0.6 * e_invented, "error {e_invented} -> {e_last}: the views did not help");
     for e in &ev {
         eprintln!("{e}");
     }
@@ -426,4 +422,132 @@ fn a_restart_resumes_from_saved_alignments_without_rewriting_results() {
     assert!(of_kind(&ev[lines_before..], "view_accepted").iter().all(|e| e["from_state"] == false));
     assert_eq!(service.terminate(), 0);
     let _: Value = serde_json::from_slice(&std::fs::read(&state_file).unwrap()).expect("rebuilt state");
+}
+
+#[test]
+fn a_burst_on_a_polled_folder_with_a_tiny_queue_is_batched_and_nothing_is_lost() {
+    // One worker with a queue of one: a burst of views cannot all be queued. The decision
+    // under test: the files wait on disk, every one is handled in the end, and the fills
+    // are batched (fewer fills than views).
+    let f = folders("workers = 1\nqueue = 1\n");
+    let text = std::fs::read_to_string(&f.config).unwrap();
+    let polled = text
+        .replace("quiet_period_ms = 300", "quiet_period_ms = 200\nmode = \"poll\"\npoll_interval_ms = 100");
+    std::fs::write(&f.config, polled).unwrap();
+    let mut scene = Scene::new(41);
+    let session = f.inbox.join("burst");
+    put_key_and_mask(&session, &scene);
+    let service = Service::start(&f, 1);
+    wait_for(&f, "the first result", 30, |e| !of_kind(e, "result_updated").is_empty());
+    let names: Vec<String> = (1..=6).map(|i| format!("b{i}.png")).collect();
+    for (i, name) in names.iter().enumerate() {
+        put(&session.join(name), &png_bytes(&scene.view(i as u64 + 1, 80.0 + 50.0 * i as f32, 50.0)));
+    }
+    let ev = wait_for(&f, "every view to be handled and filled", 60, |e| {
+        names.iter().all(|n| !about(e, n).is_empty())
+            && of_kind(e, "result_updated").last().is_some_and(|r| r["views"] == 6)
+    });
+    for n in &names {
+        assert_eq!(about(&ev, n).len(), 1, "{n} handled once");
+    }
+    let fills_for_burst = of_kind(&ev, "result_updated").len() - 1;
+    assert!(fills_for_burst < names.len(), "{fills_for_burst} fills for {} views: not batched", names.len());
+    assert_eq!(service.terminate(), 0);
+}
+
+#[test]
+fn a_late_mask_fills_from_the_buffered_views_and_a_new_keyframe_restarts_the_session() {
+    let f = folders("");
+    let mut scene = Scene::new(51);
+    let session = f.inbox.join("late");
+    put(&session.join("key.png"), &png_bytes(&scene.key));
+    let service = Service::start(&f, 1);
+    wait_for(&f, "the session to start", 30, |e| !of_kind(e, "session_started").is_empty());
+    for i in 1..=2 {
+        put(&session.join(format!("v{i}.png")), &png_bytes(&scene.view(i, 100.0 * i as f32, 60.0)));
+    }
+    let ev = wait_for(&f, "both views", 30, |e| of_kind(e, "view_accepted").len() == 2);
+    assert!(of_kind(&ev, "result_updated").is_empty(), "a result without a mask");
+
+    // The mask arrives after the views: they are filled from then, not realigned.
+    let mut mask_png = std::io::Cursor::new(Vec::new());
+    mask_to_luma8(&scene.mask).write_to(&mut mask_png, image::ImageFormat::Png).unwrap();
+    put(&session.join("key.mask.png"), &mask_png.into_inner());
+    let ev = wait_for(&f, "a result from the buffered views", 30, |e| {
+        of_kind(e, "result_updated").iter().any(|r| r["views"] == 2)
+    });
+    let after_mask: Vec<&Value> = ev
+        .iter()
+        .skip_while(|e| e["event"] != "mask_set")
+        .filter(|e| e["event"] == "view_accepted")
+        .collect();
+    assert_eq!(after_mask.len(), 2, "the views are offered again with their pixels");
+    assert!(after_mask.iter().all(|e| e["from_state"] == true), "realigned after a mask change");
+
+    // A new keyframe (same name, new contents): realigned, and a fresh result.
+    let seen = ev.len();
+    let mut brighter = scene.key.clone();
+    synth::expose(&mut brighter, 1.1, 0.0);
+    put(&session.join("key.png"), &png_bytes(&brighter));
+    let ev = wait_for(&f, "a result for the new keyframe", 30, |e| {
+        e.len() > seen
+            && !of_kind(&e[seen..], "keyframe_changed").is_empty()
+            && of_kind(&e[seen..], "result_updated").iter().any(|r| r["views"] == 2)
+    });
+    let realigned = of_kind(&ev[seen..], "view_accepted");
+    assert!(realigned.iter().filter(|e| e["from_state"] == false).count() >= 2, "{realigned:#?}");
+    assert_eq!(service.terminate(), 0);
+}
+
+#[test]
+fn without_a_key_file_the_first_image_is_the_keyframe_and_its_mask_follows_its_name() {
+    let f = folders("");
+    let mut scene = Scene::new(61);
+    let service = Service::start(&f, 1);
+    // Directly in the watched folder: the `_root` session.
+    put(&f.inbox.join("IMG_0001.png"), &png_bytes(&scene.key));
+    let ev = wait_for(&f, "the session to start", 30, |e| !of_kind(e, "session_started").is_empty());
+    let started = of_kind(&ev, "session_started");
+    assert_eq!(started[0]["keyframe"], "IMG_0001.png");
+    assert_eq!(started[0]["session"], "_root");
+    let mut mask_png = std::io::Cursor::new(Vec::new());
+    mask_to_luma8(&scene.mask).write_to(&mut mask_png, image::ImageFormat::Png).unwrap();
+    put(&f.inbox.join("IMG_0001.mask.png"), &mask_png.into_inner());
+    put(&f.inbox.join("IMG_0002.png"), &png_bytes(&scene.view(1, 120.0, 60.0)));
+    let ev = wait_for(&f, "a result with the view", 30, |e| {
+        of_kind(e, "result_updated").iter().any(|r| r["views"] == 1)
+    });
+    assert_eq!(of_kind(&ev, "mask_set")[0]["mask"], "IMG_0001.mask.png");
+    let report: Value =
+        serde_json::from_slice(&std::fs::read(f.outbox.join("_root/result.json")).unwrap()).unwrap();
+    assert_eq!(report["keyframe"], "IMG_0001.png");
+    assert_eq!(service.terminate(), 0);
+}
+
+#[test]
+fn with_an_automatic_mask_the_occluder_is_found_and_removed() {
+    let f = folders("[session]\nmask = \"auto\"\nauto_mask_views = 2\n");
+    let mut scene = Scene::new(71);
+    let session = f.inbox.join("auto");
+    put(&session.join("key.png"), &png_bytes(&scene.key));
+    let service = Service::start(&f, 1);
+    wait_for(&f, "the session to start", 30, |e| !of_kind(e, "session_started").is_empty());
+    for i in 1..=3 {
+        put(&session.join(format!("v{i}.png")), &png_bytes(&scene.view(i, 60.0 + 130.0 * i as f32, 50.0)));
+    }
+    let ev = wait_for(&f, "a result from the automatic mask", 40, |e| {
+        of_kind(e, "result_updated").iter().any(|r| r["views"] == 3)
+    });
+    let mask_set = of_kind(&ev, "mask_set");
+    assert_eq!(mask_set[0]["source"], "auto");
+    assert!(mask_set[0]["masked"].as_u64().unwrap() > 1000, "{mask_set:?}");
+    let report: Value =
+        serde_json::from_slice(&std::fs::read(f.outbox.join("auto/result.json")).unwrap()).unwrap();
+    assert_eq!(report["mask"], "auto");
+    // Where the tree stood, the result is close to the facade behind it.
+    let result = image::open(f.outbox.join("auto/result.png")).unwrap().to_rgb8();
+    let (e_key, e_result) = (scene.masked_error(&to_rgb8(&scene.key)), scene.masked_error(&result));
+    eprintln!("error where the tree stood: keyframe {e_key:.4}, result {e_result:.4}");
+    assert!(e_result < 0.5 * e_key, "the tree is still there: {e_key} -> {e_result}");
+    assert_eq!(service.terminate(), 0);
 }

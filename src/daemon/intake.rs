@@ -275,7 +275,15 @@ impl Intake {
                     );
                 }
                 None => {
-                    t.status = Status::Ready;
+                    // The decoder panicked on this file: never again until it changes.
+                    t.status = Status::Failed;
+                    self.backlog.done(&session);
+                    tracing::error!(file = %path.display(), "the decoder crashed on this file");
+                    self.emitter.event(
+                        "file_skipped",
+                        Some(&session),
+                        serde_json::json!({ "file": path.file_name().map(|n| n.to_string_lossy()), "path": path, "reason": "the decoder crashed" }),
+                    );
                 }
             }
         }

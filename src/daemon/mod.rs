@@ -20,7 +20,9 @@
 //!   arrive while more of the same session are waiting are aligned one by one and filled
 //!   together (batching), at most `batch_max` at a time.
 //! - [`emit`]: atomic files (temporary name in the same folder, fsync, rename) and the
-//!   event log. [`state`]: what a restart needs. [`systemd`]: readiness, status, watchdog.
+//!   event log. A worker writes its own results: writing is part of the step, so a
+//!   SIGTERM lets it finish, and no queue of full-size images builds up between a fast
+//!   fill and a slow disk. [`state`]: what a restart needs. [`systemd`]: readiness, status, watchdog.
 //!
 //! Shutdown: the shutdown future (SIGTERM/SIGINT) cancels a token; the intake stops
 //! queueing, each worker finishes the step in hand (an alignment or a fill with its

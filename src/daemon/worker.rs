@@ -207,7 +207,12 @@ impl Worker {
             Role::View => match key_rank_for(ctx, slot, &file.name) {
                 Some(rank) => take_key(ctx, slot, &file, &path, &image, rank),
                 None if slot.session.key_id().is_none() => {
-                    tracing::debug!(file = %file.name, "waiting for the keyframe");
+                    tracing::info!(file = %file.name, "waiting for the keyframe");
+                    ctx.emitter.event(
+                        "view_waiting",
+                        Some(&slot.name),
+                        json!({ "file": file.name, "reason": "no keyframe yet: it is aligned when the keyframe arrives" }),
+                    );
                     slot.parked.insert(file.name.clone(), path);
                 }
                 None => process_view(ctx, slot, &file, &path, &image),
