@@ -33,7 +33,8 @@ use thiserror::Error;
 use crate::align::{AlignParams, Alignment, Frame, align};
 use crate::geometry::Homography;
 use crate::imaging::convert::luminance;
-use crate::imaging::{GrayF32, Mask, Plane, RgbF32};
+use crate::imaging::{GrayF32, Mask, Plane, Rect, RgbF32};
+use crate::inpaint::region::{footprint, into_crop};
 use crate::inpaint::{self, AutoMaskParams, FALLBACK, FillParams, FillReport, Observer, Provenance, Source};
 
 /// An 8-bit RGB image: what the buffer keeps of a view.
@@ -195,23 +196,6 @@ pub struct FillOutcome {
     pub digest: u64,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct Rect {
-    x0: usize,
-    y0: usize,
-    x1: usize,
-    y1: usize,
-}
-
-impl Rect {
-    fn width(&self) -> usize {
-        self.x1 - self.x0
-    }
-    fn height(&self) -> usize {
-        self.y1 - self.y0
-    }
-}
-
 struct Key {
     id: String,
     rgb: RgbF32,
@@ -314,7 +298,7 @@ impl Session {
                 key_h: kh,
             });
         }
-        let region = hole_box(&mask).map(|r| grow(r, self.params.margin_px, kw, kh));
+        let region = mask.hole_bounds().map(|r| r.grown(self.params.margin_px, kw, kh));
         self.mask = Some(MaskInfo { id, mask, region });
         self.provenance = None;
         self.best = None;
@@ -386,7 +370,13 @@ impl Session {
                 // An empty mask: nothing to fill, nothing to keep.
                 return Ok(Admission::OutsideMask);
             };
-            let Some(rect) = view_crop(&homography, region, record.view_size, self.params.margin_px) else {
+            let Some(rect) = footprint(
+                &region,
+                &homography,
+                record.view_size.0,
+                record.view_size.1,
+                self.params.margin_px,
+            ) else {
                 return Ok(Admission::OutsideMask);
             };
             let seen;
@@ -396,11 +386,7 @@ impl Session {
             }
             improves = fallback_px.max(weak_px) >= self.params.min_new_pixels;
             if let Some(p) = pixels {
-                crop = Some(Crop {
-                    image: crop_rgb8(p, rect),
-                    homography: Homography::translation(-(rect.x0 as f64), -(rect.y0 as f64))
-                        .after(&homography),
-                });
+                crop = Some(Crop { image: p.crop(rect), homography: into_crop(&homography, &rect) });
             }
         }
         self.seq += 1;
@@ -463,15 +449,15 @@ impl Session {
             .map(|b| (&b.homography, b.record.view_size))
             .collect();
         let (mut seen, mut fallback, mut weak) = (0, 0, 0);
-        for y in (region.y0..region.y1).step_by(step) {
-            for x in (region.x0..region.x1).step_by(step) {
+        for y in (region.y..region.y1()).step_by(step) {
+            for x in (region.x..region.x1()).step_by(step) {
                 if !mask.mask.is_hole(x, y) || !sees(h, view_size, x, y) {
                     continue;
                 }
                 seen += 1;
                 let from_fallback = match &self.provenance {
                     None => true,
-                    Some(p) => p.get(x - region.x0, y - region.y0) == FALLBACK,
+                    Some(p) => p.get(x - region.x, y - region.y) == FALLBACK,
                 };
                 if from_fallback {
                     fallback += 1;
@@ -530,9 +516,9 @@ impl Session {
             let image = previous.is_none().then(|| key.rgb.clone());
             return Some(FillOutcome { image, report, views: Vec::new(), score: 1.0, previous, digest });
         };
-        let key_region = crop_plane(&key.rgb, region);
-        let mask_region = crop_plane(&mask.mask, region);
-        let into_region = Homography::translation(region.x0 as f64, region.y0 as f64);
+        let key_region = key.rgb.crop(region);
+        let mask_region = mask.mask.crop(region);
+        let into_region = Homography::translation(region.x as f64, region.y as f64);
         let used: Vec<usize> = (0..self.buffer.len()).filter(|&i| self.buffer[i].crop.is_some()).collect();
         let images: Vec<RgbF32> = used
             .iter()
@@ -562,7 +548,7 @@ impl Session {
             self.best = Some(score);
             self.provenance = Some(filled.provenance);
             let mut full = key.rgb.clone();
-            paste(&mut full, &filled.image, region);
+            full.paste(&filled.image, region);
             Some(full)
         } else {
             None
@@ -583,80 +569,6 @@ impl Session {
 fn sees(h: &Homography, size: (usize, usize), x: usize, y: usize) -> bool {
     h.apply(Point2::new(x as f64, y as f64))
         .is_some_and(|p| p.x >= 0.0 && p.y >= 0.0 && p.x <= (size.0 - 1) as f64 && p.y <= (size.1 - 1) as f64)
-}
-
-/// The bounding box of the mask's holes (exclusive ends).
-fn hole_box(mask: &Mask) -> Option<Rect> {
-    let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
-    for y in 0..mask.height() {
-        for (x, &v) in mask.row(y).iter().enumerate() {
-            if v > 127 {
-                x0 = x0.min(x);
-                y0 = y0.min(y);
-                x1 = x1.max(x + 1);
-                y1 = y1.max(y + 1);
-            }
-        }
-    }
-    (x1 > 0).then_some(Rect { x0, y0, x1, y1 })
-}
-
-fn grow(r: Rect, margin: usize, width: usize, height: usize) -> Rect {
-    Rect {
-        x0: r.x0.saturating_sub(margin),
-        y0: r.y0.saturating_sub(margin),
-        x1: (r.x1 + margin).min(width),
-        y1: (r.y1 + margin).min(height),
-    }
-}
-
-/// The part of a `view_size` view that the keyframe `region` maps onto under `h`, grown by
-/// `margin` (and 2 pixels for interpolation), clamped to the view; `None` when empty.
-fn view_crop(h: &Homography, region: Rect, view_size: (usize, usize), margin: usize) -> Option<Rect> {
-    let (vw, vh) = view_size;
-    let corners = [
-        (region.x0, region.y0),
-        (region.x1 - 1, region.y0),
-        (region.x0, region.y1 - 1),
-        (region.x1 - 1, region.y1 - 1),
-    ];
-    let mut mapped = Vec::with_capacity(4);
-    for (x, y) in corners {
-        let p = Point2::new(x as f64, y as f64);
-        if h.w(p) <= 0.0 {
-            // Part of the region maps behind the camera: its image is unbounded.
-            return Some(Rect { x0: 0, y0: 0, x1: vw, y1: vh });
-        }
-        mapped.push(h.apply(p)?);
-    }
-    let m = (margin + 2) as f64;
-    let min_x = mapped.iter().map(|p| p.x).fold(f64::INFINITY, f64::min) - m;
-    let max_x = mapped.iter().map(|p| p.x).fold(f64::NEG_INFINITY, f64::max) + m;
-    let min_y = mapped.iter().map(|p| p.y).fold(f64::INFINITY, f64::min) - m;
-    let max_y = mapped.iter().map(|p| p.y).fold(f64::NEG_INFINITY, f64::max) + m;
-    let x0 = min_x.floor().clamp(0.0, vw as f64) as usize;
-    let y0 = min_y.floor().clamp(0.0, vh as f64) as usize;
-    let x1 = (max_x.ceil() + 1.0).clamp(0.0, vw as f64) as usize;
-    let y1 = (max_y.ceil() + 1.0).clamp(0.0, vh as f64) as usize;
-    (x1 > x0 + 1 && y1 > y0 + 1).then_some(Rect { x0, y0, x1, y1 })
-}
-
-fn crop_plane<T: Copy>(img: &Plane<T>, r: Rect) -> Plane<T> {
-    let mut data = Vec::with_capacity(r.width() * r.height());
-    for y in r.y0..r.y1 {
-        data.extend_from_slice(&img.row(y)[r.x0..r.x1]);
-    }
-    Plane::from_vec(r.width(), r.height(), data)
-}
-
-fn crop_rgb8(img: &Rgb8, r: Rect) -> Rgb8 {
-    crop_plane(img, r)
-}
-
-fn paste(dst: &mut RgbF32, src: &RgbF32, r: Rect) {
-    for y in 0..r.height() {
-        dst.row_mut(r.y0 + y)[r.x0..r.x1].copy_from_slice(src.row(y));
-    }
 }
 
 /// FNV-1a, 64 bits: a stable digest (the standard hasher's output may change between
@@ -785,15 +697,15 @@ mod tests {
             assert!(matches!(a, Admission::Accepted { improves: true, .. }), "{a:?}");
         }
         let region = s.mask.as_ref().unwrap().region.unwrap();
-        s.provenance = Some(Provenance::new(region.width(), region.height(), 1));
+        s.provenance = Some(Provenance::new(region.width, region.height, 1));
         s.dirty = false;
         let a = s.admit("c".into(), record(&h), Some(&view)).unwrap();
         assert_eq!(a, Admission::Accepted { improves: false, fallback_px: 0, weak_px: 0, dropped: vec![] });
         assert!(!s.needs_fill());
         // The fallback made part of the result: a view seeing it improves things.
-        let mut p = Provenance::new(region.width(), region.height(), 1);
-        for y in 0..region.height() {
-            for x in 0..region.width() / 2 {
+        let mut p = Provenance::new(region.width, region.height, 1);
+        for y in 0..region.height {
+            for x in 0..region.width / 2 {
                 p.set(x, y, FALLBACK);
             }
         }

@@ -17,8 +17,8 @@ use crate::align::{AlignParams, Frame, align};
 use crate::geometry::{Homography, Rows};
 use crate::imaging::convert::{mask_to_luma8, to_luminance, to_mask, to_rgb, to_rgb8};
 use crate::imaging::decode::DecodeLimits;
-use crate::imaging::{Mask, RgbF32};
-use crate::inpaint::region::{Rect, footprint, into_crop, mask_bounds};
+use crate::imaging::{Mask, Rect, RgbF32};
+use crate::inpaint::region::{footprint, into_crop};
 use crate::inpaint::{AutoMaskParams, FillParams, Observer, Source, Stage, auto_mask, fill};
 
 /// Keyframe pixels kept around the mask for the fill's patches, local search, photometric
@@ -217,8 +217,8 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     let key_rgb = to_rgb(&key_img);
     // The keyframe region the fill works in; with an automatic mask, all of it.
     let region = match &given_mask {
-        Some(m) => mask_bounds(m).map(|r| r.grown(MARGIN, kw, kh)),
-        None => Some(Rect { x0: 0, y0: 0, x1: kw, y1: kh }),
+        Some(m) => m.hole_bounds().map(|r| r.grown(MARGIN, kw, kh)),
+        None => Some(Rect::full(kw, kh)),
     };
     progress.begin("align", args.views.len());
     let key_frame = Frame::new(to_luminance(&key_img), &params);
@@ -256,13 +256,9 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         match (&a.homography, &a.rejection, &region) {
             (Some(h), None, Some(region)) => {
                 let (vw, vh) = (img.width() as usize, img.height() as usize);
-                if let Some(crop) = footprint(region, h, vw, vh) {
-                    let part = img.crop_imm(
-                        crop.x0 as u32,
-                        crop.y0 as u32,
-                        crop.width() as u32,
-                        crop.height() as u32,
-                    );
+                if let Some(crop) = footprint(region, h, vw, vh, 0) {
+                    let part =
+                        img.crop_imm(crop.x as u32, crop.y as u32, crop.width as u32, crop.height as u32);
                     aligned.push(Aligned {
                         crop: to_rgb(&part),
                         homography: into_crop(h, &crop),

@@ -14,6 +14,57 @@ pub mod warp;
 
 use std::fmt;
 
+/// An axis-aligned rectangle of pixels, `x..x + width` × `y..y + height`: the regions the
+/// fill works in and the parts of views it keeps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Rect {
+    pub x: usize,
+    pub y: usize,
+    pub width: usize,
+    pub height: usize,
+}
+
+impl Rect {
+    /// The whole of a `width × height` image.
+    pub fn full(width: usize, height: usize) -> Self {
+        Self { x: 0, y: 0, width, height }
+    }
+
+    /// The rectangle `[x0, x1) × [y0, y1)`.
+    pub fn from_corners(x0: usize, y0: usize, x1: usize, y1: usize) -> Self {
+        Self { x: x0, y: y0, width: x1.saturating_sub(x0), height: y1.saturating_sub(y0) }
+    }
+
+    /// One past the last column.
+    pub fn x1(&self) -> usize {
+        self.x + self.width
+    }
+
+    /// One past the last row.
+    pub fn y1(&self) -> usize {
+        self.y + self.height
+    }
+
+    /// `self` grown by `margin` on every side and clipped to a `width × height` image.
+    pub fn grown(&self, margin: usize, width: usize, height: usize) -> Self {
+        Self::from_corners(
+            self.x.saturating_sub(margin),
+            self.y.saturating_sub(margin),
+            (self.x1() + margin).min(width),
+            (self.y1() + margin).min(height),
+        )
+    }
+
+    pub fn area(&self) -> usize {
+        self.width * self.height
+    }
+
+    /// `true` when the image pixel `(x, y)` is inside.
+    pub fn contains(&self, x: usize, y: usize) -> bool {
+        x >= self.x && y >= self.y && x < self.x1() && y < self.y1()
+    }
+}
+
 /// A dense, row-major image of `T` pixels: `data[y * width + x]`.
 #[derive(Clone, PartialEq)]
 pub struct Plane<T> {
@@ -147,6 +198,27 @@ impl<T: Copy> Plane<T> {
         x >= 0.0 && y >= 0.0 && x <= (self.width - 1) as f64 && y <= (self.height - 1) as f64
     }
 
+    /// A copy of the pixels inside `r` (which must lie inside the image).
+    pub fn crop(&self, r: Rect) -> Self {
+        let mut data = Vec::with_capacity(r.area());
+        for y in r.y..r.y1() {
+            data.extend_from_slice(&self.row(y)[r.x..r.x1()]);
+        }
+        Self { width: r.width, height: r.height, data }
+    }
+
+    /// Writes `src` over the pixels inside `r` (`src` is `r`-sized).
+    pub fn paste(&mut self, src: &Self, r: Rect) {
+        assert_eq!(
+            (src.width, src.height),
+            (r.width, r.height),
+            "paste needs a plane the size of the rectangle"
+        );
+        for y in 0..r.height {
+            self.row_mut(r.y + y)[r.x..r.x1()].copy_from_slice(src.row(y));
+        }
+    }
+
     /// Applies `f` to every pixel, producing a new image.
     pub fn map<U: Copy>(&self, f: impl FnMut(&T) -> U) -> Plane<U> {
         Plane { width: self.width, height: self.height, data: self.data.iter().map(f).collect() }
@@ -158,6 +230,24 @@ impl Mask {
     #[inline]
     pub fn is_hole(&self, x: usize, y: usize) -> bool {
         self.get(x, y) > 127
+    }
+
+    /// The bounding box of the holes, or `None` when there are none.
+    pub fn hole_bounds(&self) -> Option<Rect> {
+        let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
+        for y in 0..self.height {
+            let row = self.row(y);
+            let (Some(first), Some(last)) =
+                (row.iter().position(|&v| v > 127), row.iter().rposition(|&v| v > 127))
+            else {
+                continue;
+            };
+            x0 = x0.min(first);
+            x1 = x1.max(last + 1);
+            y0 = y0.min(y);
+            y1 = y + 1;
+        }
+        (x0 != usize::MAX).then(|| Rect::from_corners(x0, y0, x1, y1))
     }
 
     /// How many pixels the mask asks to fill.
@@ -277,6 +367,24 @@ mod tests {
         let s = bilinear_rgb(&c, 1.3, 2.7).unwrap();
         let v = bilinear(&g, 1.3, 2.7).unwrap();
         assert!((s[0] - v).abs() < 1e-5 && (s[1] - 2.0 * v).abs() < 1e-5 && (s[2] + v).abs() < 1e-5);
+    }
+
+    #[test]
+    fn hole_bounds_crop_and_paste() {
+        let mut m = Mask::new(20, 10, 0);
+        assert_eq!(m.hole_bounds(), None);
+        m.set(3, 4, 255);
+        m.set(11, 7, 200);
+        m.set(15, 2, 100); // not a hole
+        let r = m.hole_bounds().unwrap();
+        assert_eq!(r, Rect::from_corners(3, 4, 12, 8));
+        let img = GrayF32::from_fn(20, 10, |x, y| (x + 100 * y) as f32);
+        let part = img.crop(r);
+        assert_eq!((part.width(), part.height(), part.get(0, 0), part.get(8, 3)), (9, 4, 403.0, 711.0));
+        let mut blank = GrayF32::new(20, 10, 0.0);
+        blank.paste(&part, r);
+        assert_eq!(blank.get(11, 7), 711.0);
+        assert_eq!(blank.get(2, 4), 0.0);
     }
 
     #[test]

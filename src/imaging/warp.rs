@@ -8,42 +8,9 @@
 use nalgebra::Point2;
 use rayon::prelude::*;
 
+pub use super::Rect;
 use super::{Plane, RgbF32, bilinear_rgb};
 use crate::geometry::Homography;
-
-/// An axis-aligned rectangle of pixels, `x..x + width` × `y..y + height`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct Rect {
-    pub x: usize,
-    pub y: usize,
-    pub width: usize,
-    pub height: usize,
-}
-
-impl Rect {
-    /// The whole of a `width × height` image.
-    pub fn full(width: usize, height: usize) -> Self {
-        Self { x: 0, y: 0, width, height }
-    }
-
-    /// `self` grown by `margin` on every side and clipped to a `width × height` image.
-    pub fn grown(&self, margin: usize, width: usize, height: usize) -> Self {
-        let x0 = self.x.saturating_sub(margin);
-        let y0 = self.y.saturating_sub(margin);
-        let x1 = (self.x + self.width + margin).min(width);
-        let y1 = (self.y + self.height + margin).min(height);
-        Self { x: x0, y: y0, width: x1.saturating_sub(x0), height: y1.saturating_sub(y0) }
-    }
-
-    pub fn area(&self) -> usize {
-        self.width * self.height
-    }
-
-    /// `true` when the image pixel `(x, y)` is inside.
-    pub fn contains(&self, x: usize, y: usize) -> bool {
-        x >= self.x && y >= self.y && x < self.x + self.width && y < self.y + self.height
-    }
-}
 
 /// How a warp samples the view between pixel centres.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
