@@ -5,6 +5,7 @@ use std::process::{Command, Output};
 
 use clearview::geometry::Homography;
 use clearview::imaging::convert::{mask_to_luma8, to_rgb, to_rgb8};
+use clearview::imaging::metrics::masked_psnr;
 use clearview::imaging::{Mask, RgbF32};
 use clearview::synth::{self, Occluder};
 use rand::SeedableRng;
@@ -80,20 +81,6 @@ fn args(s: &Scene, out: &Path, report: &Path) -> Vec<PathBuf> {
     ];
     v.extend(s.views.iter().cloned());
     v
-}
-
-/// Peak signal-to-noise ratio over the masked pixels, in dB.
-fn masked_psnr(a: &RgbF32, b: &RgbF32, mask: &Mask) -> f64 {
-    let (mut se, mut n) = (0.0f64, 0usize);
-    for ((p, q), &m) in a.as_slice().iter().zip(b.as_slice()).zip(mask.as_slice()) {
-        if m > 127 {
-            for c in 0..3 {
-                se += ((p[c] - q[c]) as f64).powi(2);
-            }
-            n += 3;
-        }
-    }
-    10.0 * (1.0 / (se / n as f64)).log10()
 }
 
 #[test]

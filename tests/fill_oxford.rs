@@ -11,58 +11,13 @@ use std::path::Path;
 
 use clearview::align::{AlignParams, Frame, align};
 use clearview::imaging::convert::{luminance, to_rgb, to_rgb8};
-use clearview::imaging::{GrayF32, Mask, RgbF32};
+use clearview::imaging::metrics::{masked_psnr, masked_ssim};
+use clearview::imaging::{Mask, RgbF32};
 use clearview::inpaint::{FillParams, Source, fill};
 use clearview::synth::{Occluder, paint_occluder};
 
 fn load(path: &Path) -> RgbF32 {
     to_rgb(&image::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())))
-}
-
-fn psnr_masked(img: &RgbF32, truth: &RgbF32, mask: &Mask) -> f64 {
-    let (mut se, mut n) = (0.0f64, 0usize);
-    for ((a, b), &m) in img.as_slice().iter().zip(truth.as_slice()).zip(mask.as_slice()) {
-        if m > 127 {
-            for c in 0..3 {
-                se += ((a[c] - b[c]) as f64).powi(2);
-            }
-            n += 3;
-        }
-    }
-    10.0 * (1.0 / (se / n.max(1) as f64).max(1e-12)).log10()
-}
-
-/// Mean SSIM of the luminance over 7×7 windows centred on masked pixels (uniform window,
-/// the usual constants for a 0..=1 range).
-fn ssim_masked(img: &RgbF32, truth: &RgbF32, mask: &Mask) -> f64 {
-    let (a, b): (GrayF32, GrayF32) = (luminance(img), luminance(truth));
-    let (c1, c2) = (0.01f64.powi(2), 0.03f64.powi(2));
-    let (w, h) = (a.width(), a.height());
-    let (mut sum, mut n) = (0.0, 0usize);
-    for y in 3..h - 3 {
-        for x in 3..w - 3 {
-            if !mask.is_hole(x, y) {
-                continue;
-            }
-            let (mut sa, mut sb, mut saa, mut sbb, mut sab) = (0.0f64, 0.0, 0.0, 0.0, 0.0);
-            for yy in y - 3..=y + 3 {
-                for xx in x - 3..=x + 3 {
-                    let (p, q) = (a.get(xx, yy) as f64, b.get(xx, yy) as f64);
-                    sa += p;
-                    sb += q;
-                    saa += p * p;
-                    sbb += q * q;
-                    sab += p * q;
-                }
-            }
-            let k = 49.0;
-            let (ma, mb) = (sa / k, sb / k);
-            let (va, vb, cov) = (saa / k - ma * ma, sbb / k - mb * mb, sab / k - ma * mb);
-            sum += ((2.0 * ma * mb + c1) * (2.0 * cov + c2)) / ((ma * ma + mb * mb + c1) * (va + vb + c2));
-            n += 1;
-        }
-    }
-    sum / n.max(1) as f64
 }
 
 struct Case {
@@ -127,8 +82,8 @@ fn fills_real_sequences_from_their_other_views() {
         let sources: Vec<Source<'_>> =
             views.iter().zip(&hs).map(|(v, &homography)| Source { image: v, homography }).collect();
         let out = fill(&key, &mask, &sources, &FillParams::default(), 1, &mut ());
-        let (pb, pa) = (psnr_masked(&key, &truth, &mask), psnr_masked(&out.image, &truth, &mask));
-        let (sb, sa) = (ssim_masked(&key, &truth, &mask), ssim_masked(&out.image, &truth, &mask));
+        let (pb, pa) = (masked_psnr(&key, &truth, &mask), masked_psnr(&out.image, &truth, &mask));
+        let (sb, sa) = (masked_ssim(&key, &truth, &mask), masked_ssim(&out.image, &truth, &mask));
         let fb = out.report.fallback as f64 / out.report.masked as f64;
         println!(
             "{:<8} {:>6} {:>8.1}dB {:>8.1}dB {:>7.3} {:>7.3} {:>8.1}%",

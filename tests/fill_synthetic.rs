@@ -10,6 +10,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use clearview::geometry::Homography;
+use clearview::imaging::metrics::masked_psnr;
 use clearview::imaging::{Mask, RgbF32};
 use clearview::inpaint::{FALLBACK, FillParams, Filled, KEYFRAME, Source, fill};
 use clearview::synth::{self, Occluder};
@@ -92,20 +93,6 @@ fn half(img: &RgbF32) -> RgbF32 {
     })
 }
 
-/// PSNR (dB) of `img` against `truth` over the pixels `mask` marks.
-fn psnr_masked(img: &RgbF32, truth: &RgbF32, mask: &Mask) -> f64 {
-    let (mut se, mut n) = (0.0f64, 0usize);
-    for ((a, b), &m) in img.as_slice().iter().zip(truth.as_slice()).zip(mask.as_slice()) {
-        if m > 127 {
-            for c in 0..3 {
-                se += ((a[c] - b[c]) as f64).powi(2);
-            }
-            n += 3;
-        }
-    }
-    10.0 * (1.0 / (se / n.max(1) as f64).max(1e-12)).log10()
-}
-
 fn dump(name: &str, img: &RgbF32) {
     if let Ok(dir) = std::env::var("CLEARVIEW_DUMP") {
         let path = std::path::Path::new(&dir).join(name);
@@ -118,8 +105,8 @@ fn dump(name: &str, img: &RgbF32) {
 fn fills_from_the_views_and_reports_consistently() {
     let s = scene(3);
     let out = s.run(&FillParams::default());
-    let psnr = psnr_masked(&out.image, &s.truth, &s.mask);
-    let before = psnr_masked(&s.key, &s.truth, &s.mask);
+    let psnr = masked_psnr(&out.image, &s.truth, &s.mask);
+    let before = masked_psnr(&s.key, &s.truth, &s.mask);
     eprintln!("masked PSNR: {before:.1} dB before, {psnr:.1} dB after; {:?}", out.report);
     dump("fill_synth_before.png", &s.key);
     dump("fill_synth_after.png", &out.image);
@@ -158,10 +145,10 @@ fn fills_from_the_views_and_reports_consistently() {
 #[test]
 fn occlusion_reasoning_keeps_the_views_own_tree_out() {
     let s = scene(3);
-    let on = psnr_masked(&s.run(&FillParams::default()).image, &s.truth, &s.mask);
+    let on = masked_psnr(&s.run(&FillParams::default()).image, &s.truth, &s.mask);
     let off_img = s.run(&FillParams { occlusion: false, ..FillParams::default() }).image;
     dump("fill_synth_no_occlusion.png", &off_img);
-    let off = psnr_masked(&off_img, &s.truth, &s.mask);
+    let off = masked_psnr(&off_img, &s.truth, &s.mask);
     eprintln!("occlusion reasoning on {on:.1} dB, off {off:.1} dB");
     assert!(on > 24.0 && off < on - 3.0, "on {on:.1} dB, off {off:.1} dB");
 }
@@ -172,10 +159,10 @@ fn occlusion_reasoning_keeps_the_views_own_tree_out() {
 fn photometric_compensation_removes_exposure_differences() {
     let s = scene(3);
     let base = FillParams { blend: false, ..FillParams::default() };
-    let on = psnr_masked(&s.run(&base).image, &s.truth, &s.mask);
+    let on = masked_psnr(&s.run(&base).image, &s.truth, &s.mask);
     let off_img = s.run(&FillParams { photometric: false, ..base }).image;
     dump("fill_synth_no_photometric.png", &off_img);
-    let off = psnr_masked(&off_img, &s.truth, &s.mask);
+    let off = masked_psnr(&off_img, &s.truth, &s.mask);
     eprintln!("photometric on {on:.1} dB, off {off:.1} dB (no blending)");
     assert!(on > 24.0 && off < on - 3.0, "on {on:.1} dB, off {off:.1} dB");
 }
@@ -188,8 +175,8 @@ fn the_local_search_absorbs_misregistration() {
     for hm in &mut s.homographies {
         *hm = Homography::translation(2.0, -1.0).after(hm);
     }
-    let on = psnr_masked(&s.run(&FillParams::default()).image, &s.truth, &s.mask);
-    let off = psnr_masked(
+    let on = masked_psnr(&s.run(&FillParams::default()).image, &s.truth, &s.mask);
+    let off = masked_psnr(
         &s.run(&FillParams { search_radius: 0, ..FillParams::default() }).image,
         &s.truth,
         &s.mask,

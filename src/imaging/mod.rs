@@ -8,6 +8,7 @@
 pub mod convert;
 pub mod decode;
 pub mod filter;
+pub mod metrics;
 pub mod photometric;
 pub mod pyramid;
 pub mod warp;

@@ -847,19 +847,6 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
-    fn psnr_in_hole(a: &RgbF32, b: &RgbF32, hole: &Mask) -> f64 {
-        let (mut se, mut n) = (0.0f64, 0usize);
-        for ((p, q), &m) in a.as_slice().iter().zip(b.as_slice()).zip(hole.as_slice()) {
-            if m > 127 {
-                for c in 0..3 {
-                    se += ((p[c] - q[c]) as f64).powi(2);
-                }
-                n += 3;
-            }
-        }
-        if se == 0.0 { f64::INFINITY } else { 10.0 * (n as f64 / se).log10() }
-    }
-
     fn rect_mask(w: usize, h: usize, x0: usize, y0: usize, x1: usize, y1: usize) -> Mask {
         Mask::from_fn(w, h, |x, y| if x >= x0 && x < x1 && y >= y0 && y < y1 { 255 } else { 0 })
     }
@@ -963,12 +950,12 @@ mod tests {
         let image = bricks(96, 72);
         let hole = rect_mask(96, 72, 36, 26, 62, 48);
         let out = fill_checked(&image, &hole, &ExemplarParams::default(), 7);
-        let ours = psnr_in_hole(&out, &image, &hole);
+        let ours = crate::imaging::metrics::masked_psnr(&out, &image, &hole);
 
         let mut mean = image.clone();
         exemplar_mean(&mut mean, &hole);
-        let mean = psnr_in_hole(&mean, &image, &hole);
-        let diffusion = psnr_in_hole(&diffuse(&image, &hole, 400), &image, &hole);
+        let mean = crate::imaging::metrics::masked_psnr(&mean, &image, &hole);
+        let diffusion = crate::imaging::metrics::masked_psnr(&diffuse(&image, &hole, 400), &image, &hole);
         assert!(mean < 20.0 && diffusion < 20.0, "baselines: mean {mean:.1} dB, diffusion {diffusion:.1} dB");
         assert!(ours > 25.0, "exemplar fill {ours:.1} dB (mean {mean:.1}, diffusion {diffusion:.1})");
     }
@@ -1066,7 +1053,7 @@ mod tests {
         }
         assert_eq!(hole_groups(&hole, 6).len(), 5);
         let out = fill_checked(&image, &hole, &ExemplarParams::default(), 1);
-        assert!(psnr_in_hole(&out, &image, &hole) > 25.0);
+        assert!(crate::imaging::metrics::masked_psnr(&out, &image, &hole) > 25.0);
     }
 
     #[test]
