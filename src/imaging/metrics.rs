@@ -78,7 +78,7 @@ mod tests {
         // An error of 0.1 everywhere: MSE 0.01, 20 dB, whatever lies outside the mask.
         let mut off = truth.map(|p| p.map(|v| v + 0.1));
         off.set(0, 0, [9.0; 3]);
-        assert!((masked_psnr(&off, &truth, &mask) - 20.0).abs() < 1e-6);
+        assert!((masked_psnr(&off, &truth, &mask) - 20.0).abs() < 1e-4);
         // A constant shift keeps structure but not luminance: SSIM just under 1.
         let s = masked_ssim(&off, &truth, &mask);
         assert!(s < 1.0 && s > 0.9, "{s}");
