@@ -272,6 +272,29 @@ impl Session {
         self.mask.as_ref().map(|m| m.id.as_str())
     }
 
+    /// The current mask (white = to fill), if any.
+    pub fn mask(&self) -> Option<&Mask> {
+        self.mask.as_ref().map(|m| &m.mask)
+    }
+
+    /// Where each pixel of the current result came from, over the whole keyframe
+    /// ([`crate::inpaint::KEYFRAME`] outside the mask's region; indices are those of the
+    /// last [`FillOutcome::views`] that produced a result). `None` before any result.
+    pub fn provenance(&self) -> Option<Provenance> {
+        let key = self.key.as_ref()?;
+        let region = self.mask.as_ref()?.region;
+        let crop = self.provenance.as_ref()?;
+        let mut full = Provenance::new(key.rgb.width(), key.rgb.height(), crate::inpaint::KEYFRAME);
+        if let Some(r) = region {
+            for y in 0..r.height().min(crop.height()) {
+                for x in 0..r.width().min(crop.width()) {
+                    full.set(r.x0 + x, r.y0 + y, crop.get(x, y));
+                }
+            }
+        }
+        Some(full)
+    }
+
     pub fn buffered(&self) -> &[Buffered] {
         &self.buffer
     }
