@@ -786,6 +786,26 @@ mod tests {
     }
 
     #[test]
+    fn provenance_covers_the_whole_keyframe_and_is_keyframe_outside_the_mask() {
+        let mut s = session_with_key();
+        assert!(s.provenance().is_none(), "no result yet");
+        let mask = square_mask(40, 30, 10);
+        s.set_mask("mask".into(), mask.clone()).unwrap();
+        let out = s.fill(&mut ()).unwrap();
+        assert!(out.image.is_some());
+        let p = s.provenance().unwrap();
+        assert_eq!((p.width(), p.height()), (W, H));
+        for y in 0..H {
+            for x in 0..W {
+                // Without views every masked pixel is the fallback's.
+                let want = if mask.is_hole(x, y) { FALLBACK } else { inpaint::KEYFRAME };
+                assert_eq!(p.get(x, y), want, "({x}, {y})");
+            }
+        }
+        assert_eq!(s.mask().map(Mask::hole_count), Some(100));
+    }
+
+    #[test]
     fn rejected_views_are_not_buffered() {
         let mut s = session_with_key();
         let mut r = record(&Homography::identity());

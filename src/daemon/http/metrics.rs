@@ -40,10 +40,15 @@ fn render(s: &Shared) -> String {
     counter(
         &mut out,
         "clearview_views_accepted_total",
-        "Views whose alignment to the keyframe was trusted.",
+        "Views admitted with a trusted alignment (views offered again after a keyframe or mask change count again).",
         m.views_accepted.load(Ordering::Relaxed),
     );
-    family(&mut out, "clearview_views_rejected_total", "counter", "Views rejected, by reason.");
+    family(
+        &mut out,
+        "clearview_views_rejected_total",
+        "counter",
+        "Views rejected, by reason (counted like accepted views).",
+    );
     for (reason, n) in m.views_rejected.lock().expect("metrics lock").iter() {
         let _ = writeln!(out, "clearview_views_rejected_total{{reason=\"{}\"}} {n}", escape(reason));
     }
