@@ -255,6 +255,9 @@ fn paint_a_mask_on_the_page_and_see_the_new_result_arrive() {
         "const s = document.getElementById('slider'); s.value = 60; s.dispatchEvent(new Event('input'));",
         json!([]),
     );
+    // Left of the divider the keyframe, right of it the result.
+    let clip = b.js("return document.getElementById('after').style.clipPath", json!([]));
+    assert_eq!(clip, "inset(0px 0px 0px 60%)", "the result shows right of the divider");
     b.js("window.scrollTo(0, 0)", json!([]));
     std::thread::sleep(Duration::from_millis(300));
     b.screenshot("/tmp/clearview-preview.png");

@@ -148,10 +148,10 @@ async function chooseKeyframe(file) {
 
 function say(text) { $('message').textContent = text; }
 
-// Before/after slider: the result shows left of the divider, the keyframe right of it.
+// Before/after slider: the keyframe shows left of the divider, the result right of it.
 function slide() {
   const v = Number($('slider').value);
-  $('after').style.clipPath = 'inset(0 ' + (100 - v) + '% 0 0)';
+  $('after').style.clipPath = 'inset(0 0 0 ' + v + '%)';
   $('divider').style.left = v + '%';
 }
 
