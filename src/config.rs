@@ -33,6 +33,7 @@ pub struct RawConfig {
     pub state: RawState,
     pub session: RawSession,
     pub compute: RawCompute,
+    pub http: RawHttp,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -134,6 +135,57 @@ impl Default for RawCompute {
     }
 }
 
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RawHttp {
+    pub listen: String,
+    pub token: String,
+    pub max_body_bytes: usize,
+}
+
+impl Default for RawHttp {
+    fn default() -> Self {
+        Self { listen: String::new(), token: String::new(), max_body_bytes: 16 << 20 }
+    }
+}
+
+/// The status API and preview page (`[http]`), when on.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct HttpConfig {
+    pub listen: std::net::SocketAddr,
+    /// The access token; `None`: one is generated at start and printed in the page's URL.
+    pub token: Option<String>,
+    /// Largest request body accepted (a painted mask); larger ones get 413.
+    pub max_body_bytes: usize,
+}
+
+impl HttpConfig {
+    /// Checks a listen address and token: binding beyond the loopback needs a token.
+    pub fn new(listen: &str, token: Option<String>, max_body_bytes: usize) -> Result<Self, ConfigError> {
+        let listen: std::net::SocketAddr = listen.trim().parse().map_err(|e| {
+            invalid("http.listen", format!("{listen:?}: {e} (expected e.g. \"127.0.0.1:8080\")"))
+        })?;
+        let token = token.filter(|t| !t.is_empty());
+        if let Some(t) = &token
+            && (t.len() < 16 || !t.bytes().all(|b| b.is_ascii_graphic()))
+        {
+            return Err(invalid("http.token", "at least 16 printable ASCII characters, no spaces"));
+        }
+        if !listen.ip().is_loopback() && token.is_none() {
+            return Err(invalid(
+                "http.token",
+                format!(
+                    "listening on {listen} (beyond this machine) requires a token (http.token or CLEARVIEW_HTTP_TOKEN)"
+                ),
+            ));
+        }
+        if max_body_bytes < 1024 {
+            return Err(invalid("http.max_body_bytes", "must be at least 1024"));
+        }
+        Ok(Self { listen, token, max_body_bytes })
+    }
+}
+
 /// How new files are noticed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum WatchMode {
@@ -203,6 +255,8 @@ pub struct Config {
     pub queue: NonZeroUsize,
     pub decoders: NonZeroUsize,
     pub grace_period: Duration,
+    /// The HTTP server, `None` when off.
+    pub http: Option<HttpConfig>,
 }
 
 impl Default for Config {
@@ -337,6 +391,12 @@ impl RawConfig {
         }
         let decoders =
             NonZeroUsize::new(c.decoders).ok_or_else(|| invalid("compute.decoders", "must be at least 1"))?;
+        let h = self.http;
+        let http = if h.listen.trim().is_empty() {
+            None
+        } else {
+            Some(HttpConfig::new(&h.listen, Some(h.token), h.max_body_bytes)?)
+        };
         Ok(Config {
             watch_dir: w.dir,
             watch_mode,
@@ -356,6 +416,7 @@ impl RawConfig {
             queue,
             decoders,
             grace_period: Duration::from_millis(c.grace_period_ms),
+            http,
         })
     }
 }
@@ -407,6 +468,9 @@ mod tests {
             ("[session]\nmask = \"magic\"\n", "session.mask"),
             ("[compute]\nqueue = 0\n", "compute.queue"),
             ("[output]\ndir = \"./inbox\"\n", "output.dir"),
+            ("[http]\nlisten = \"nowhere\"\n", "http.listen"),
+            ("[http]\nlisten = \"0.0.0.0:8080\"\n", "http.token"),
+            ("[http]\nlisten = \"127.0.0.1:8080\"\ntoken = \"short\"\n", "http.token"),
         ] {
             let e = parse(text).unwrap_err();
             assert!(e.to_string().starts_with(key), "{text}: {e}");
@@ -425,5 +489,10 @@ mod tests {
         assert_eq!(c.format, OutputFormat::Jpeg { quality: 80 });
         assert_eq!(c.keyframe, KeyframeRule::Named("IMG_0001".into()));
         assert_eq!(c.mask, MaskRule::Auto { views: 2 });
+        assert_eq!(c.http, None);
+        let c = parse("[http]\nlisten = \"0.0.0.0:8080\"\ntoken = \"0123456789abcdef\"\n").unwrap();
+        let h = c.http.unwrap();
+        assert_eq!(h.listen.port(), 8080);
+        assert_eq!(h.token.as_deref(), Some("0123456789abcdef"));
     }
 }

@@ -256,6 +256,25 @@ impl Session {
         self.mask.as_ref().map(|m| m.id.as_str())
     }
 
+    /// The current mask (white = to fill), if any.
+    pub fn mask(&self) -> Option<&Mask> {
+        self.mask.as_ref().map(|m| &m.mask)
+    }
+
+    /// Where each pixel of the current result came from, over the whole keyframe
+    /// ([`crate::inpaint::KEYFRAME`] outside the mask's region; indices are those of the
+    /// last [`FillOutcome::views`] that produced a result). `None` before any result.
+    pub fn provenance(&self) -> Option<Provenance> {
+        let key = self.key.as_ref()?;
+        let region = self.mask.as_ref()?.region;
+        let crop = self.provenance.as_ref()?;
+        let mut full = Provenance::new(key.rgb.width(), key.rgb.height(), crate::inpaint::KEYFRAME);
+        if let Some(r) = region {
+            full.paste(crop, r);
+        }
+        Some(full)
+    }
+
     pub fn buffered(&self) -> &[Buffered] {
         &self.buffer
     }
@@ -672,6 +691,26 @@ mod tests {
         let a = s.admit("v".into(), record(&h), Some(&to8(&synth::facade(W, H, 9)))).unwrap();
         assert_eq!(a, Admission::OutsideMask);
         assert!(s.buffered().is_empty());
+    }
+
+    #[test]
+    fn provenance_covers_the_whole_keyframe_and_is_keyframe_outside_the_mask() {
+        let mut s = session_with_key();
+        assert!(s.provenance().is_none(), "no result yet");
+        let mask = square_mask(40, 30, 10);
+        s.set_mask("mask".into(), mask.clone()).unwrap();
+        let out = s.fill(&mut ()).unwrap();
+        assert!(out.image.is_some());
+        let p = s.provenance().unwrap();
+        assert_eq!((p.width(), p.height()), (W, H));
+        for y in 0..H {
+            for x in 0..W {
+                // Without views every masked pixel is the fallback's.
+                let want = if mask.is_hole(x, y) { FALLBACK } else { inpaint::KEYFRAME };
+                assert_eq!(p.get(x, y), want, "({x}, {y})");
+            }
+        }
+        assert_eq!(s.mask().map(Mask::hole_count), Some(100));
     }
 
     #[test]

@@ -24,6 +24,10 @@ pub struct RunArgs {
     /// Keep state in this folder instead of the configuration's.
     #[arg(long)]
     pub state: Option<PathBuf>,
+    /// Serve the status API, /metrics and the preview page on ADDR (e.g. 127.0.0.1:8080;
+    /// port 0 picks a free one). The URL with its token is printed at start.
+    #[arg(long, value_name = "ADDR")]
+    pub http: Option<String>,
 }
 
 pub fn run(args: &RunArgs) -> u8 {
@@ -46,6 +50,10 @@ pub fn run(args: &RunArgs) -> u8 {
     if let Some(d) = &args.state {
         config.state_dir = d.clone();
     }
+    if let Err(e) = http_overrides(&mut config, args.http.as_deref()) {
+        eprintln!("clearview run: {e}");
+        return exit::USAGE;
+    }
     if config.out_dir == config.watch_dir || config.state_dir == config.watch_dir {
         eprintln!("clearview run: the output and state folders must differ from the watched one");
         return exit::USAGE;
@@ -65,4 +73,18 @@ pub fn run(args: &RunArgs) -> u8 {
             exit::FAILURE
         }
     }
+}
+
+/// `--http ADDR` and the `CLEARVIEW_HTTP_TOKEN` variable over the configuration's `[http]`.
+fn http_overrides(config: &mut Config, listen: Option<&str>) -> Result<(), crate::config::ConfigError> {
+    let env_token = std::env::var("CLEARVIEW_HTTP_TOKEN").ok().filter(|t| !t.is_empty());
+    let current = config.http.clone();
+    let Some(listen) = listen.map(str::to_owned).or_else(|| current.as_ref().map(|h| h.listen.to_string()))
+    else {
+        return Ok(());
+    };
+    let token = env_token.or_else(|| current.as_ref().and_then(|h| h.token.clone()));
+    let max_body = current.map_or(crate::config::RawHttp::default().max_body_bytes, |h| h.max_body_bytes);
+    config.http = Some(crate::config::HttpConfig::new(&listen, token, max_body)?);
+    Ok(())
 }

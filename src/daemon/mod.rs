@@ -30,7 +30,10 @@
 //! disk). The whole is bounded by the grace period.
 
 pub mod emit;
+pub mod http;
 pub mod intake;
+pub mod provenance;
+pub mod registry;
 pub mod state;
 pub mod systemd;
 pub mod watch;
@@ -60,6 +63,8 @@ pub enum DaemonError {
     Watch { path: PathBuf, source: notify::Error },
     #[error("cannot start a worker thread: {0}")]
     Thread(std::io::Error),
+    #[error("{addr}: cannot listen for HTTP: {source}")]
+    Http { addr: std::net::SocketAddr, source: std::io::Error },
 }
 
 /// Files of each session that are complete on disk but not yet handled by a worker. A
@@ -84,6 +89,11 @@ impl Backlog {
 
     pub fn get(&self, session: &str) -> usize {
         self.0.lock().expect("backlog lock").get(session).copied().unwrap_or(0)
+    }
+
+    /// Files waiting over all sessions.
+    pub fn total(&self) -> usize {
+        self.0.lock().expect("backlog lock").values().sum()
     }
 }
 
@@ -118,7 +128,34 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
     let tracker = TaskTracker::new();
     let started = std::time::Instant::now();
 
-    let (senders, workers) = worker::spawn(&config, &emitter, &backlog, &stats, &cancel)?;
+    let registry = Arc::new(registry::Registry::default());
+    let (senders, workers) = worker::spawn(&config, &emitter, &backlog, &stats, &registry, &cancel)?;
+    if let Some(h) = &config.http {
+        // The status API and preview page (issue 6).
+        let token = h.token.clone().unwrap_or_else(http::generate_token);
+        let server =
+            http::bind(h, &token).await.map_err(|source| DaemonError::Http { addr: h.listen, source })?;
+        tracing::info!(addr = %server.addr, "HTTP server listening");
+        {
+            use std::io::Write;
+            let mut out = std::io::stdout().lock();
+            let _ = writeln!(out, "clearview: preview page at {}", server.url);
+            let _ = out.flush();
+        }
+        let shared = Arc::new(http::Shared {
+            config: config.clone(),
+            registry: registry.clone(),
+            stats: stats.clone(),
+            backlog: backlog.clone(),
+            emitter: emitter.clone(),
+            queues: senders.clone(),
+            token,
+            loopback: server.addr.ip().is_loopback(),
+            started,
+            cancel: cancel.clone(),
+        });
+        tracker.spawn(http::serve(server, shared, h.max_body_bytes));
+    }
     let (hint_tx, hint_rx) = tokio::sync::mpsc::channel(watch::HINT_QUEUE);
     let overflow = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let _watcher = match config.watch_mode {

@@ -17,6 +17,7 @@ use tokio_util::sync::CancellationToken;
 
 use super::emit::{Emitter, rfc3339};
 use super::intake::{DecodeOutcome, read_and_decode};
+use super::registry::{LegendEntry, Registry, SessionSnapshot, ViewSnapshot};
 use super::state::{self, SavedResult, SessionState};
 use super::watch::{self, Role};
 use super::{Backlog, DaemonError, Stats};
@@ -67,6 +68,7 @@ pub fn spawn(
     emitter: &Arc<Emitter>,
     backlog: &Arc<Backlog>,
     stats: &Arc<Stats>,
+    registry: &Arc<Registry>,
     cancel: &CancellationToken,
 ) -> Result<Workers, DaemonError> {
     let mut senders = Vec::new();
@@ -78,6 +80,7 @@ pub fn spawn(
             emitter: emitter.clone(),
             backlog: backlog.clone(),
             stats: stats.clone(),
+            registry: registry.clone(),
         };
         let cancel = cancel.clone();
         let handle = std::thread::Builder::new()
@@ -95,6 +98,7 @@ struct Ctx {
     emitter: Arc<Emitter>,
     backlog: Arc<Backlog>,
     stats: Arc<Stats>,
+    registry: Arc<Registry>,
 }
 
 /// A view as the result report lists it.
@@ -127,6 +131,14 @@ struct Slot {
     views: BTreeMap<String, ViewEntry>,
     seq: u64,
     state_dirty: bool,
+    /// For the status API: the latest result's report, provenance legend, the masked
+    /// pixels each view filled in it, the history's numbers, and since when a view has
+    /// been waiting for the result it may lead to.
+    last_report: Option<serde_json::Value>,
+    legend: Vec<LegendEntry>,
+    filled_by: HashMap<String, usize>,
+    history: Vec<u64>,
+    pending_since: Option<Instant>,
 }
 
 struct Worker {
@@ -191,6 +203,13 @@ impl Worker {
                 views: BTreeMap::new(),
                 seq: 0,
                 state_dirty: false,
+                last_report: std::fs::read(ctx.emitter.session_dir(name).join("result.json"))
+                    .ok()
+                    .and_then(|b| serde_json::from_slice(&b).ok()),
+                legend: Vec::new(),
+                filled_by: HashMap::new(),
+                history: saved_history(&ctx.emitter.session_dir(name).join("history")),
+                pending_since: None,
             }
         })
     }
@@ -201,6 +220,9 @@ impl Worker {
         let Job { session, path, role, file, image } = job;
         let Self { ctx, sessions } = self;
         let slot = Self::slot(ctx, sessions, &session);
+        if role == Role::View {
+            ctx.registry.metrics.views_received.fetch_add(1, Ordering::Relaxed);
+        }
         match role {
             Role::Key => take_key(ctx, slot, &file, &path, &image, 0),
             Role::Mask => take_mask(ctx, slot, &file, &image),
@@ -222,6 +244,7 @@ impl Worker {
             state::save(&ctx.config.state_dir, &slot.name, &slot.state);
             slot.state_dirty = false;
         }
+        publish(ctx, slot, None);
     }
 
     fn maybe_fill(&mut self, name: &str) {
@@ -233,11 +256,12 @@ impl Worker {
         }
         let span = tracing::info_span!("session", session = %name);
         let _enter = span.enter();
-        fill(&self.ctx, slot);
+        let written = fill(&self.ctx, slot);
         if slot.state_dirty {
             state::save(&self.ctx.config.state_dir, &slot.name, &slot.state);
             slot.state_dirty = false;
         }
+        publish(&self.ctx, slot, written);
     }
 }
 
@@ -289,7 +313,6 @@ fn take_key(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &Dyna
         .collect();
     if let Some(old) = slot.key_path.take()
         && old != path
-        && rank > 0
         && watch::classify(&ctx.config.watch_dir, &old, &ctx.config.extensions)
             .is_some_and(|c| c.role == Role::View)
     {
@@ -382,6 +405,7 @@ fn apply_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
     match slot.session.set_mask(file.id(), mask) {
         Ok(again) => {
             slot.mask_source = Some(format!("file:{}", file.name));
+            write_mask(ctx, slot);
             tracing::info!(mask = %file.name, masked, "mask set");
             ctx.emitter.event(
                 "mask_set",
@@ -425,6 +449,7 @@ fn auto_mask(ctx: &Ctx, slot: &mut Slot) {
     let id = format!("auto|{}", chosen.iter().map(|c| c.0.as_str()).collect::<Vec<_>>().join("|"));
     if let Ok(again) = slot.session.set_mask(id, mask) {
         slot.mask_source = Some("auto".into());
+        write_mask(ctx, slot);
         tracing::info!(masked, views, "automatic mask set");
         ctx.emitter.event(
             "mask_set",
@@ -534,6 +559,7 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
     };
     match &admission {
         Admission::Rejected { reason } => {
+            ctx.registry.metrics.rejected(reason);
             entry.status = "rejected";
             entry.reason = Some(reason.clone());
             tracing::info!(%reason, from_state, "view rejected");
@@ -541,6 +567,7 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
             ctx.emitter.event("view_rejected", Some(&slot.name), fields.into());
         }
         Admission::OutsideMask => {
+            ctx.registry.metrics.views_accepted.fetch_add(1, Ordering::Relaxed);
             entry.status = "outside_mask";
             entry.reason = Some("sees none of the mask".into());
             tracing::info!(from_state, "view accepted, but it sees none of the mask");
@@ -550,12 +577,15 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
         }
         Admission::Accepted { improves, fallback_px, weak_px, dropped } => {
             tracing::info!(inliers = record.inliers, from_state, improves, "view accepted");
+            ctx.registry.metrics.views_accepted.fetch_add(1, Ordering::Relaxed);
+            slot.pending_since.get_or_insert(start);
             fields.insert("buffered".into(), true.into());
             fields.insert("improves".into(), (*improves).into());
             fields.insert("fallback_px".into(), (*fallback_px).into());
             fields.insert("weakly_witnessed_px".into(), (*weak_px).into());
             ctx.emitter.event("view_accepted", Some(&slot.name), fields.into());
             for d in dropped {
+                ctx.registry.metrics.views_dropped.fetch_add(1, Ordering::Relaxed);
                 if let Some(v) = slot.views.values_mut().find(|v| &v.id == d) {
                     v.status = "dropped";
                     v.reason = Some("contributed least when the buffer was full".into());
@@ -604,7 +634,8 @@ impl Observer for Timings {
     }
 }
 
-fn fill(ctx: &Ctx, slot: &mut Slot) {
+/// Fills and writes a better result; returns its number when one was written.
+fn fill(ctx: &Ctx, slot: &mut Slot) -> Option<u64> {
     let digest = slot.session.inputs_digest();
     if slot.session.best_score().is_none()
         && let Some(saved) = &slot.state.result
@@ -618,11 +649,11 @@ fn fill(ctx: &Ctx, slot: &mut Slot) {
             Some(&slot.name),
             json!({ "number": saved.number, "score": saved.score }),
         );
-        return;
+        return None;
     }
     let start = Instant::now();
     let mut timings = Timings::default();
-    let Some(outcome) = slot.session.fill(&mut timings) else { return };
+    let outcome = slot.session.fill(&mut timings)?;
     timings.close();
     let fill_ms = start.elapsed().as_secs_f64() * 1e3;
     let stages: serde_json::Map<String, serde_json::Value> =
@@ -637,7 +668,9 @@ fn fill(ctx: &Ctx, slot: &mut Slot) {
             Some(&slot.name),
             json!({ "score": outcome.score, "best": outcome.previous, "fill_ms": fill_ms.round() }),
         );
-        return;
+        ctx.registry.metrics.results_not_better.fetch_add(1, Ordering::Relaxed);
+        slot.pending_since = None;
+        return None;
     };
     let number = slot.state.last_number + 1;
     let ext = ctx.emitter.result_name();
@@ -650,6 +683,7 @@ fn fill(ctx: &Ctx, slot: &mut Slot) {
             slot.state.result = Some(SavedResult { digest, score: outcome.score, number });
             slot.state_dirty = true;
             ctx.stats.results.fetch_add(1, Ordering::Relaxed);
+            after_result(ctx, slot, &outcome, number, report);
             tracing::info!(
                 number,
                 from_views = outcome.score,
@@ -674,6 +708,7 @@ fn fill(ctx: &Ctx, slot: &mut Slot) {
                     "stages_ms": stages,
                 }),
             );
+            Some(number)
         }
         Err(e) => {
             tracing::error!(error = %e, out = %ctx.emitter.session_dir(&slot.name).display(), "cannot write the result");
@@ -682,6 +717,7 @@ fn fill(ctx: &Ctx, slot: &mut Slot) {
                 Some(&slot.name),
                 json!({ "number": number, "reason": e.to_string() }),
             );
+            None
         }
     }
 }
@@ -743,4 +779,121 @@ fn result_json(
         "score_rule": "share of the masked pixels filled from real views; a result is never replaced by one that scores lower",
         "views": views,
     })
+}
+
+/// The numbers of the results in a session's `history/` folder, oldest first.
+fn saved_history(dir: &Path) -> Vec<u64> {
+    let Ok(entries) = std::fs::read_dir(dir) else { return Vec::new() };
+    let mut n: Vec<u64> = entries
+        .flatten()
+        .filter_map(|e| e.file_name().to_str()?.strip_prefix("result-")?.split('.').next()?.parse().ok())
+        .collect();
+    n.sort_unstable();
+    n
+}
+
+/// The current mask as `mask.png` beside the results (for the status API and the page).
+fn write_mask(ctx: &Ctx, slot: &Slot) {
+    let Some(mask) = slot.session.mask() else { return };
+    let dir = ctx.emitter.session_dir(&slot.name);
+    let mut png = std::io::Cursor::new(Vec::new());
+    let r = std::fs::create_dir_all(&dir)
+        .and_then(|()| {
+            crate::imaging::convert::mask_to_luma8(mask)
+                .write_to(&mut png, image::ImageFormat::Png)
+                .map_err(std::io::Error::other)
+        })
+        .and_then(|()| super::emit::atomic_write(&dir.join("mask.png"), png.get_ref()));
+    if let Err(e) = r {
+        tracing::warn!(error = %e, "cannot write mask.png");
+    }
+}
+
+/// After result `number` is written: its provenance map and legend, the bookkeeping of
+/// the status API, and the update latency.
+fn after_result(
+    ctx: &Ctx,
+    slot: &mut Slot,
+    outcome: &crate::session::FillOutcome,
+    number: u64,
+    report: serde_json::Value,
+) {
+    let names: Vec<String> =
+        outcome.views.iter().map(|id| id.split('|').next().unwrap_or(id).to_owned()).collect();
+    slot.legend.clear();
+    if let Some(map) = slot.session.provenance() {
+        let path = ctx.emitter.session_dir(&slot.name).join("provenance.png");
+        match super::provenance::render(&map, &names)
+            .and_then(|(png, legend)| super::emit::atomic_write(&path, &png).map(|()| legend))
+        {
+            Ok(legend) => slot.legend = legend,
+            Err(e) => tracing::warn!(error = %e, "cannot write provenance.png"),
+        }
+    }
+    slot.filled_by =
+        outcome.views.iter().cloned().zip(outcome.report.sources.iter().map(|s| s.filled)).collect();
+    slot.last_report = Some(report);
+    slot.history.push(number);
+    let keep = ctx.config.history;
+    if slot.history.len() > keep {
+        slot.history.drain(..slot.history.len() - keep);
+    }
+    let m = &ctx.registry.metrics;
+    m.results_written.fetch_add(1, Ordering::Relaxed);
+    if let Some(t) = slot.pending_since.take() {
+        m.update_latency.observe(t.elapsed().as_secs_f64());
+    }
+}
+
+/// Publishes the session's snapshot for the HTTP server.
+fn publish(ctx: &Ctx, slot: &Slot, new_result: Option<u64>) {
+    let mut views: Vec<&ViewEntry> = slot.views.values().filter(|v| v.status != "superseded").collect();
+    views.sort_by_key(|v| v.seq);
+    let views = views
+        .into_iter()
+        .map(|v| {
+            let file = v.id.split('|').next().unwrap_or(&v.id).to_owned();
+            let filled = slot.filled_by.get(&v.id).copied();
+            let r = v.record.as_ref();
+            ViewSnapshot {
+                path: slot.dir.join(&file),
+                file,
+                status: if filled.is_some() && v.status == "buffered" { "used" } else { v.status }.to_owned(),
+                accepted: r.is_some_and(|r| r.accepted),
+                reason: v.reason.clone(),
+                from_state: v.from_state,
+                homography: r.and_then(|r| r.homography),
+                inliers: r.map_or(0, |r| r.inliers),
+                matches: r.map_or(0, |r| r.matches),
+                median_residual_px: r.and_then(|r| r.median_residual_px),
+                coverage: r.map_or(0.0, |r| r.coverage),
+                filled,
+            }
+        })
+        .collect();
+    let coverage =
+        slot.last_report.as_ref().and_then(|r| r.get("from_views")).and_then(serde_json::Value::as_f64);
+    ctx.registry.publish(
+        SessionSnapshot {
+            id: slot.name.clone(),
+            keyframe: slot
+                .key_path
+                .as_ref()
+                .and_then(|p| p.file_name())
+                .map(|n| n.to_string_lossy().into_owned()),
+            key_size: slot.session.key_size(),
+            mask: slot.mask_source.clone(),
+            masked_px: slot.session.mask().map(crate::imaging::Mask::hole_count),
+            views,
+            result: slot.last_report.clone(),
+            coverage,
+            legend: slot.legend.clone(),
+            history: slot.history.clone(),
+            revision: 0,
+            updated: rfc3339(SystemTime::now()),
+            key_path: slot.key_path.clone(),
+            inbox_dir: slot.dir.clone(),
+        },
+        new_result,
+    );
 }

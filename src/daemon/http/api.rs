@@ -1,0 +1,341 @@
+//! The JSON API, the images, server-sent events, and the two changes a user can make:
+//! paint the mask and choose the keyframe (shell layer).
+//!
+//! Both changes go through the watched inbox, so the workers stay the only writers of
+//! session state and a restart sees exactly what the user chose:
+//! - a painted mask is written atomically as `<key stem>.mask.png` in the session's
+//!   folder. A mask file of the user's already there (`<key stem>.mask.<ext>`, any
+//!   extension) is first renamed to `<name>.user-N` (N the first free number), which no
+//!   watcher reads; a mask we painted before (byte-identical to the copy kept as
+//!   `painted-mask.png` beside the results) is simply replaced.
+//! - a chosen keyframe is renamed to `key.<ext>`; a `key.<ext>` already there is renamed
+//!   to `former-key-N.<ext>` first, so it stays in the session as a view. Nothing the
+//!   user gave is overwritten or deleted.
+
+use std::convert::Infallible;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::{Path as UrlPath, State};
+use axum::http::{StatusCode, header};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use serde::Deserialize;
+use serde_json::json;
+use tokio_stream::StreamExt;
+use tokio_stream::wrappers::ReceiverStream;
+
+use super::{AppState, Shared};
+use crate::daemon::emit::atomic_write;
+use crate::daemon::registry::SessionSnapshot;
+use crate::daemon::watch;
+use crate::imaging::decode::{DecodeLimits, decode};
+
+/// A refusal with its status and a JSON `{"error": ...}` body.
+pub struct ApiError(StatusCode, String);
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        (self.0, Json(json!({ "error": self.1 }))).into_response()
+    }
+}
+
+fn err(status: StatusCode, message: impl Into<String>) -> ApiError {
+    ApiError(status, message.into())
+}
+
+fn session(s: &Shared, id: &str) -> Result<Arc<SessionSnapshot>, ApiError> {
+    s.registry.get(id).ok_or_else(|| err(StatusCode::NOT_FOUND, format!("no session {id:?}")))
+}
+
+fn content_type(name: &str) -> &'static str {
+    match name.rsplit_once('.').map(|(_, e)| e.to_ascii_lowercase()).as_deref() {
+        Some("png") => "image/png",
+        Some("jpg" | "jpeg") => "image/jpeg",
+        Some("webp") => "image/webp",
+        Some("tif" | "tiff") => "image/tiff",
+        _ => "application/octet-stream",
+    }
+}
+
+/// The bytes of a file the service knows, never cached by the browser (it changes).
+async fn file(path: PathBuf, what: &str) -> Result<Response, ApiError> {
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
+    match tokio::fs::read(&path).await {
+        Ok(bytes) => {
+            Ok(([(header::CONTENT_TYPE, content_type(&name)), (header::CACHE_CONTROL, "no-store")], bytes)
+                .into_response())
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            Err(err(StatusCode::NOT_FOUND, format!("no {what} yet")))
+        }
+        Err(e) => {
+            tracing::warn!(file = %path.display(), error = %e, "cannot read for the HTTP API");
+            Err(err(StatusCode::INTERNAL_SERVER_ERROR, format!("cannot read the {what}")))
+        }
+    }
+}
+
+pub async fn list(State(s): AppState) -> Json<serde_json::Value> {
+    let sessions: Vec<serde_json::Value> = s
+        .registry
+        .all()
+        .iter()
+        .map(|x| {
+            json!({
+                "id": x.id,
+                "keyframe": x.keyframe,
+                "mask": x.mask,
+                "views": x.views.len(),
+                "accepted": x.views.iter().filter(|v| v.accepted).count(),
+                "rejected": x.views.iter().filter(|v| !v.accepted).count(),
+                "result": x.result.as_ref().and_then(|r| r.get("number")).cloned(),
+                "coverage": x.coverage,
+                "revision": x.revision,
+                "updated": x.updated,
+            })
+        })
+        .collect();
+    Json(json!({ "sessions": sessions }))
+}
+
+pub async fn one(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
+    Ok(Json(&*session(&s, &id)?).into_response())
+}
+
+pub async fn result(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
+    let x = session(&s, &id)?;
+    file(s.emitter.session_dir(&x.id).join(s.emitter.result_name()), "result").await
+}
+
+pub async fn keyframe(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
+    let x = session(&s, &id)?;
+    let path = x.key_path.clone().ok_or_else(|| err(StatusCode::NOT_FOUND, "no keyframe yet"))?;
+    file(path, "keyframe").await
+}
+
+pub async fn mask(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
+    let x = session(&s, &id)?;
+    if x.mask.is_none() {
+        return Err(err(StatusCode::NOT_FOUND, "no mask yet"));
+    }
+    file(s.emitter.session_dir(&x.id).join("mask.png"), "mask").await
+}
+
+pub async fn provenance(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
+    let x = session(&s, &id)?;
+    if x.legend.is_empty() {
+        return Err(err(StatusCode::NOT_FOUND, "no provenance map yet"));
+    }
+    file(s.emitter.session_dir(&x.id).join("provenance.png"), "provenance map").await
+}
+
+pub async fn legend(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
+    let x = session(&s, &id)?;
+    let number = x.result.as_ref().and_then(|r| r.get("number")).cloned();
+    Ok(Json(json!({
+        "result": number,
+        "legend": x.legend,
+        "meaning": "value 0: the keyframe's own pixel (transparent); 1 + i: filled from view i; 65535: the fallback (no view saw it)",
+    }))
+    .into_response())
+}
+
+/// Longest side of a view thumbnail.
+const THUMB: u32 = 240;
+
+pub async fn thumb(
+    State(s): AppState,
+    UrlPath((id, name)): UrlPath<(String, String)>,
+) -> Result<Response, ApiError> {
+    let x = session(&s, &id)?;
+    let path = if x.keyframe.as_deref() == Some(name.as_str()) {
+        x.key_path.clone()
+    } else {
+        x.views.iter().find(|v| v.file == name).map(|v| v.path.clone())
+    }
+    .ok_or_else(|| err(StatusCode::NOT_FOUND, format!("no view {name:?} in session {id:?}")))?;
+    let limits = DecodeLimits { max_pixels: s.config.max_pixels };
+    let jpeg = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, ApiError> {
+        let bytes =
+            std::fs::read(&path).map_err(|_| err(StatusCode::NOT_FOUND, "the view's file is gone"))?;
+        let img =
+            decode(&bytes, &limits).map_err(|e| err(StatusCode::UNPROCESSABLE_ENTITY, e.to_string()))?;
+        let small = img.thumbnail(THUMB, THUMB).to_rgb8();
+        let mut out = std::io::Cursor::new(Vec::new());
+        small
+            .write_to(&mut out, image::ImageFormat::Jpeg)
+            .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+        Ok(out.into_inner())
+    })
+    .await
+    .map_err(|_| err(StatusCode::INTERNAL_SERVER_ERROR, "thumbnail task failed"))??;
+    Ok(([(header::CONTENT_TYPE, "image/jpeg"), (header::CACHE_CONTROL, "max-age=60")], jpeg).into_response())
+}
+
+/// The first `base-N` (N = 1, 2, ...) for which `exists` is false.
+fn free_name(dir: &Path, name: impl Fn(u32) -> String) -> PathBuf {
+    (1..).map(|n| dir.join(name(n))).find(|p| !p.exists()).expect("some number is free")
+}
+
+/// `PUT /api/sessions/{id}/mask`: the body is an image the keyframe's size (PNG, white =
+/// remove); 202 once it is stored in the inbox (the service re-inpaints from there).
+pub async fn put_mask(
+    State(s): AppState,
+    UrlPath(id): UrlPath<String>,
+    body: Bytes,
+) -> Result<Response, ApiError> {
+    let x = session(&s, &id)?;
+    let (Some(key), Some((kw, kh))) = (x.keyframe.clone(), x.key_size) else {
+        return Err(err(StatusCode::CONFLICT, "the session has no keyframe yet"));
+    };
+    let limits = DecodeLimits { max_pixels: s.config.max_pixels };
+    let extensions = s.config.extensions.clone();
+    let record = s.emitter.session_dir(&x.id).join("painted-mask.png");
+    let dir = x.inbox_dir.clone();
+    let stored = tokio::task::spawn_blocking(move || -> Result<serde_json::Value, ApiError> {
+        let img = decode(&body, &limits)
+            .map_err(|e| err(StatusCode::BAD_REQUEST, format!("not a readable image: {e}")))?;
+        if (img.width() as usize, img.height() as usize) != (kw, kh) {
+            return Err(err(
+                StatusCode::BAD_REQUEST,
+                format!("the mask is {}x{}, the keyframe {kw}x{kh}", img.width(), img.height()),
+            ));
+        }
+        let mut luma = img.to_luma8();
+        let mut masked = 0usize;
+        for p in luma.pixels_mut() {
+            p.0[0] = if p.0[0] > 127 { 255 } else { 0 };
+            masked += usize::from(p.0[0] == 255);
+        }
+        let mut png = std::io::Cursor::new(Vec::new());
+        luma.write_to(&mut png, image::ImageFormat::Png)
+            .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+        let png = png.into_inner();
+        let stem = watch::stem(&key).to_owned();
+        let ours = std::fs::read(&record).ok();
+        let mut backups = Vec::new();
+        for ext in &extensions {
+            let existing = dir.join(format!("{stem}.mask.{ext}"));
+            if !existing.is_file() {
+                continue;
+            }
+            let painted_by_us = ext == "png" && ours.is_some() && std::fs::read(&existing).ok() == ours;
+            if painted_by_us {
+                continue;
+            }
+            let name = format!("{stem}.mask.{ext}");
+            let backup = free_name(&dir, |n| format!("{name}.user-{n}"));
+            std::fs::rename(&existing, &backup).map_err(|e| {
+                err(StatusCode::INTERNAL_SERVER_ERROR, format!("cannot keep the existing {name}: {e}"))
+            })?;
+            tracing::info!(from = %existing.display(), to = %backup.display(), "kept the user's mask before painting");
+            backups.push(backup.file_name().map(|n| n.to_string_lossy().into_owned()));
+        }
+        if let Some(parent) = record.parent() {
+            let _ = std::fs::create_dir_all(parent);
+        }
+        atomic_write(&record, &png).map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+        let target = dir.join(format!("{stem}.mask.png"));
+        atomic_write(&target, &png).map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+        Ok(json!({ "stored": target.file_name().map(|n| n.to_string_lossy()), "masked_px": masked, "kept": backups }))
+    })
+    .await
+    .map_err(|_| err(StatusCode::INTERNAL_SERVER_ERROR, "mask task failed"))??;
+    s.registry.metrics.masks_painted.fetch_add(1, Ordering::Relaxed);
+    tracing::info!(session = %id, "mask painted on the preview page");
+    Ok((StatusCode::ACCEPTED, Json(stored)).into_response())
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct KeyChoice {
+    file: String,
+}
+
+/// `PUT /api/sessions/{id}/keyframe` with `{"file": NAME}`, NAME one of the session's views.
+pub async fn choose_keyframe(
+    State(s): AppState,
+    UrlPath(id): UrlPath<String>,
+    body: Bytes,
+) -> Result<Response, ApiError> {
+    let x = session(&s, &id)?;
+    let choice: KeyChoice = serde_json::from_slice(&body)
+        .map_err(|e| err(StatusCode::BAD_REQUEST, format!("expected {{\"file\": NAME}}: {e}")))?;
+    if x.keyframe.as_deref() == Some(choice.file.as_str()) {
+        return Ok(
+            (StatusCode::OK, Json(json!({ "keyframe": choice.file, "changed": false }))).into_response()
+        );
+    }
+    let view =
+        x.views.iter().find(|v| v.file == choice.file).ok_or_else(|| {
+            err(StatusCode::NOT_FOUND, format!("no view {:?} in session {id:?}", choice.file))
+        })?;
+    let from = view.path.clone();
+    let dir = x.inbox_dir.clone();
+    let extensions = s.config.extensions.clone();
+    let done = tokio::task::spawn_blocking(move || -> Result<serde_json::Value, ApiError> {
+        let ext = from.extension().and_then(|e| e.to_str()).unwrap_or("png").to_ascii_lowercase();
+        let mut kept = Vec::new();
+        for e in &extensions {
+            let old = dir.join(format!("key.{e}"));
+            if old.is_file() {
+                let to = free_name(&dir, |n| format!("former-key-{n}.{e}"));
+                std::fs::rename(&old, &to)
+                    .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, format!("cannot keep key.{e}: {e}")))?;
+                kept.push(to.file_name().map(|n| n.to_string_lossy().into_owned()));
+            }
+            // Its mask belongs to the old keyframe: kept aside, not applied to the new one.
+            let old_mask = dir.join(format!("key.mask.{e}"));
+            if old_mask.is_file() {
+                let to = free_name(&dir, |n| format!("key.mask.{e}.user-{n}"));
+                std::fs::rename(&old_mask, &to)
+                    .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, format!("cannot keep key.mask: {e}")))?;
+                kept.push(to.file_name().map(|n| n.to_string_lossy().into_owned()));
+            }
+        }
+        let to = dir.join(format!("key.{ext}"));
+        std::fs::rename(&from, &to).map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+        Ok(json!({ "keyframe": to.file_name().map(|n| n.to_string_lossy()), "was": from.file_name().map(|n| n.to_string_lossy()), "kept": kept, "changed": true }))
+    })
+    .await
+    .map_err(|_| err(StatusCode::INTERNAL_SERVER_ERROR, "keyframe task failed"))??;
+    tracing::info!(session = %id, file = %choice.file, "keyframe chosen on the preview page");
+    Ok((StatusCode::ACCEPTED, Json(done)).into_response())
+}
+
+/// Server-sent events: `session` when a session changed, `result` when a new result
+/// landed (`data` is the JSON of [`crate::daemon::registry::Update`]). Ends on shutdown.
+pub async fn events(State(s): AppState) -> Sse<impl tokio_stream::Stream<Item = Result<Event, Infallible>>> {
+    let (tx, rx) = tokio::sync::mpsc::channel(16);
+    let mut updates = s.registry.subscribe();
+    let cancel = s.cancel.clone();
+    tokio::spawn(async move {
+        loop {
+            tokio::select! {
+                () = cancel.cancelled() => break,
+                () = tx.closed() => break,
+                r = updates.recv() => match r {
+                    Ok(u) => {
+                        let ev = Event::default().event(u.kind).data(serde_json::to_string(&u).unwrap_or_default());
+                        if tx.send(ev).await.is_err() {
+                            break;
+                        }
+                    }
+                    // Missed some: tell the page to re-read everything.
+                    Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {
+                        if tx.send(Event::default().event("session").data("{}")).await.is_err() {
+                            break;
+                        }
+                    }
+                    Err(tokio::sync::broadcast::error::RecvError::Closed) => break,
+                },
+            }
+        }
+    });
+    let hello = tokio_stream::once(Event::default().event("hello").data("{}"));
+    Sse::new(hello.chain(ReceiverStream::new(rx)).map(Ok)).keep_alive(KeepAlive::default())
+}

@@ -1,0 +1,263 @@
+// clearview preview page: sessions, before/after, provenance, views, mask painting.
+// Live through server-sent events; no framework, nothing loaded from elsewhere.
+'use strict';
+
+const params = new URLSearchParams(location.search);
+let token = params.get('token') || sessionStorage.getItem('clearview-token') || '';
+if (params.get('token')) {
+  sessionStorage.setItem('clearview-token', token);
+  params.delete('token');
+  const rest = params.toString();
+  history.replaceState(null, '', location.pathname + (rest ? '?' + rest : '') + location.hash);
+}
+
+const $ = (id) => document.getElementById(id);
+let current = decodeURIComponent(location.hash.slice(1)) || null;
+let snapshot = null;
+let painting = false;
+
+// A URL of ours with the token (images and the event stream cannot send headers).
+function url(path, extra) {
+  const u = new URL(path, location.origin);
+  if (token) u.searchParams.set('token', token);
+  for (const [k, v] of Object.entries(extra || {})) u.searchParams.set(k, v);
+  return u.pathname + u.search;
+}
+
+async function api(path, options) {
+  const o = Object.assign({}, options || {});
+  o.headers = Object.assign({}, o.headers || {});
+  if (token) o.headers.Authorization = 'Bearer ' + token;
+  const r = await fetch(path, o);
+  const text = await r.text();
+  let body = null;
+  try { body = text ? JSON.parse(text) : null; } catch (e) { body = { error: text }; }
+  if (!r.ok) throw new Error((body && body.error) || r.status + ' ' + r.statusText);
+  return body;
+}
+
+const sessionPath = (id) => '/api/sessions/' + encodeURIComponent(id);
+
+async function loadSessions() {
+  const list = await api('/api/sessions');
+  const nav = $('sessions');
+  if (!list.sessions.length) return;
+  nav.replaceChildren(...list.sessions.map((s) => {
+    const b = document.createElement('button');
+    b.type = 'button';
+    b.dataset.id = s.id;
+    b.className = s.id === current ? 'current' : '';
+    const cov = s.coverage == null ? 'no result yet' : 'result #' + s.result + ' · ' + Math.round(100 * s.coverage) + '% from views';
+    b.append(s.id);
+    const small = document.createElement('small');
+    small.textContent = s.accepted + ' accepted, ' + s.rejected + ' rejected · ' + cov;
+    b.append(small);
+    b.onclick = () => select(s.id);
+    return b;
+  }));
+  if (!current || !list.sessions.some((s) => s.id === current)) select(list.sessions[0].id);
+}
+
+function select(id) {
+  if (painting) togglePaint(false);
+  current = id;
+  history.replaceState(null, '', location.pathname + location.search + '#' + encodeURIComponent(id));
+  for (const b of $('sessions').querySelectorAll('button')) b.className = b.dataset.id === id ? 'current' : '';
+  loadSession();
+}
+
+async function loadSession() {
+  if (!current) return;
+  const s = await api(sessionPath(current));
+  snapshot = s;
+  $('main').hidden = false;
+  $('title').textContent = s.id;
+  const n = s.result ? s.result.number : null;
+  const parts = ['keyframe ' + (s.keyframe || '(none yet)'), 'mask ' + (s.mask || '(none: paint one)')];
+  if (n != null) parts.push('result #' + n + ' · ' + Math.round(100 * s.coverage) + '% of ' + s.result.masked + ' masked px from views');
+  $('summary').textContent = parts.join(' · ');
+  const viewer = $('viewer');
+  if (s.keyframe) $('before').src = url(sessionPath(s.id) + '/keyframe', { k: s.keyframe });
+  const after = $('after');
+  if (n != null) {
+    after.hidden = false;
+    after.src = url(sessionPath(s.id) + '/result', { n: n });
+  } else {
+    after.hidden = true;
+  }
+  viewer.dataset.result = n == null ? '' : String(n);
+  const prov = $('prov');
+  if (s.legend.length) prov.src = url(sessionPath(s.id) + '/provenance', { n: n });
+  prov.hidden = !($('show-prov').checked && s.legend.length);
+  $('legend').hidden = prov.hidden;
+  $('legend').replaceChildren(...s.legend.filter((l) => l.value !== 0).map((l) => {
+    const li = document.createElement('li');
+    const sw = document.createElement('i');
+    sw.style.background = l.colour;
+    li.append(sw, l.source + ' (' + l.pixels + ' px)');
+    return li;
+  }));
+  renderViews(s);
+}
+
+function renderViews(s) {
+  $('views').replaceChildren(...s.views.map((v) => {
+    const card = document.createElement('figure');
+    card.className = 'view';
+    card.style.margin = '0';
+    const img = document.createElement('img');
+    img.loading = 'lazy';
+    img.alt = v.file;
+    img.src = url(sessionPath(s.id) + '/views/' + encodeURIComponent(v.file) + '/thumb');
+    const d = document.createElement('div');
+    const name = document.createElement('b');
+    name.textContent = v.file;
+    name.title = v.file;
+    const st = document.createElement('span');
+    st.className = 'status ' + v.status;
+    st.textContent = v.status.replace('_', ' ');
+    d.append(name, st);
+    if (v.filled != null) d.append(' ' + v.filled + ' px');
+    if (v.reason) {
+      const r = document.createElement('div');
+      r.className = 'reason';
+      r.textContent = v.reason;
+      d.append(r);
+    }
+    const q = document.createElement('div');
+    q.className = 'reason';
+    q.textContent = v.inliers + '/' + v.matches + ' inliers' + (v.median_residual_px != null ? ', ' + v.median_residual_px.toFixed(2) + ' px' : '');
+    d.append(q);
+    const b = document.createElement('button');
+    b.type = 'button';
+    b.textContent = 'Make keyframe';
+    b.onclick = () => chooseKeyframe(v.file);
+    d.append(b);
+    card.append(img, d);
+    return card;
+  }));
+}
+
+async function chooseKeyframe(file) {
+  if (!confirm('Make ' + file + ' the keyframe? It is renamed key.<ext> in the inbox; the mask must be painted again.')) return;
+  try {
+    await api(sessionPath(current) + '/keyframe', { method: 'PUT', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify({ file }) });
+    say('keyframe chosen: the service is re-aligning the views');
+  } catch (e) { say('could not choose the keyframe: ' + e.message); }
+}
+
+function say(text) { $('message').textContent = text; }
+
+// Before/after slider: the keyframe shows left of the divider, the result right of it.
+function slide() {
+  const v = Number($('slider').value);
+  $('after').style.clipPath = 'inset(0 0 0 ' + v + '%)';
+  $('divider').style.left = v + '%';
+}
+
+// ---- mask painting ----
+const canvas = $('paint');
+const ctx = canvas.getContext('2d');
+let last = null;
+
+async function togglePaint(on) {
+  painting = on;
+  $('viewer').classList.toggle('painting', on);
+  canvas.hidden = !on;
+  $('paint-controls').hidden = !on;
+  $('paint-toggle').textContent = on ? 'Stop painting' : 'Paint mask';
+  if (!on) return;
+  const key = $('before');
+  if (!key.complete) await new Promise((r) => key.addEventListener('load', r, { once: true }));
+  canvas.width = key.naturalWidth;
+  canvas.height = key.naturalHeight;
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  if (snapshot && snapshot.mask) {
+    // Start from the current mask: its white pixels shown red.
+    try {
+      const m = new Image();
+      m.src = url(sessionPath(current) + '/mask', { r: snapshot.revision });
+      await m.decode();
+      const off = document.createElement('canvas');
+      off.width = canvas.width; off.height = canvas.height;
+      const o = off.getContext('2d');
+      o.drawImage(m, 0, 0, off.width, off.height);
+      const d = o.getImageData(0, 0, off.width, off.height);
+      for (let i = 0; i < d.data.length; i += 4) {
+        const on = d.data[i] > 127;
+        d.data[i] = 255; d.data[i + 1] = 0; d.data[i + 2] = 0; d.data[i + 3] = on ? 255 : 0;
+      }
+      ctx.putImageData(d, 0, 0);
+    } catch (e) { /* no mask yet */ }
+  }
+  say('paint over what should go; save when done');
+}
+
+function point(e) {
+  const r = canvas.getBoundingClientRect();
+  return { x: (e.clientX - r.left) * canvas.width / r.width, y: (e.clientY - r.top) * canvas.height / r.height, s: canvas.width / r.width };
+}
+
+function stroke(a, b) {
+  ctx.globalCompositeOperation = $('erase').checked ? 'destination-out' : 'source-over';
+  ctx.strokeStyle = ctx.fillStyle = '#ff0000';
+  ctx.lineCap = ctx.lineJoin = 'round';
+  ctx.lineWidth = Number($('brush').value) * b.s;
+  ctx.beginPath();
+  ctx.moveTo(a.x, a.y);
+  ctx.lineTo(b.x + 0.01, b.y);
+  ctx.stroke();
+}
+
+canvas.addEventListener('pointerdown', (e) => { canvas.setPointerCapture(e.pointerId); last = point(e); stroke(last, last); e.preventDefault(); });
+canvas.addEventListener('pointermove', (e) => { if (!last) return; const p = point(e); stroke(last, p); last = p; e.preventDefault(); });
+for (const ev of ['pointerup', 'pointercancel']) canvas.addEventListener(ev, () => { last = null; });
+
+async function saveMask() {
+  const out = document.createElement('canvas');
+  out.width = canvas.width; out.height = canvas.height;
+  const o = out.getContext('2d');
+  const src = ctx.getImageData(0, 0, canvas.width, canvas.height);
+  const dst = o.createImageData(canvas.width, canvas.height);
+  let painted = 0;
+  for (let i = 0; i < src.data.length; i += 4) {
+    const on = src.data[i + 3] > 127 ? 255 : 0;
+    painted += on ? 1 : 0;
+    dst.data[i] = dst.data[i + 1] = dst.data[i + 2] = on; dst.data[i + 3] = 255;
+  }
+  o.putImageData(dst, 0, 0);
+  const blob = await new Promise((r) => out.toBlob(r, 'image/png'));
+  try {
+    await api(sessionPath(current) + '/mask', { method: 'PUT', headers: { 'Content-Type': 'image/png' }, body: blob });
+    say('mask saved (' + painted + ' px): re-inpainting…');
+    togglePaint(false);
+  } catch (e) { say('could not save the mask: ' + e.message); }
+}
+
+// ---- live updates ----
+let pending = null;
+function refresh() {
+  clearTimeout(pending);
+  pending = setTimeout(() => { loadSessions().catch(() => {}); loadSession().catch(() => {}); }, 150);
+}
+
+function listen() {
+  const es = new EventSource(url('/api/events'));
+  es.addEventListener('hello', () => { $('live').textContent = 'live'; $('live').className = 'badge on'; refresh(); });
+  es.addEventListener('session', refresh);
+  es.addEventListener('result', (e) => {
+    const u = JSON.parse(e.data);
+    if (u.session === current && !painting) say('new result #' + u.result);
+    refresh();
+  });
+  es.onerror = () => { $('live').textContent = 'reconnecting'; $('live').className = 'badge off'; };
+}
+
+$('slider').addEventListener('input', slide);
+$('show-prov').addEventListener('change', () => loadSession());
+$('paint-toggle').addEventListener('click', () => togglePaint(!painting));
+$('clear').addEventListener('click', () => ctx.clearRect(0, 0, canvas.width, canvas.height));
+$('save').addEventListener('click', saveMask);
+slide();
+loadSessions().catch((e) => say(e.message));
+listen();

@@ -1,0 +1,93 @@
+//! The provenance map as a picture (shell layer): which view filled each masked pixel of
+//! a result, colour-coded into a transparent PNG with a legend, for the preview page.
+
+use image::ImageEncoder;
+use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+
+use super::registry::LegendEntry;
+use crate::inpaint::{FALLBACK, KEYFRAME, Provenance};
+
+/// Colours of sources 0, 1, ... (cycled), chosen apart from each other and from the
+/// fallback's magenta.
+const PALETTE: [[u8; 3]; 10] = [
+    [0x1f, 0x77, 0xb4],
+    [0xff, 0x7f, 0x0e],
+    [0x2c, 0xa0, 0x2c],
+    [0x17, 0xbe, 0xcf],
+    [0xbc, 0xbd, 0x22],
+    [0x94, 0x67, 0xbd],
+    [0x8c, 0x56, 0x4b],
+    [0x7f, 0x7f, 0x7f],
+    [0x00, 0x33, 0x99],
+    [0x66, 0xcc, 0x99],
+];
+
+/// The fallback's colour: pixels no view saw, invented from the keyframe alone.
+pub const FALLBACK_COLOUR: [u8; 3] = [0xff, 0x00, 0xff];
+
+/// The colour of provenance value `v` (`None`: transparent, the keyframe's own pixel).
+pub fn colour(v: u16) -> Option<[u8; 3]> {
+    match v {
+        KEYFRAME => None,
+        FALLBACK => Some(FALLBACK_COLOUR),
+        i => Some(PALETTE[usize::from(i - 1) % PALETTE.len()]),
+    }
+}
+
+fn hex(c: [u8; 3]) -> String {
+    format!("#{:02x}{:02x}{:02x}", c[0], c[1], c[2])
+}
+
+/// An RGBA PNG of `map` (keyframe pixels transparent, the others opaque in their source's
+/// colour) and the legend of the values present, `names[i]` naming source `i`.
+pub fn render(map: &Provenance, names: &[String]) -> std::io::Result<(Vec<u8>, Vec<LegendEntry>)> {
+    let (w, h) = (map.width(), map.height());
+    let mut rgba = Vec::with_capacity(w * h * 4);
+    let mut counts: std::collections::BTreeMap<u16, usize> = std::collections::BTreeMap::new();
+    for y in 0..h {
+        for &v in map.row(y) {
+            *counts.entry(v).or_default() += 1;
+            match colour(v) {
+                None => rgba.extend_from_slice(&[0, 0, 0, 0]),
+                Some(c) => rgba.extend_from_slice(&[c[0], c[1], c[2], 255]),
+            }
+        }
+    }
+    let mut png = Vec::new();
+    PngEncoder::new_with_quality(&mut png, CompressionType::Fast, FilterType::Adaptive)
+        .write_image(&rgba, w as u32, h as u32, image::ExtendedColorType::Rgba8)
+        .map_err(std::io::Error::other)?;
+    let legend = counts
+        .into_iter()
+        .map(|(value, pixels)| LegendEntry {
+            source: match value {
+                KEYFRAME => "keyframe".into(),
+                FALLBACK => "fallback".into(),
+                i => names.get(usize::from(i - 1)).cloned().unwrap_or_else(|| format!("source {}", i - 1)),
+            },
+            value,
+            colour: colour(value).map_or_else(|| "transparent".into(), hex),
+            pixels,
+        })
+        .collect();
+    Ok((png, legend))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn colours_and_legend_follow_the_values() {
+        let map = Provenance::from_vec(3, 2, vec![KEYFRAME, 1, 2, FALLBACK, 1, KEYFRAME]);
+        let (png, legend) = render(&map, &["a.jpg".into(), "b.jpg".into()]).unwrap();
+        let img = image::load_from_memory(&png).unwrap().to_rgba8();
+        assert_eq!(img.get_pixel(0, 0).0[3], 0, "keyframe pixels are transparent");
+        assert_eq!(img.get_pixel(1, 0).0, [0x1f, 0x77, 0xb4, 255]);
+        assert_eq!(img.get_pixel(2, 0).0, [0xff, 0x7f, 0x0e, 255]);
+        assert_eq!(img.get_pixel(0, 1).0, [0xff, 0x00, 0xff, 255]);
+        let by: Vec<(&str, usize)> = legend.iter().map(|l| (l.source.as_str(), l.pixels)).collect();
+        assert_eq!(by, [("keyframe", 2), ("a.jpg", 2), ("b.jpg", 1), ("fallback", 1)]);
+        assert_eq!(legend[3].colour, "#ff00ff");
+    }
+}

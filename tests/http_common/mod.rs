@@ -1,0 +1,250 @@
+//! Helpers of the HTTP and browser tests: a rendered session, the real binary with its
+//! HTTP server on a free loopback port, and a small HTTP client.
+#![allow(dead_code)]
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use clearview::geometry::Homography;
+use clearview::imaging::convert::{mask_to_luma8, to_rgb8};
+use clearview::imaging::{Mask, RgbF32};
+use clearview::synth::{self, Occluder};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde_json::Value;
+
+pub const W: usize = 320;
+pub const H: usize = 240;
+
+/// A facade, its keyframe with a tree in front, the tree's mask, and views of it.
+pub struct Scene {
+    scene: RgbF32,
+    centre: Homography,
+    pub key: RgbF32,
+    pub mask: Mask,
+    rng: ChaCha8Rng,
+}
+
+impl Scene {
+    pub fn new(seed: u64) -> Self {
+        let scene = synth::facade(W * 3 / 2, H * 3 / 2, seed);
+        let centre = Homography::translation(W as f64 / 4.0, H as f64 / 4.0);
+        let mut key = synth::render_view(&scene, &centre, W, H, [0.5; 3]);
+        let mut mask = Mask::new(W, H, 0);
+        synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Tree, 160.0, 130.0, 90.0, 3);
+        Self { scene, centre, key, mask, rng: ChaCha8Rng::seed_from_u64(seed) }
+    }
+
+    /// A view from elsewhere, without occluder.
+    pub fn view(&mut self, i: u64) -> RgbF32 {
+        let key_to_view = synth::random_homography(&mut self.rng, W, H, 0.1, 0.2, (0.9, 1.1));
+        let view_to_scene = self.centre.after(&key_to_view.inverse().unwrap());
+        let mut v = synth::render_view(&self.scene, &view_to_scene, W, H, [0.5; 3]);
+        synth::expose(&mut v, 0.9 + 0.03 * i as f32, 0.01);
+        v
+    }
+}
+
+pub fn png(img: &RgbF32) -> Vec<u8> {
+    let mut out = std::io::Cursor::new(Vec::new());
+    to_rgb8(img).write_to(&mut out, image::ImageFormat::Png).unwrap();
+    out.into_inner()
+}
+
+pub fn mask_png(mask: &Mask) -> Vec<u8> {
+    let mut out = std::io::Cursor::new(Vec::new());
+    mask_to_luma8(mask).write_to(&mut out, image::ImageFormat::Png).unwrap();
+    out.into_inner()
+}
+
+/// Writes under a hidden name and renames, as a careful uploader does.
+pub fn put(path: &Path, bytes: &[u8]) {
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    let tmp = path.with_file_name(format!(".{}.upload", path.file_name().unwrap().to_string_lossy()));
+    std::fs::write(&tmp, bytes).unwrap();
+    std::fs::rename(&tmp, path).unwrap();
+}
+
+pub struct Folders {
+    pub tmp: tempfile::TempDir,
+    pub root: PathBuf,
+    pub inbox: PathBuf,
+    pub outbox: PathBuf,
+    pub config: PathBuf,
+}
+
+/// Temporary folders and a configuration with a short quiet period; `extra` is appended.
+pub fn folders(extra: &str) -> Folders {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().to_owned();
+    let (inbox, outbox, state) = (root.join("inbox"), root.join("outbox"), root.join("state"));
+    let config = root.join("clearview.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[watch]\ndir = {inbox:?}\nquiet_period_ms = 200\n[output]\ndir = {outbox:?}\nhistory = 3\n\
+             [state]\ndir = {state:?}\n[compute]\nworkers = 1\ngrace_period_ms = 10000\n{extra}"
+        ),
+    )
+    .unwrap();
+    Folders { tmp, root, inbox, outbox, config }
+}
+
+pub fn bin() -> &'static str {
+    env!("CARGO_BIN_EXE_clearview")
+}
+
+/// The running service with its HTTP server; killed when dropped.
+pub struct Service {
+    pub child: Child,
+    /// `http://127.0.0.1:PORT`
+    pub base: String,
+    pub addr: String,
+    pub token: String,
+    /// The URL the service printed.
+    pub url: String,
+    pub log: PathBuf,
+}
+
+impl Service {
+    /// Starts `clearview run --config F --http LISTEN` and reads the printed URL.
+    pub fn start(f: &Folders, listen: &str, env: &[(&str, &str)]) -> Self {
+        let log = f.root.join("service.log");
+        let mut child = Command::new(bin())
+            .args(["run", "--config"])
+            .arg(&f.config)
+            .args(["--http", listen])
+            .envs(env.iter().copied())
+            .env("CLEARVIEW_LOG", "clearview=debug")
+            .stdout(Stdio::piped())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap();
+        let stdout = child.stdout.take().unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                let _ = tx.send(line);
+            }
+        });
+        let line = rx.recv_timeout(Duration::from_secs(20)).unwrap_or_else(|_| {
+            panic!("no URL printed; log:\n{}", std::fs::read_to_string(&log).unwrap_or_default())
+        });
+        let url = line.split_whitespace().last().unwrap().to_owned();
+        assert!(line.starts_with("clearview: preview page at http://"), "{line}");
+        let rest = url.strip_prefix("http://").unwrap();
+        let (addr, query) = rest.split_once('/').unwrap();
+        let token = query.strip_prefix("?token=").unwrap_or("").to_owned();
+        let addr = addr.replace("0.0.0.0", "127.0.0.1");
+        Self { child, base: format!("http://{addr}"), addr, token, url, log }
+    }
+
+    pub fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// SIGTERM, then the exit code.
+    pub fn terminate(mut self) -> i32 {
+        let ok = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status().unwrap();
+        assert!(ok.success());
+        let deadline = Instant::now() + Duration::from_secs(20);
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return status.code().expect("exited, not killed by a signal");
+            }
+            assert!(Instant::now() < deadline, "the service did not stop within 20 s of SIGTERM");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+impl Drop for Service {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A response: status, content type, body.
+#[derive(Debug)]
+pub struct Reply {
+    pub status: u16,
+    pub content_type: String,
+    pub body: Vec<u8>,
+}
+
+impl Reply {
+    pub fn json(&self) -> Value {
+        serde_json::from_slice(&self.body)
+            .unwrap_or_else(|e| panic!("not JSON ({e}): {}", String::from_utf8_lossy(&self.body)))
+    }
+
+    pub fn text(&self) -> String {
+        String::from_utf8_lossy(&self.body).into_owned()
+    }
+}
+
+/// One request; any status comes back as a [`Reply`] (transport errors panic).
+pub fn request(method: &str, url: &str, token: Option<&str>, body: Option<(&str, &[u8])>) -> Reply {
+    let mut req = ureq::request(method, url).timeout(Duration::from_secs(30));
+    if let Some(t) = token {
+        req = req.set("Authorization", &format!("Bearer {t}"));
+    }
+    let r = match body {
+        Some((ct, bytes)) => req.set("Content-Type", ct).send_bytes(bytes),
+        None => req.call(),
+    };
+    let resp = match r {
+        Ok(r) => r,
+        Err(ureq::Error::Status(_, r)) => r,
+        Err(e) => panic!("{method} {url}: {e}"),
+    };
+    let status = resp.status();
+    let content_type = resp.header("Content-Type").unwrap_or("").to_owned();
+    let mut body = Vec::new();
+    resp.into_reader().take(64 << 20).read_to_end(&mut body).unwrap();
+    Reply { status, content_type, body }
+}
+
+pub fn get(url: &str) -> Reply {
+    request("GET", url, None, None)
+}
+
+/// A raw HTTP/1.1 request (for headers a client would not let us forge); returns the
+/// status code.
+pub fn raw_status(addr: &str, head: &str) -> u16 {
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    s.write_all(head.as_bytes()).unwrap();
+    let mut buf = [0u8; 64];
+    let n = s.read(&mut buf).unwrap();
+    let line = String::from_utf8_lossy(&buf[..n]).into_owned();
+    line.split_whitespace().nth(1).and_then(|c| c.parse().ok()).unwrap_or_else(|| panic!("no status: {line}"))
+}
+
+/// Polls the session's JSON until `pred` holds, or fails with the service's log.
+pub fn wait_session(s: &Service, id: &str, what: &str, secs: u64, pred: impl Fn(&Value) -> bool) -> Value {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    let url = format!("{}/api/sessions/{id}", s.base);
+    loop {
+        let r = get(&url);
+        if r.status == 200 {
+            let v = r.json();
+            if pred(&v) {
+                return v;
+            }
+            if Instant::now() > deadline {
+                panic!("timed out waiting for {what}\nsession: {v:#}\nlog:\n{}", s.log());
+            }
+        } else if Instant::now() > deadline {
+            panic!("timed out waiting for {what}: {} {}\nlog:\n{}", r.status, r.text(), s.log());
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+pub fn result_number(session: &Value) -> Option<u64> {
+    session["result"]["number"].as_u64()
+}
