@@ -336,10 +336,19 @@ impl Session {
     /// Aligns a view (its luminance) to the keyframe, starting from [`Session::prior`] and
     /// falling back to a full alignment when the prior does not lead to an accepted one.
     pub fn align(&self, gray: GrayF32) -> Result<AlignRecord, SessionError> {
+        self.align_with_prior(gray, self.prior())
+    }
+
+    /// [`Session::align`] from the caller's prior: a video chains each frame from the
+    /// previous kept frame, buffered or not.
+    pub fn align_with_prior(
+        &self,
+        gray: GrayF32,
+        prior: Option<Homography>,
+    ) -> Result<AlignRecord, SessionError> {
         let key = self.key.as_ref().ok_or(SessionError::NoKey)?;
         let size = (gray.width(), gray.height());
         let frame = Frame::new(gray, &self.params.align);
-        let prior = self.prior();
         let mut a = align(&key.frame, &frame, &self.params.align, prior.as_ref());
         if !a.accepted() && prior.is_some() {
             // `align` already retries from descriptors; only the bookkeeping differs.

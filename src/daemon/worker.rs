@@ -90,43 +90,63 @@ pub fn spawn(
     Ok((senders, handles))
 }
 
-struct Ctx {
-    config: Arc<Config>,
-    emitter: Arc<Emitter>,
-    backlog: Arc<Backlog>,
-    stats: Arc<Stats>,
+pub(super) struct Ctx {
+    pub(super) config: Arc<Config>,
+    pub(super) emitter: Arc<Emitter>,
+    pub(super) backlog: Arc<Backlog>,
+    pub(super) stats: Arc<Stats>,
 }
 
 /// A view as the result report lists it.
 #[derive(Debug, Clone)]
-struct ViewEntry {
-    id: String,
-    status: &'static str,
-    reason: Option<String>,
-    record: Option<AlignRecord>,
-    from_state: bool,
-    seq: u64,
+pub(super) struct ViewEntry {
+    pub(super) id: String,
+    pub(super) status: &'static str,
+    pub(super) reason: Option<String>,
+    pub(super) record: Option<AlignRecord>,
+    pub(super) from_state: bool,
+    pub(super) seq: u64,
 }
 
 /// Views listed in a session's report at most (the oldest go first).
-const MAX_LISTED: usize = 1000;
+pub(super) const MAX_LISTED: usize = 1000;
 
-struct Slot {
-    name: String,
-    dir: PathBuf,
-    session: Session,
-    state: SessionState,
-    key_path: Option<PathBuf>,
+pub(super) struct Slot {
+    pub(super) name: String,
+    pub(super) dir: PathBuf,
+    pub(super) session: Session,
+    pub(super) state: SessionState,
+    pub(super) key_path: Option<PathBuf>,
     /// 0: named `key`; 1: named by the configuration; 2: first to arrive.
-    key_rank: u8,
-    mask_source: Option<String>,
+    pub(super) key_rank: u8,
+    pub(super) mask_source: Option<String>,
     /// Views waiting for their keyframe, by file name.
-    parked: BTreeMap<String, PathBuf>,
+    pub(super) parked: BTreeMap<String, PathBuf>,
     /// Where each buffered view's file is (to re-read it).
-    paths: HashMap<String, PathBuf>,
-    views: BTreeMap<String, ViewEntry>,
-    seq: u64,
-    state_dirty: bool,
+    pub(super) paths: HashMap<String, PathBuf>,
+    pub(super) views: BTreeMap<String, ViewEntry>,
+    pub(super) seq: u64,
+    pub(super) state_dirty: bool,
+}
+
+impl Slot {
+    /// A new slot for session `name` whose files are in `dir`, with its saved state.
+    pub(super) fn new(ctx: &Ctx, name: &str, dir: PathBuf) -> Self {
+        Slot {
+            name: name.to_owned(),
+            dir,
+            session: Session::new(ctx.config.session.clone()),
+            state: state::load(&ctx.config.state_dir, name),
+            key_path: None,
+            key_rank: u8::MAX,
+            mask_source: None,
+            parked: BTreeMap::new(),
+            paths: HashMap::new(),
+            views: BTreeMap::new(),
+            seq: 0,
+            state_dirty: false,
+        }
+    }
 }
 
 struct Worker {
@@ -178,20 +198,7 @@ impl Worker {
             } else {
                 ctx.config.watch_dir.join(name)
             };
-            Slot {
-                name: name.to_owned(),
-                dir,
-                session: Session::new(ctx.config.session.clone()),
-                state: state::load(&ctx.config.state_dir, name),
-                key_path: None,
-                key_rank: u8::MAX,
-                mask_source: None,
-                parked: BTreeMap::new(),
-                paths: HashMap::new(),
-                views: BTreeMap::new(),
-                seq: 0,
-                state_dirty: false,
-            }
+            Slot::new(ctx, name, dir)
         })
     }
 
@@ -599,7 +606,7 @@ impl Observer for Timings {
     }
 }
 
-fn fill(ctx: &Ctx, slot: &mut Slot) {
+pub(super) fn fill(ctx: &Ctx, slot: &mut Slot) {
     let digest = slot.session.inputs_digest();
     if slot.session.best_score().is_none()
         && let Some(saved) = &slot.state.result

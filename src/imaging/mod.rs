@@ -9,6 +9,7 @@ pub mod convert;
 pub mod decode;
 pub mod filter;
 pub mod pyramid;
+pub mod sharpness;
 
 use std::fmt;
 
