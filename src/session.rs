@@ -438,6 +438,15 @@ impl Session {
         self.dirty && self.key.is_some() && self.mask.is_some()
     }
 
+    /// Asks for a fill with the views buffered now even though none of them improved the
+    /// result by the improvement rule: more witnesses can still change the consensus (a
+    /// video refills after a few new frames, and at its end).
+    pub fn request_fill(&mut self) {
+        if self.key.is_some() && self.mask.is_some() && self.buffer.iter().any(|b| b.crop.is_some()) {
+            self.dirty = true;
+        }
+    }
+
     /// Drops views beyond the buffer's capacity: least contribution first (a view not in
     /// a fill yet counts 0, except the newest when it `protect`s), oldest first among
     /// equals.
@@ -814,6 +823,23 @@ mod tests {
             }
             other => panic!("{other:?}"),
         }
+        assert!(s.needs_fill());
+    }
+
+    #[test]
+    fn a_fill_can_be_requested_once_views_with_pixels_are_buffered() {
+        let mut s = session_with_key();
+        s.request_fill();
+        assert!(!s.needs_fill(), "no mask yet");
+        s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+        let _ = s.fill(&mut ());
+        s.request_fill();
+        assert!(!s.needs_fill(), "no view with pixels");
+        let view = to8(&synth::facade(W, H, 9));
+        s.admit("a".into(), record(&Homography::identity()), Some(&view)).unwrap();
+        let _ = s.fill(&mut ());
+        assert!(!s.needs_fill());
+        s.request_fill();
         assert!(s.needs_fill());
     }
 

@@ -19,7 +19,7 @@ use serde_json::Value;
 
 const W: usize = 480;
 const H: usize = 360;
-/// Facade pixels the camera pans per frame; the tree, nearer, moves twice as fast.
+/// Facade pixels the camera pans per frame; the tree, nearer, moves three times as fast.
 const PAN: f64 = 4.0;
 
 fn bin() -> &'static str {
@@ -71,10 +71,10 @@ impl World {
         v(to).inverse().unwrap().after(&v(from))
     }
 
-    /// A frame with pan `p`: the tree moves twice as fast as the facade (parallax).
+    /// A frame with pan `p`: the tree moves three times as fast as the facade (parallax).
     fn frame(&self, p: f64, mask: Option<&mut Mask>) -> RgbF32 {
         let mut img = self.facade(p);
-        let tree_x = 170.0 - 2.0 * p as f32;
+        let tree_x = 400.0 - 3.0 * p as f32;
         synth::paint_occluder(&mut img, mask, Occluder::Tree, tree_x, 200.0, 120.0, 3);
         img
     }
@@ -108,6 +108,15 @@ fn events(out: &Path) -> Vec<Value> {
 
 fn of_kind<'a>(events: &'a [Value], kind: &str) -> Vec<&'a Value> {
     events.iter().filter(|e| e["event"] == kind).collect()
+}
+
+/// `mask` grown by `r` pixels (square neighbourhood).
+fn dilate(mask: &Mask, r: usize) -> Mask {
+    Mask::from_fn(W, H, |x, y| {
+        let (x0, y0) = (x.saturating_sub(r), y.saturating_sub(r));
+        let hit = (y0..(y + r + 1).min(H)).any(|yy| (x0..(x + r + 1).min(W)).any(|xx| mask.is_hole(xx, yy)));
+        if hit { 255 } else { 0 }
+    })
 }
 
 fn write_mask(path: &Path, mask: &Mask) {
@@ -153,6 +162,8 @@ fn a_video_file_is_selected_aligned_and_filled_until_its_end() {
     let mut mask = Mask::new(W, H, 0);
     let key_pan = World::pan(KEY, 0);
     let key = world.frame(key_pan, Some(&mut mask));
+    // Drawn generously, as a person would: the leaves' soft edge is inside.
+    let mask = dilate(&mask, 6);
     let truth = world.facade(key_pan);
     write_mask(&dir.join("mask.png"), &mask);
     let out = dir.join("out");
@@ -223,6 +234,9 @@ fn a_video_file_is_selected_aligned_and_filled_until_its_end() {
         "masked error: keyframe {key_err:.4}, first result {first_err:.4}, final {final_err:.4} ({} results)",
         updates.len()
     );
+    // For a look: the last result, and the first.
+    let _ = result.save(std::env::temp_dir().join("clearview-video-result.png"));
+    let _ = first.save(std::env::temp_dir().join("clearview-video-first.png"));
     if !multi_view_fill() {
         eprintln!(
             "skipping the masked-error checks: this build's fill takes nothing from views (placeholder)"
@@ -230,7 +244,7 @@ fn a_video_file_is_selected_aligned_and_filled_until_its_end() {
         return;
     }
     assert!(updates.len() >= 2, "results improve as the camera moves: {ev:#?}");
-    assert!(final_err < 0.03, "final masked error {final_err:.4} (keyframe {key_err:.4})");
+    assert!(final_err < 0.035, "final masked error {final_err:.4} (keyframe {key_err:.4})");
     assert!(final_err < first_err, "first {first_err:.4}, final {final_err:.4}");
     assert!(final_err < key_err / 4.0);
 }
@@ -383,6 +397,7 @@ fn a_live_stream_that_drops_is_reconnected_and_the_session_goes_on() {
         .collect();
     let mut mask = Mask::new(W, H, 0);
     let _ = world.frame(0.0, Some(&mut mask));
+    let mask = dilate(&mask, 6);
     write_mask(&dir.join("mask.png"), &mask);
     let server = Mjpeg::start(Arc::new(jpegs), 10);
     let url = format!("http://127.0.0.1:{}/cam", server.port);

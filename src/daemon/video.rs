@@ -376,6 +376,9 @@ struct Decoder {
     emitter: Arc<Emitter>,
 }
 
+/// Frames buffered without calling for a fill after which a video refills anyway.
+const REFILL_AFTER: usize = 4;
+
 /// How often the decoder logs its counters.
 const PROGRESS_EVERY: Duration = Duration::from_secs(5);
 
@@ -641,6 +644,8 @@ struct Runner {
     track: VecDeque<(f64, Homography)>,
     /// Accepted frames waiting for the automatic mask.
     stash: Vec<(String, String, AlignRecord, Rgb8)>,
+    /// Frames buffered since the last fill (improving or not).
+    buffered_since_fill: usize,
     /// Arrival time of the oldest frame admitted since the last fill.
     pending_since: Option<Instant>,
     run_id: u128,
@@ -658,6 +663,7 @@ impl Runner {
             mask,
             track: VecDeque::new(),
             stash: Vec::new(),
+            buffered_since_fill: 0,
             pending_since: None,
             run_id,
         }
@@ -680,11 +686,19 @@ impl Runner {
                         self.take_frame(index, t, &image, arrived);
                     }
                     let batch = self.ctx.config.batch_max.get();
-                    if rx.is_empty() || self.slot.session.admitted_since_fill() >= batch {
+                    // A file read at the service's pace fills after every frame that calls
+                    // for it (results follow the camera); a stream fills when it has caught
+                    // up, or after `batch_max` frames.
+                    if !self.src.realtime || rx.is_empty() || self.slot.session.admitted_since_fill() >= batch
+                    {
                         self.fill();
                     }
                 }
                 Ok(Msg::End { reason }) => {
+                    // The final result: with every witness buffered since the last fill.
+                    if self.buffered_since_fill > 0 {
+                        self.slot.session.request_fill();
+                    }
                     self.fill();
                     let mut fields = self.stats.json();
                     fields["input"] = json!(self.src.input);
@@ -811,8 +825,19 @@ impl Runner {
             return;
         }
         let pixels = record.accepted.then(|| rgb8(image));
+        let before = self.slot.session.inputs_digest();
         if self.admit(&name, id, record, pixels.as_ref(), common) {
             self.pending_since.get_or_insert(arrived);
+        }
+        if self.slot.session.inputs_digest() != before {
+            self.buffered_since_fill += 1;
+            // Frames that see only well-witnessed pixels do not call for a fill by the
+            // improvement rule, but a few of them can outvote views that saw the
+            // occluder there: refill after REFILL_AFTER of them.
+            if self.buffered_since_fill >= REFILL_AFTER {
+                self.slot.session.request_fill();
+                self.pending_since.get_or_insert(arrived);
+            }
         }
     }
 
@@ -923,6 +948,7 @@ impl Runner {
             return;
         }
         let before = self.slot.state.last_number;
+        self.buffered_since_fill = 0;
         worker::fill(&self.ctx, &mut self.slot);
         if let Some(since) = self.pending_since.take()
             && self.slot.state.last_number > before
