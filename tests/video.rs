@@ -385,12 +385,13 @@ fn a_live_stream_that_drops_is_reconnected_and_the_session_goes_on() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     let world = World::new();
-    // The camera stands still for 4 s (the keyframe is taken then), then pans for 10 s.
+    // The camera stands still for 4 s (the keyframe is taken then), then pans slowly for
+    // 20 s: time enough for a first result, a loss and a reconnection under load.
     const STILL: usize = 40;
-    let jpegs: Vec<Vec<u8>> = (0..STILL + 100)
+    let jpegs: Vec<Vec<u8>> = (0..STILL + 200)
         .map(|i| {
             let mut b = std::io::Cursor::new(Vec::new());
-            let f = world.frame(World::pan(i, STILL) * 0.75, None);
+            let f = world.frame(World::pan(i, STILL) * 0.375, None);
             to_rgb8(&f).write_to(&mut b, image::ImageFormat::Jpeg).unwrap();
             b.into_inner()
         })
