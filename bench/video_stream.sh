@@ -20,8 +20,9 @@ cargo build --release --quiet --bin clearview --example render_facade
 video="$work/walk-1080p30-${secs}s.mp4"
 if [ ! -f "$video" ]; then
   echo "encoding $video ..."
-  ffmpeg -v error -y -loop 1 -framerate 30 -i "$work/facade.png" -t "$secs" \
-    -vf "crop=1920:1080:x='740+700*sin(t/6)':y='160+40*sin(t/4)',format=yuv420p" \
+  # The image is decoded once and looped in memory (loop filter), then cropped per frame.
+  ffmpeg -v error -y -i "$work/facade.png" -r 30 -t "$secs" \
+    -vf "loop=loop=-1:size=1:start=0,setpts=N/30/TB,crop=1920:1080:x='740+700*sin(t/6)':y='160+40*sin(t/4)',format=yuv420p" \
     -c:v libx264 -preset ultrafast -crf 20 -g 60 "$video"
 fi
 [ -f "$work/mask.png" ] || ffmpeg -v error -y -f lavfi -i color=black:s=1920x1080 \
