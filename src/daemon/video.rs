@@ -1020,6 +1020,42 @@ mod tests {
     }
 
     #[test]
+    fn a_live_stream_never_waits_for_a_full_queue_it_drops_and_counts() {
+        let tmp = tempfile::tempdir().unwrap();
+        let config = Config { out_dir: tmp.path().to_owned(), ..Config::default() };
+        let raw = crate::config::RawVideo {
+            input: "rtsp://127.0.0.1/x".into(),
+            warmup_frames: 0,
+            min_motion: 0.0,
+            max_kept_fps: 0.0,
+            ..Default::default()
+        };
+        let (tx, rx) = bounded(1);
+        tx.send(Msg::End { reason: None }).unwrap();
+        let decoder = Decoder {
+            src: raw.validate().unwrap(),
+            out: tx,
+            stats: Arc::default(),
+            pid: Arc::default(),
+            cancel: CancellationToken::new(),
+            emitter: Arc::new(Emitter::open(&config).unwrap()),
+        };
+        let (w, h) = (32, 24);
+        let mut selector = FrameSelector::new(decoder.src.select.clone());
+        let mut key_sent = true;
+        let start = Instant::now();
+        for i in 0..3u64 {
+            let mut buf: Vec<u8> =
+                (0..w * h * 3).map(|k| if (k / 3 + k / (3 * w)) % 2 == 0 { 220 } else { 30 }).collect();
+            decoder.offer(&mut selector, &mut buf, i, i as f64, (w, h), &mut key_sent).unwrap();
+        }
+        assert!(start.elapsed() < Duration::from_millis(100), "the decoder waited");
+        assert_eq!(decoder.stats.kept.load(Ordering::Relaxed), 3);
+        assert_eq!(decoder.stats.dropped.load(Ordering::Relaxed), 3);
+        assert_eq!(rx.len(), 1, "nothing more was queued");
+    }
+
+    #[test]
     fn probe_output_is_parsed() {
         let p = parse_probe(
             r#"{"streams":[{"width":480,"height":360,"r_frame_rate":"30/1","avg_frame_rate":"30000/1001"}]}"#,
