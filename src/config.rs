@@ -34,11 +34,14 @@ pub struct RawConfig {
     pub session: RawSession,
     pub compute: RawCompute,
     pub http: RawHttp,
+    /// `[[video]]` tables: video stream sources (see [`RawVideo`]).
+    pub video: Vec<RawVideo>,
 }
 
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct RawWatch {
+    pub enabled: bool,
     pub dir: PathBuf,
     pub mode: String,
     pub poll_interval_ms: u64,
@@ -51,6 +54,7 @@ pub struct RawWatch {
 impl Default for RawWatch {
     fn default() -> Self {
         Self {
+            enabled: true,
             dir: PathBuf::from("./inbox"),
             mode: "notify".into(),
             poll_interval_ms: 2000,
@@ -233,6 +237,8 @@ pub enum MaskRule {
 /// A checked configuration: everything the daemon needs, nothing it must re-check.
 #[derive(Debug, Clone)]
 pub struct Config {
+    /// Whether the folder is watched at all (a video-only service does not need it).
+    pub watch_enabled: bool,
     pub watch_dir: PathBuf,
     pub watch_mode: WatchMode,
     pub rescan_interval: Duration,
@@ -257,6 +263,8 @@ pub struct Config {
     pub grace_period: Duration,
     /// The HTTP server, `None` when off.
     pub http: Option<HttpConfig>,
+    /// Video stream sources, each one session.
+    pub videos: Vec<VideoSource>,
 }
 
 impl Default for Config {
@@ -397,7 +405,9 @@ impl RawConfig {
         } else {
             Some(HttpConfig::new(&h.listen, Some(h.token), h.max_body_bytes)?)
         };
+        let videos = self.video.into_iter().map(RawVideo::validate).collect::<Result<Vec<_>, _>>()?;
         Ok(Config {
+            watch_enabled: w.enabled,
             watch_dir: w.dir,
             watch_mode,
             rescan_interval: Duration::from_secs(w.rescan_interval_s),
@@ -417,6 +427,177 @@ impl RawConfig {
             decoders,
             grace_period: Duration::from_millis(c.grace_period_ms),
             http,
+            videos,
+        })
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// Video sources (`[[video]]` tables).
+
+/// One `[[video]]` table as written (see `config/clearview.toml`).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RawVideo {
+    pub input: String,
+    pub session: String,
+    pub keyframe_at_s: Option<f64>,
+    pub keyframe_frame: Option<u64>,
+    pub mask: String,
+    pub auto_mask_views: usize,
+    pub live: Option<bool>,
+    pub realtime: bool,
+    pub min_sharpness: f32,
+    pub min_motion: f32,
+    pub max_kept_fps: f32,
+    pub warmup_frames: usize,
+    pub queue: usize,
+    pub reconnect_min_ms: u64,
+    pub reconnect_max_ms: u64,
+    pub ffmpeg: PathBuf,
+    pub ffprobe: PathBuf,
+}
+
+impl Default for RawVideo {
+    fn default() -> Self {
+        let s = crate::imaging::sharpness::SelectParams::default();
+        Self {
+            input: String::new(),
+            session: "video".into(),
+            keyframe_at_s: None,
+            keyframe_frame: None,
+            mask: "auto".into(),
+            auto_mask_views: 2,
+            live: None,
+            realtime: false,
+            min_sharpness: s.min_sharpness,
+            min_motion: s.min_motion,
+            max_kept_fps: s.max_kept_fps,
+            warmup_frames: s.warmup_frames,
+            queue: 4,
+            reconnect_min_ms: 500,
+            reconnect_max_ms: 30_000,
+            ffmpeg: PathBuf::from("ffmpeg"),
+            ffprobe: PathBuf::from("ffprobe"),
+        }
+    }
+}
+
+/// Which frame of a video is the keyframe.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum VideoKeyframe {
+    /// The first sharp frame.
+    First,
+    /// The first sharp frame at or after this stream time (seconds).
+    AtSeconds(f64),
+    /// The first sharp frame at or after this frame number (0-based).
+    AtFrame(u64),
+}
+
+/// Where a video session's mask comes from.
+#[derive(Debug, Clone, PartialEq)]
+pub enum VideoMask {
+    /// A mask image of the frame's size (white = remove).
+    File(PathBuf),
+    /// The consensus of the first `views` accepted frames.
+    Auto { views: usize },
+}
+
+/// A checked video source.
+#[derive(Debug, Clone, PartialEq)]
+pub struct VideoSource {
+    /// Anything FFmpeg opens: a file, `rtsp://`, `http(s)://` (MJPEG, HLS), `/dev/video0`.
+    pub input: String,
+    /// The session's name: results go to `<output.dir>/<session>/`.
+    pub session: String,
+    pub keyframe: VideoKeyframe,
+    pub mask: VideoMask,
+    /// A live stream is reconnected when it drops; a file ends the session.
+    pub live: bool,
+    /// Frames are read at the stream's pace and dropped when the service is behind (always
+    /// so for live streams). Otherwise a file is read as fast as it is processed.
+    pub realtime: bool,
+    pub select: crate::imaging::sharpness::SelectParams,
+    /// Selected frames waiting for alignment at most.
+    pub queue: NonZeroUsize,
+    pub reconnect_min: Duration,
+    pub reconnect_max: Duration,
+    pub ffmpeg: PathBuf,
+    pub ffprobe: PathBuf,
+}
+
+/// Whether FFmpeg input `input` is a live stream (a URL other than `file:`, or a device).
+pub fn is_live_input(input: &str) -> bool {
+    (input.contains("://") && !input.starts_with("file:")) || input.starts_with("/dev/")
+}
+
+impl RawVideo {
+    pub fn validate(self) -> Result<VideoSource, ConfigError> {
+        if self.input.trim().is_empty() {
+            return Err(invalid("video.input", "empty: a file, URL or device FFmpeg can open"));
+        }
+        let session = self.session.trim().to_owned();
+        if session.is_empty() || session.contains(['/', '\\']) || session.starts_with('.') {
+            return Err(invalid("video.session", format!("{session:?} is not a folder name")));
+        }
+        let keyframe = match (self.keyframe_at_s, self.keyframe_frame) {
+            (Some(_), Some(_)) => {
+                return Err(invalid("video.keyframe_at_s", "give keyframe_at_s or keyframe_frame, not both"));
+            }
+            (Some(t), None) if !(t.is_finite() && t >= 0.0) => {
+                return Err(invalid("video.keyframe_at_s", "must be a time in seconds, 0 or more"));
+            }
+            (Some(t), None) => VideoKeyframe::AtSeconds(t),
+            (None, Some(n)) => VideoKeyframe::AtFrame(n),
+            (None, None) => VideoKeyframe::First,
+        };
+        let mask = match self.mask.as_str() {
+            "" => return Err(invalid("video.mask", "empty: \"auto\" or a mask image")),
+            "auto" => {
+                if self.auto_mask_views == 0 {
+                    return Err(invalid("video.auto_mask_views", "must be at least 1"));
+                }
+                VideoMask::Auto { views: self.auto_mask_views }
+            }
+            path => VideoMask::File(PathBuf::from(path)),
+        };
+        if !(0.0..=1.0).contains(&self.min_sharpness) {
+            return Err(invalid("video.min_sharpness", "must be within 0..=1"));
+        }
+        if !(0.0..=1.0).contains(&self.min_motion) {
+            return Err(invalid("video.min_motion", "must be within 0..=1"));
+        }
+        if !(self.max_kept_fps.is_finite() && self.max_kept_fps >= 0.0) {
+            return Err(invalid("video.max_kept_fps", "must be 0 (no cap) or more"));
+        }
+        let queue =
+            NonZeroUsize::new(self.queue).ok_or_else(|| invalid("video.queue", "must be at least 1"))?;
+        if self.queue > 64 {
+            return Err(invalid("video.queue", "more than 64 frames waiting is a memory hazard"));
+        }
+        if self.reconnect_min_ms == 0 || self.reconnect_max_ms < self.reconnect_min_ms {
+            return Err(invalid("video.reconnect_max_ms", "need 0 < reconnect_min_ms <= reconnect_max_ms"));
+        }
+        let live = self.live.unwrap_or_else(|| is_live_input(&self.input));
+        Ok(VideoSource {
+            live,
+            realtime: self.realtime || live,
+            input: self.input,
+            session,
+            keyframe,
+            mask,
+            select: crate::imaging::sharpness::SelectParams {
+                min_sharpness: self.min_sharpness,
+                min_motion: self.min_motion,
+                max_kept_fps: self.max_kept_fps,
+                warmup_frames: self.warmup_frames,
+                ..Default::default()
+            },
+            queue,
+            reconnect_min: Duration::from_millis(self.reconnect_min_ms),
+            reconnect_max: Duration::from_millis(self.reconnect_max_ms),
+            ffmpeg: self.ffmpeg,
+            ffprobe: self.ffprobe,
         })
     }
 }
@@ -494,5 +675,35 @@ mod tests {
         let h = c.http.unwrap();
         assert_eq!(h.listen.port(), 8080);
         assert_eq!(h.token.as_deref(), Some("0123456789abcdef"));
+    }
+
+    #[test]
+    fn video_tables_become_sources() {
+        let c = parse(
+            "[[video]]\ninput = \"rtsp://cam/stream\"\nsession = \"cam1\"\nkeyframe_at_s = 2.5\n\
+             [[video]]\ninput = \"walk.mp4\"\nmask = \"walk.mask.png\"\nkeyframe_frame = 10\nmax_kept_fps = 1\n",
+        )
+        .unwrap();
+        assert_eq!(c.videos.len(), 2);
+        let (a, b) = (&c.videos[0], &c.videos[1]);
+        assert!(a.live && a.realtime, "a URL is live, and live means realtime");
+        assert_eq!(a.keyframe, VideoKeyframe::AtSeconds(2.5));
+        assert_eq!(a.mask, VideoMask::Auto { views: 2 });
+        assert!(!b.live && !b.realtime);
+        assert_eq!(b.keyframe, VideoKeyframe::AtFrame(10));
+        assert_eq!(b.mask, VideoMask::File(PathBuf::from("walk.mask.png")));
+        assert_eq!(b.select.max_kept_fps, 1.0);
+        assert!(is_live_input("/dev/video0") && !is_live_input("file:a.mp4"));
+        for (text, key) in [
+            ("[[video]]\n", "video.input"),
+            ("[[video]]\ninput = \"a\"\nkeyframe_at_s = 1\nkeyframe_frame = 1\n", "video.keyframe_at_s"),
+            ("[[video]]\ninput = \"a\"\nsession = \"../x\"\n", "video.session"),
+            ("[[video]]\ninput = \"a\"\nmin_sharpness = 2\n", "video.min_sharpness"),
+            ("[[video]]\ninput = \"a\"\nreconnect_min_ms = 0\n", "video.reconnect_max_ms"),
+            ("[[video]]\ninput = \"a\"\nframerate = 3\n", "test.toml"),
+        ] {
+            let e = parse(text).unwrap_err();
+            assert!(e.to_string().starts_with(key), "{text}: {e}");
+        }
     }
 }

@@ -339,10 +339,19 @@ impl Session {
     /// Aligns a view (its luminance) to the keyframe, starting from [`Session::prior`] and
     /// falling back to a full alignment when the prior does not lead to an accepted one.
     pub fn align(&self, gray: GrayF32) -> Result<AlignRecord, SessionError> {
+        self.align_with_prior(gray, self.prior())
+    }
+
+    /// [`Session::align`] from the caller's prior: a video chains each frame from the
+    /// previous kept frame, buffered or not.
+    pub fn align_with_prior(
+        &self,
+        gray: GrayF32,
+        prior: Option<Homography>,
+    ) -> Result<AlignRecord, SessionError> {
         let key = self.key.as_ref().ok_or(SessionError::NoKey)?;
         let size = (gray.width(), gray.height());
         let frame = Frame::new(gray, &self.params.align);
-        let prior = self.prior();
         let mut a = align(&key.frame, &frame, &self.params.align, prior.as_ref());
         if !a.accepted() && prior.is_some() {
             // `align` already retries from descriptors; only the bookkeeping differs.
@@ -432,6 +441,15 @@ impl Session {
     /// the last fill that the improvement rule let through.
     pub fn needs_fill(&self) -> bool {
         self.dirty && self.key.is_some() && self.mask.is_some()
+    }
+
+    /// Asks for a fill with the views buffered now even though none of them improved the
+    /// result by the improvement rule: more witnesses can still change the consensus (a
+    /// video refills after a few new frames, and at its end).
+    pub fn request_fill(&mut self) {
+        if self.key.is_some() && self.mask.is_some() && self.buffer.iter().any(|b| b.crop.is_some()) {
+            self.dirty = true;
+        }
     }
 
     /// Drops views beyond the buffer's capacity: least contribution first (a view not in
@@ -756,6 +774,23 @@ mod tests {
             }
             other => panic!("{other:?}"),
         }
+        assert!(s.needs_fill());
+    }
+
+    #[test]
+    fn a_fill_can_be_requested_once_views_with_pixels_are_buffered() {
+        let mut s = session_with_key();
+        s.request_fill();
+        assert!(!s.needs_fill(), "no mask yet");
+        s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+        let _ = s.fill(&mut ());
+        s.request_fill();
+        assert!(!s.needs_fill(), "no view with pixels");
+        let view = to8(&synth::facade(W, H, 9));
+        s.admit("a".into(), record(&Homography::identity()), Some(&view)).unwrap();
+        let _ = s.fill(&mut ());
+        assert!(!s.needs_fill());
+        s.request_fill();
         assert!(s.needs_fill());
     }
 

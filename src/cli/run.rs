@@ -28,6 +28,52 @@ pub struct RunArgs {
     /// port 0 picks a free one). The URL with its token is printed at start.
     #[arg(long, value_name = "ADDR")]
     pub http: Option<String>,
+    #[command(flatten)]
+    pub video: VideoArgs,
+}
+
+/// A video source from the command line (one `[[video]]` table).
+#[derive(Debug, Args)]
+pub struct VideoArgs {
+    /// Read this video as one session: a file, rtsp://, http(s):// (MJPEG, HLS) or a
+    /// device such as /dev/video0 (anything FFmpeg opens). Without --watch or --config no
+    /// folder is watched, and for a file the service exits 0 after its final result.
+    #[arg(long, value_name = "INPUT")]
+    pub video: Option<String>,
+    /// The video's mask: an image of the frame's size (white = remove) or `auto`.
+    #[arg(long, value_name = "FILE|auto", requires = "video")]
+    pub mask: Option<String>,
+    /// The keyframe is the first sharp frame at or after this time (seconds).
+    #[arg(long, value_name = "SECONDS", requires = "video", conflicts_with = "keyframe_frame")]
+    pub keyframe_at: Option<f64>,
+    /// The keyframe is the first sharp frame at or after this frame number (from 0).
+    #[arg(long, value_name = "N", requires = "video")]
+    pub keyframe_frame: Option<u64>,
+    /// The video's session name (its folder in the output).
+    #[arg(long, value_name = "NAME", requires = "video", default_value = "video")]
+    pub session: String,
+    /// Read a file at its own frame rate, dropping frames when the service is behind.
+    #[arg(long, requires = "video")]
+    pub realtime: bool,
+}
+
+impl VideoArgs {
+    /// Adds the video source to `config`; `watch` tells whether a folder is to be watched too.
+    fn apply(&self, config: &mut Config, watch: bool) -> Result<(), crate::config::ConfigError> {
+        let Some(input) = &self.video else { return Ok(()) };
+        let raw = crate::config::RawVideo {
+            input: input.clone(),
+            session: self.session.clone(),
+            keyframe_at_s: self.keyframe_at,
+            keyframe_frame: self.keyframe_frame,
+            mask: self.mask.clone().unwrap_or_else(|| "auto".into()),
+            realtime: self.realtime,
+            ..Default::default()
+        };
+        config.videos.push(raw.validate()?);
+        config.watch_enabled = watch;
+        Ok(())
+    }
 }
 
 pub fn run(args: &RunArgs) -> u8 {
@@ -49,6 +95,14 @@ pub fn run(args: &RunArgs) -> u8 {
     }
     if let Some(d) = &args.state {
         config.state_dir = d.clone();
+    } else if args.video.video.is_some() && args.config.is_none() {
+        // A one-off video run keeps its state beside its results, not in the cwd.
+        config.state_dir = config.out_dir.join(".clearview");
+    }
+    let watch = config.watch_enabled && (args.config.is_some() || args.watch.is_some());
+    if let Err(e) = args.video.apply(&mut config, watch) {
+        eprintln!("clearview run: {e}");
+        return exit::USAGE;
     }
     if let Err(e) = http_overrides(&mut config, args.http.as_deref()) {
         eprintln!("clearview run: {e}");

@@ -36,6 +36,7 @@ pub mod provenance;
 pub mod registry;
 pub mod state;
 pub mod systemd;
+pub mod video;
 pub mod watch;
 pub mod worker;
 
@@ -65,6 +66,8 @@ pub enum DaemonError {
     Thread(std::io::Error),
     #[error("{addr}: cannot listen for HTTP: {source}")]
     Http { addr: std::net::SocketAddr, source: std::io::Error },
+    #[error(transparent)]
+    Video(#[from] video::VideoError),
 }
 
 /// Files of each session that are complete on disk but not yet handled by a worker. A
@@ -110,7 +113,14 @@ pub struct Stats {
 /// Runs the service on `config` until `shutdown` completes, then stops cleanly within the
 /// grace period. Creates the folders it needs.
 pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Result<(), DaemonError> {
-    for dir in [&mut config.watch_dir, &mut config.out_dir, &mut config.state_dir] {
+    let watching = config.watch_enabled;
+    for (i, dir) in
+        [&mut config.watch_dir, &mut config.out_dir, &mut config.state_dir].into_iter().enumerate()
+    {
+        if i == 0 && !watching {
+            // Video only: no folder is watched, none is created.
+            continue;
+        }
         create_dir(dir)?;
         // Absolute from here on: notifications, scans and logs all name files the same way.
         if let Ok(abs) = std::fs::canonicalize(&*dir) {
@@ -130,6 +140,8 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
 
     let registry = Arc::new(registry::Registry::default());
     let (senders, workers) = worker::spawn(&config, &emitter, &backlog, &stats, &registry, &cancel)?;
+    // Video sources: started first so that a missing ffmpeg fails the start-up.
+    let mut videos = video::Videos::start(&config, &emitter, &stats, &registry, &cancel)?;
     if let Some(h) = &config.http {
         // The status API and preview page (issue 6).
         let token = h.token.clone().unwrap_or_else(http::generate_token);
@@ -159,6 +171,7 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
     let (hint_tx, hint_rx) = tokio::sync::mpsc::channel(watch::HINT_QUEUE);
     let overflow = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let _watcher = match config.watch_mode {
+        _ if !watching => None,
         crate::config::WatchMode::Notify => Some(
             watch::start_notify(&config.watch_dir, hint_tx.clone(), overflow.clone())
                 .map_err(|source| DaemonError::Watch { path: config.watch_dir.clone(), source })?,
@@ -186,7 +199,9 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
         stats.clone(),
         started,
     );
-    tracker.spawn(intake.run(hint_rx, overflow, cancel.clone()));
+    if watching {
+        tracker.spawn(intake.run(hint_rx, overflow, cancel.clone()));
+    }
     systemd::ready();
     tracker.spawn(systemd::supervise(stats.clone(), started, cancel.clone()));
     tracker.close();
@@ -194,14 +209,18 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
     tokio::select! {
         () = shutdown => tracing::info!("shutdown requested: finishing the step in hand"),
         () = cancel.cancelled() => {}
+        // Without a watched folder, the service ends when its videos do (files at their end).
+        () = videos.finished(), if !watching && !videos.is_empty() => tracing::info!("every video ended"),
     }
     systemd::stopping();
     cancel.cancel();
+    videos.kill_children();
     let grace = config.grace_period;
     let joined = tokio::task::spawn_blocking(move || {
         for w in workers {
             let _ = w.join();
         }
+        videos.join();
     });
     let finished = tokio::time::timeout(grace, async {
         tracker.wait().await;

@@ -93,44 +93,44 @@ pub fn spawn(
     Ok((senders, handles))
 }
 
-struct Ctx {
-    config: Arc<Config>,
-    emitter: Arc<Emitter>,
-    backlog: Arc<Backlog>,
-    stats: Arc<Stats>,
-    registry: Arc<Registry>,
+pub(super) struct Ctx {
+    pub(super) config: Arc<Config>,
+    pub(super) emitter: Arc<Emitter>,
+    pub(super) backlog: Arc<Backlog>,
+    pub(super) stats: Arc<Stats>,
+    pub(super) registry: Arc<Registry>,
 }
 
 /// A view as the result report lists it.
 #[derive(Debug, Clone)]
-struct ViewEntry {
-    id: String,
-    status: &'static str,
-    reason: Option<String>,
-    record: Option<AlignRecord>,
-    from_state: bool,
-    seq: u64,
+pub(super) struct ViewEntry {
+    pub(super) id: String,
+    pub(super) status: &'static str,
+    pub(super) reason: Option<String>,
+    pub(super) record: Option<AlignRecord>,
+    pub(super) from_state: bool,
+    pub(super) seq: u64,
 }
 
 /// Views listed in a session's report at most (the oldest go first).
-const MAX_LISTED: usize = 1000;
+pub(super) const MAX_LISTED: usize = 1000;
 
-struct Slot {
-    name: String,
-    dir: PathBuf,
-    session: Session,
-    state: SessionState,
-    key_path: Option<PathBuf>,
+pub(super) struct Slot {
+    pub(super) name: String,
+    pub(super) dir: PathBuf,
+    pub(super) session: Session,
+    pub(super) state: SessionState,
+    pub(super) key_path: Option<PathBuf>,
     /// 0: named `key`; 1: named by the configuration; 2: first to arrive.
-    key_rank: u8,
-    mask_source: Option<String>,
+    pub(super) key_rank: u8,
+    pub(super) mask_source: Option<String>,
     /// Views waiting for their keyframe, by file name.
-    parked: BTreeMap<String, PathBuf>,
+    pub(super) parked: BTreeMap<String, PathBuf>,
     /// Where each buffered view's file is (to re-read it).
-    paths: HashMap<String, PathBuf>,
-    views: BTreeMap<String, ViewEntry>,
-    seq: u64,
-    state_dirty: bool,
+    pub(super) paths: HashMap<String, PathBuf>,
+    pub(super) views: BTreeMap<String, ViewEntry>,
+    pub(super) seq: u64,
+    pub(super) state_dirty: bool,
     /// For the status API: the latest result's report, provenance legend, the masked
     /// pixels each view filled in it, the history's numbers, and since when a view has
     /// been waiting for the result it may lead to.
@@ -139,6 +139,33 @@ struct Slot {
     filled_by: HashMap<String, usize>,
     history: Vec<u64>,
     pending_since: Option<Instant>,
+}
+
+impl Slot {
+    /// A new slot for session `name` whose files are in `dir`, with its saved state.
+    pub(super) fn new(ctx: &Ctx, name: &str, dir: PathBuf) -> Self {
+        Slot {
+            name: name.to_owned(),
+            dir,
+            session: Session::new(ctx.config.session.clone()),
+            state: state::load(&ctx.config.state_dir, name),
+            key_path: None,
+            key_rank: u8::MAX,
+            mask_source: None,
+            parked: BTreeMap::new(),
+            paths: HashMap::new(),
+            views: BTreeMap::new(),
+            seq: 0,
+            state_dirty: false,
+            last_report: std::fs::read(ctx.emitter.session_dir(name).join("result.json"))
+                .ok()
+                .and_then(|b| serde_json::from_slice(&b).ok()),
+            legend: Vec::new(),
+            filled_by: HashMap::new(),
+            history: saved_history(&ctx.emitter.session_dir(name).join("history")),
+            pending_since: None,
+        }
+    }
 }
 
 struct Worker {
@@ -190,27 +217,7 @@ impl Worker {
             } else {
                 ctx.config.watch_dir.join(name)
             };
-            Slot {
-                name: name.to_owned(),
-                dir,
-                session: Session::new(ctx.config.session.clone()),
-                state: state::load(&ctx.config.state_dir, name),
-                key_path: None,
-                key_rank: u8::MAX,
-                mask_source: None,
-                parked: BTreeMap::new(),
-                paths: HashMap::new(),
-                views: BTreeMap::new(),
-                seq: 0,
-                state_dirty: false,
-                last_report: std::fs::read(ctx.emitter.session_dir(name).join("result.json"))
-                    .ok()
-                    .and_then(|b| serde_json::from_slice(&b).ok()),
-                legend: Vec::new(),
-                filled_by: HashMap::new(),
-                history: saved_history(&ctx.emitter.session_dir(name).join("history")),
-                pending_since: None,
-            }
+            Slot::new(ctx, name, dir)
         })
     }
 
@@ -635,7 +642,7 @@ impl Observer for Timings {
 }
 
 /// Fills and writes a better result; returns its number when one was written.
-fn fill(ctx: &Ctx, slot: &mut Slot) -> Option<u64> {
+pub(super) fn fill(ctx: &Ctx, slot: &mut Slot) -> Option<u64> {
     let digest = slot.session.inputs_digest();
     if slot.session.best_score().is_none()
         && let Some(saved) = &slot.state.result

@@ -11,6 +11,7 @@ pub mod filter;
 pub mod metrics;
 pub mod photometric;
 pub mod pyramid;
+pub mod sharpness;
 pub mod warp;
 
 use std::fmt;

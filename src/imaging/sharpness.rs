@@ -1,0 +1,296 @@
+//! Frame selection for video input: sharpness (variance of the Laplacian) against a
+//! running level, motion since the last kept frame, and a cap on the kept rate (pure
+//! layer: the caller passes each frame's time; no clock here).
+//!
+//! A 30 fps stream offers far more frames than alignment and fill can take, and most of
+//! them add nothing: neighbours see the same thing, and a frame shot while the camera
+//! shook is blurred. [`FrameSelector::offer`] keeps a frame only when
+//! 1. it is sharp: its Laplacian variance is at least [`SelectParams::min_sharpness`]
+//!    times the running level (a maximum that decays with half-life
+//!    [`SelectParams::level_half_life_s`], so a change of scene lowers it in seconds);
+//! 2. it moved: the mean absolute difference of its thumbnail from the last kept frame's
+//!    is at least [`SelectParams::min_motion`];
+//! 3. it is at least `1 / max_kept_fps` seconds after the last kept frame.
+//!
+//! The first [`SelectParams::warmup_frames`] frames only set the level (nothing is kept
+//! before the selector knows what sharp looks like in this stream).
+
+use super::GrayF32;
+
+/// Parameters of the frame selection.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SelectParams {
+    /// A frame is blurred when its Laplacian variance is below this share of the running
+    /// level (0: keep every frame, however blurred).
+    pub min_sharpness: f32,
+    /// Half-life of the running level, in seconds of stream time.
+    pub level_half_life_s: f32,
+    /// Mean absolute difference (0..=1 grey levels) of the frame's thumbnail from the last
+    /// kept frame's below which the frame adds nothing (0: no motion test).
+    pub min_motion: f32,
+    /// Frames kept per second of stream time at most (0: no cap).
+    pub max_kept_fps: f32,
+    /// Frames that only set the running level before any is kept.
+    pub warmup_frames: usize,
+    /// Width of the motion thumbnail, in pixels.
+    pub thumb_width: usize,
+}
+
+impl Default for SelectParams {
+    fn default() -> Self {
+        Self {
+            min_sharpness: 0.5,
+            level_half_life_s: 2.0,
+            min_motion: 0.02,
+            max_kept_fps: 2.0,
+            warmup_frames: 5,
+            thumb_width: 64,
+        }
+    }
+}
+
+/// What the selector made of a frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verdict {
+    Keep,
+    /// Still setting the running level.
+    Warmup,
+    /// Below the running sharpness level.
+    Blurred,
+    /// Too close to the last kept frame.
+    Still,
+    /// Too soon after the last kept frame.
+    RateCapped,
+}
+
+impl Verdict {
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Keep => "kept",
+            Self::Warmup => "warmup",
+            Self::Blurred => "blurred",
+            Self::Still => "still",
+            Self::RateCapped => "rate_capped",
+        }
+    }
+}
+
+/// The measures of one frame: its sharpness and motion thumbnail.
+#[derive(Debug, Clone)]
+pub struct FrameMeasure {
+    pub sharpness: f32,
+    pub thumb: GrayF32,
+}
+
+impl FrameMeasure {
+    /// Measures an RGB24 frame (`width * height * 3` bytes), on a grey copy box-averaged
+    /// down to at most about 640 pixels wide (sharpness) and `thumb_width` (motion).
+    pub fn of_rgb24(bytes: &[u8], width: usize, height: usize, thumb_width: usize) -> Self {
+        let factor = width.div_ceil(640).max(1);
+        let gray = gray_reduced(bytes, width, height, factor);
+        let sharpness = laplacian_variance(&gray);
+        let t = (gray.width() / thumb_width.max(8)).max(1);
+        let thumb = box_reduce(&gray, t);
+        Self { sharpness, thumb }
+    }
+}
+
+/// Grey (Rec. 601 weights, 0..=1) of an RGB24 buffer, box-averaged by `factor`.
+pub fn gray_reduced(bytes: &[u8], width: usize, height: usize, factor: usize) -> GrayF32 {
+    assert_eq!(bytes.len(), width * height * 3, "an RGB24 frame of {width}x{height}");
+    let f = factor.max(1);
+    let (w, h) = ((width / f).max(1), (height / f).max(1));
+    let norm = 1.0 / (255.0 * (f * f) as f32);
+    let mut out = GrayF32::new(w, h, 0.0);
+    for y in 0..h {
+        let row = out.row_mut(y);
+        for sy in y * f..((y + 1) * f).min(height) {
+            let src = &bytes[sy * width * 3..(sy + 1) * width * 3];
+            for (x, o) in row.iter_mut().enumerate() {
+                let mut acc = 0.0;
+                for sx in x * f..((x + 1) * f).min(width) {
+                    let p = &src[sx * 3..sx * 3 + 3];
+                    acc += 0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32;
+                }
+                *o += acc * norm;
+            }
+        }
+    }
+    out
+}
+
+/// Box average by `factor` of a grey image.
+pub fn box_reduce(src: &GrayF32, factor: usize) -> GrayF32 {
+    let f = factor.max(1);
+    let (w, h) = ((src.width() / f).max(1), (src.height() / f).max(1));
+    GrayF32::from_fn(w, h, |x, y| {
+        let mut acc = 0.0;
+        let mut n = 0.0;
+        for sy in y * f..((y + 1) * f).min(src.height()) {
+            for sx in x * f..((x + 1) * f).min(src.width()) {
+                acc += src.get(sx, sy);
+                n += 1.0;
+            }
+        }
+        acc / n
+    })
+}
+
+/// Variance of the 4-neighbour Laplacian over the interior of `img`: high for a sharp
+/// image, low for a blurred one of the same scene.
+pub fn laplacian_variance(img: &GrayF32) -> f32 {
+    let (w, h) = (img.width(), img.height());
+    if w < 3 || h < 3 {
+        return 0.0;
+    }
+    let (mut sum, mut sum2) = (0.0f64, 0.0f64);
+    for y in 1..h - 1 {
+        let (up, row, down) = (img.row(y - 1), img.row(y), img.row(y + 1));
+        for x in 1..w - 1 {
+            let l = (up[x] + down[x] + row[x - 1] + row[x + 1] - 4.0 * row[x]) as f64;
+            sum += l;
+            sum2 += l * l;
+        }
+    }
+    let n = ((w - 2) * (h - 2)) as f64;
+    let mean = sum / n;
+    (sum2 / n - mean * mean).max(0.0) as f32
+}
+
+/// Mean absolute difference of two thumbnails (1 when their sizes differ).
+pub fn motion(a: &GrayF32, b: &GrayF32) -> f32 {
+    if (a.width(), a.height()) != (b.width(), b.height()) || a.is_empty() {
+        return 1.0;
+    }
+    let s: f32 = a.as_slice().iter().zip(b.as_slice()).map(|(p, q)| (p - q).abs()).sum();
+    s / a.len() as f32
+}
+
+/// The selection state of one stream.
+#[derive(Debug, Clone)]
+pub struct FrameSelector {
+    params: SelectParams,
+    seen: usize,
+    level: f32,
+    level_t: f64,
+    last_kept: Option<(f64, GrayF32)>,
+}
+
+impl FrameSelector {
+    pub fn new(params: SelectParams) -> Self {
+        Self { params, seen: 0, level: 0.0, level_t: 0.0, last_kept: None }
+    }
+
+    pub fn params(&self) -> &SelectParams {
+        &self.params
+    }
+
+    /// The running sharpness level.
+    pub fn level(&self) -> f32 {
+        self.level
+    }
+
+    /// Judges the frame at stream time `t` (seconds, non-decreasing) and, when kept,
+    /// remembers it as the last kept frame. `force_keep` keeps a sharp frame whatever its
+    /// motion and time (the keyframe).
+    pub fn offer(&mut self, t: f64, m: &FrameMeasure, force_keep: bool) -> Verdict {
+        let p = &self.params;
+        let dt = (t - self.level_t).max(0.0);
+        let decay =
+            if p.level_half_life_s > 0.0 { 0.5f64.powf(dt / p.level_half_life_s as f64) } else { 0.0 };
+        self.level = (self.level * decay as f32).max(m.sharpness);
+        self.level_t = t;
+        self.seen += 1;
+        if self.seen <= p.warmup_frames {
+            return Verdict::Warmup;
+        }
+        if m.sharpness < p.min_sharpness * self.level {
+            return Verdict::Blurred;
+        }
+        if !force_keep && let Some((last_t, last)) = &self.last_kept {
+            if p.max_kept_fps > 0.0 && t - last_t < 1.0 / p.max_kept_fps as f64 {
+                return Verdict::RateCapped;
+            }
+            if motion(&m.thumb, last) < p.min_motion {
+                return Verdict::Still;
+            }
+        }
+        self.last_kept = Some((t, m.thumb.clone()));
+        Verdict::Keep
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::imaging::filter::gaussian_blur;
+
+    /// A checkerboard-ish texture shifted by `dx`, as RGB24.
+    fn texture(w: usize, h: usize, dx: usize) -> GrayF32 {
+        GrayF32::from_fn(w, h, |x, y| {
+            let (u, v) = (x + dx, y);
+            if ((u / 5) + (v / 7)) % 2 == 0 { 0.8 } else { 0.2 + ((u * 13 + v * 7) % 11) as f32 * 0.02 }
+        })
+    }
+
+    fn rgb24(g: &GrayF32) -> Vec<u8> {
+        g.as_slice().iter().flat_map(|v| [(v * 255.0).round() as u8; 3]).collect()
+    }
+
+    fn measure(g: &GrayF32) -> FrameMeasure {
+        FrameMeasure::of_rgb24(&rgb24(g), g.width(), g.height(), 16)
+    }
+
+    #[test]
+    fn blur_lowers_the_laplacian_variance() {
+        let sharp = texture(80, 60, 0);
+        let blurred = gaussian_blur(&sharp, 2.0);
+        let (s, b) = (laplacian_variance(&sharp), laplacian_variance(&blurred));
+        assert!(b < 0.2 * s, "sharp {s}, blurred {b}");
+        assert_eq!(laplacian_variance(&GrayF32::new(10, 10, 0.5)), 0.0);
+    }
+
+    #[test]
+    fn grey_of_rgb24_averages_boxes() {
+        let bytes = [255u8, 255, 255, 0, 0, 0, 255, 255, 255, 0, 0, 0];
+        let g = gray_reduced(&bytes, 2, 2, 2);
+        assert_eq!((g.width(), g.height()), (1, 1));
+        assert!((g.get(0, 0) - 0.5).abs() < 1e-3);
+        let g = gray_reduced(&bytes, 2, 2, 1);
+        assert!((g.get(0, 0) - 1.0).abs() < 1e-3 && g.get(1, 0).abs() < 1e-3);
+    }
+
+    #[test]
+    fn selector_skips_blurred_still_and_too_frequent_frames() {
+        let params =
+            SelectParams { warmup_frames: 2, max_kept_fps: 5.0, min_motion: 0.02, ..Default::default() };
+        let mut s = FrameSelector::new(params);
+        let f = |dx| measure(&texture(80, 60, dx));
+        assert_eq!(s.offer(0.0, &f(0), false), Verdict::Warmup);
+        assert_eq!(s.offer(0.1, &f(1), false), Verdict::Warmup);
+        assert_eq!(s.offer(0.2, &f(2), false), Verdict::Keep);
+        // Blurred: same place, far less detail.
+        let blurred = measure(&gaussian_blur(&texture(80, 60, 9), 2.5));
+        assert_eq!(s.offer(0.5, &blurred, false), Verdict::Blurred);
+        // Too soon (5 fps cap: 0.2 s), then the same picture (no motion), then moved.
+        assert_eq!(s.offer(0.3, &f(9), false), Verdict::RateCapped);
+        assert_eq!(s.offer(0.6, &f(2), false), Verdict::Still);
+        assert_eq!(s.offer(0.7, &f(9), false), Verdict::Keep);
+        // The keyframe is kept whatever its motion, but never blurred.
+        assert_eq!(s.offer(0.75, &f(9), true), Verdict::Keep);
+        assert_eq!(s.offer(0.8, &blurred, true), Verdict::Blurred);
+    }
+
+    #[test]
+    fn the_level_decays_so_a_duller_scene_is_kept_again() {
+        let params =
+            SelectParams { warmup_frames: 0, max_kept_fps: 0.0, min_motion: 0.0, ..Default::default() };
+        let mut s = FrameSelector::new(params);
+        let sharp = measure(&texture(80, 60, 0));
+        let dull = measure(&gaussian_blur(&texture(80, 60, 0), 1.5));
+        assert_eq!(s.offer(0.0, &sharp, false), Verdict::Keep);
+        assert_eq!(s.offer(0.1, &dull, false), Verdict::Blurred);
+        // After many half-lives of only dull frames, dull is the scene's normal.
+        assert_eq!(s.offer(30.0, &dull, false), Verdict::Keep);
+    }
+}
