@@ -121,8 +121,26 @@ fn router(shared: Arc<Shared>, max_body: usize) -> Router {
         .route("/api/sessions/{id}/provenance.json", get(api::legend))
         .route("/api/sessions/{id}/views/{file}/thumb", get(api::thumb))
         .layer(axum::middleware::from_fn_with_state(shared.clone(), guard))
+        .layer(axum::middleware::from_fn(move |req: Request, next: Next| {
+            declared_length_limit(max_body, req, next)
+        }))
         .layer(DefaultBodyLimit::max(max_body))
         .with_state(shared)
+}
+
+/// Refuses a body whose declared length is over the limit at once, without reading it
+/// (`DefaultBodyLimit` still stops a body that declares nothing, or lies, at the limit).
+async fn declared_length_limit(max_body: usize, req: Request, next: Next) -> Response {
+    let declared = req
+        .headers()
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.trim().parse::<u64>().ok());
+    if declared.is_some_and(|n| n > max_body as u64) {
+        return (StatusCode::PAYLOAD_TOO_LARGE, format!("request bodies are limited to {max_body} bytes\n"))
+            .into_response();
+    }
+    next.run(req).await
 }
 
 async fn healthz(State(s): AppState) -> Response {
