@@ -37,11 +37,21 @@ fn scene() -> Scene {
         (3000.0, 2500.0),
         (500.0, 800.0),
     ];
+    // Trees until 15 % of the frame is masked, the last one shrunk until it does not
+    // overshoot by more than half a percent.
+    let (target, slack) = (W * H * 15 / 100, W * H / 200);
     for (k, &(cx, cy)) in spots.iter().enumerate() {
-        if mask.hole_count() >= W * H * 15 / 100 {
+        if mask.hole_count() + slack >= target {
             break;
         }
-        synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Tree, cx, cy, 1100.0, k as u64);
+        for size in [1100.0, 900.0, 700.0, 550.0, 400.0, 300.0, 200.0] {
+            let (mut k2, mut m2) = (key.clone(), mask.clone());
+            synth::paint_occluder(&mut k2, Some(&mut m2), Occluder::Tree, cx, cy, size, k as u64);
+            if m2.hole_count() <= target + slack || size <= 200.0 {
+                (key, mask) = (k2, m2);
+                break;
+            }
+        }
     }
     let mut rng = ChaCha8Rng::seed_from_u64(7);
     let mut views = Vec::new();
