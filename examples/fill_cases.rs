@@ -2,6 +2,7 @@
 //! occluders, its mask, the occluder-free truth and the other views.
 //!
 //! `cargo run --release --example fill_cases -- OUT_DIR [SHARED_DATA_DIR]`
+//! `cargo run --release --example fill_cases -- --large OUT_DIR` (the 12 MP command case)
 //!
 //! Synthetic cases are rendered; the Oxford cases (graf, wall, leuven) paste occluders
 //! into the real img1, whose clean original is then the truth.
@@ -75,8 +76,72 @@ fn oxford(out: &Path, data: &Path, seq: &str, views: &[usize], occluders: &[(Occ
     save_case(&out.join(format!("oxford-{seq}")), &key, &mask, &truth, &views);
 }
 
+/// The 12 MP case of the command target: a 4000×3000 keyframe with trees over
+/// 15 % of it and 6 views, written as JPEG (quality 92) as a camera would.
+fn large(out: &Path) {
+    let (w, h) = (4000, 3000);
+    let facade = synth::facade(w * 5 / 4, h * 5 / 4, 40);
+    let centre = Homography::translation(w as f64 / 8.0, h as f64 / 8.0);
+    let truth = synth::render_view(&facade, &centre, w, h, [0.5; 3]);
+    let mut key = truth.clone();
+    let mut mask = Mask::new(w, h, 0);
+    let target = w * h * 15 / 100;
+    for (k, &(cx, cy)) in
+        [(900.0, 1900.0), (2300.0, 2100.0), (3400.0, 1200.0), (1700.0, 900.0)].iter().enumerate()
+    {
+        if mask.hole_count() + w * h / 200 >= target {
+            break;
+        }
+        for size in [1100.0, 900.0, 700.0, 550.0, 400.0, 300.0] {
+            let (mut k2, mut m2) = (key.clone(), mask.clone());
+            synth::paint_occluder(&mut k2, Some(&mut m2), Occluder::Tree, cx, cy, size, k as u64);
+            if m2.hole_count() <= target + w * h / 200 || size <= 300.0 {
+                (key, mask) = (k2, m2);
+                break;
+            }
+        }
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(41);
+    let dir = out.join("large-12mp");
+    std::fs::create_dir_all(&dir).unwrap();
+    let jpeg = |img: &RgbF32, name: &str| {
+        let f = std::fs::File::create(dir.join(name)).unwrap();
+        let mut enc = image::codecs::jpeg::JpegEncoder::new_with_quality(std::io::BufWriter::new(f), 92);
+        enc.encode_image(&to_rgb8(img)).unwrap();
+    };
+    jpeg(&key, "key.jpg");
+    mask_to_luma8(&mask).save(dir.join("mask.png")).unwrap();
+    for i in 0..6 {
+        let hv = synth::random_homography(&mut rng, w, h, 0.05, 0.1, (0.95, 1.05));
+        let mut v = synth::render_view(&facade, &centre.after(&hv.inverse().unwrap()), w, h, [0.5; 3]);
+        synth::paint_occluder(
+            &mut v,
+            None,
+            Occluder::Person,
+            600.0 + 500.0 * i as f32,
+            1800.0,
+            900.0,
+            100 + i as u64,
+        );
+        jpeg(&v, &format!("view-{}.jpg", i + 1));
+    }
+    println!(
+        "{}: 4000x3000, {:.1} % masked, 6 views",
+        dir.display(),
+        100.0 * mask.hole_count() as f64 / (w * h) as f64
+    );
+}
+
 fn main() {
     let args: Vec<PathBuf> = std::env::args_os().skip(1).map(PathBuf::from).collect();
+    if args.first().is_some_and(|a| a == "--large") {
+        let Some(out) = args.get(1) else {
+            eprintln!("usage: fill_cases --large OUT_DIR");
+            std::process::exit(64);
+        };
+        large(out);
+        return;
+    }
     let Some(out) = args.first() else {
         eprintln!("usage: fill_cases OUT_DIR [SHARED_DATA_DIR]");
         std::process::exit(64);
