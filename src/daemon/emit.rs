@@ -24,31 +24,12 @@ static TMP_COUNTER: AtomicU64 = AtomicU64::new(0);
 /// Writes `bytes` to `path` so that a reader sees the old file or the new one, never a
 /// part: a temporary name in the same folder, fsync, rename, fsync of the folder.
 pub fn atomic_write(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let dir = path.parent().unwrap_or(Path::new("."));
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
-    let n = TMP_COUNTER.fetch_add(1, Ordering::Relaxed);
-    let tmp = dir.join(format!(".{name}{TMP_MARK}{}-{n}", std::process::id()));
-    let result = (|| {
-        let mut f = File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        drop(f);
-        std::fs::rename(&tmp, path)?;
-        if let Ok(d) = File::open(dir) {
-            let _ = d.sync_all();
-        }
-        Ok(())
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+    atomic_write_linked(path, bytes, None)
 }
 
 /// [`atomic_write`] that also gives the new file a second name `also` (atomically too: a
 /// hard link to the fsynced temporary, falling back to a copy where links are refused).
 pub fn atomic_write_linked(path: &Path, bytes: &[u8], also: Option<&Path>) -> std::io::Result<()> {
-    let Some(also) = also else { return atomic_write(path, bytes) };
     let dir = path.parent().unwrap_or(Path::new("."));
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
     let n = TMP_COUNTER.fetch_add(1, Ordering::Relaxed);
@@ -58,12 +39,14 @@ pub fn atomic_write_linked(path: &Path, bytes: &[u8], also: Option<&Path>) -> st
         f.write_all(bytes)?;
         f.sync_all()?;
         drop(f);
-        let _ = std::fs::remove_file(also);
-        if std::fs::hard_link(&tmp, also).is_err() {
-            atomic_write(also, bytes)?;
+        if let Some(also) = also {
+            let _ = std::fs::remove_file(also);
+            if std::fs::hard_link(&tmp, also).is_err() {
+                atomic_write(also, bytes)?;
+            }
         }
         std::fs::rename(&tmp, path)?;
-        for d in [Some(dir), also.parent()].into_iter().flatten() {
+        for d in [Some(dir), also.and_then(Path::parent)].into_iter().flatten() {
             if let Ok(d) = File::open(d) {
                 let _ = d.sync_all();
             }
