@@ -131,11 +131,12 @@ pub struct RawCompute {
     pub queue: usize,
     pub decoders: usize,
     pub grace_period_ms: u64,
+    pub resident_sessions: usize,
 }
 
 impl Default for RawCompute {
     fn default() -> Self {
-        Self { workers: 0, queue: 4, decoders: 2, grace_period_ms: 20_000 }
+        Self { workers: 0, queue: 4, decoders: 2, grace_period_ms: 20_000, resident_sessions: 4 }
     }
 }
 
@@ -265,6 +266,9 @@ pub struct Config {
     pub http: Option<HttpConfig>,
     /// Video stream sources, each one session.
     pub videos: Vec<VideoSource>,
+    /// Sessions each worker keeps in memory; the least recently used idle one beyond this
+    /// is put to sleep (saved state, no pixels) and rebuilt from disk when a file arrives.
+    pub resident_sessions: NonZeroUsize,
 }
 
 impl Default for Config {
@@ -426,6 +430,8 @@ impl RawConfig {
             queue,
             decoders,
             grace_period: Duration::from_millis(c.grace_period_ms),
+            resident_sessions: NonZeroUsize::new(c.resident_sessions)
+                .ok_or_else(|| invalid("compute.resident_sessions", "must be at least 1"))?,
             http,
             videos,
         })

@@ -551,3 +551,38 @@ fn with_an_automatic_mask_the_occluder_is_found_and_removed() {
     assert!(e_result < 0.5 * e_key, "the tree is still there: {e_key} -> {e_result}");
     assert_eq!(service.terminate(), 0);
 }
+
+#[test]
+fn idle_sessions_sleep_beyond_the_memory_budget_and_wake_without_realigning() {
+    let f = folders("workers = 1\nresident_sessions = 1\n");
+    let mut a = Scene::new(81);
+    let mut b = Scene::new(82);
+    let service = Service::start(&f, 1);
+    put_key_and_mask(&f.inbox.join("a"), &a);
+    put(&f.inbox.join("a/v1.png"), &png_bytes(&a.view(1, 100.0, 60.0)));
+    wait_for(&f, "a's first view in a result", 30, |e| {
+        of_kind(e, "result_updated").iter().any(|r| r["session"] == "a" && r["views"] == 1)
+    });
+    put_key_and_mask(&f.inbox.join("b"), &b);
+    put(&f.inbox.join("b/v1.png"), &png_bytes(&b.view(1, 100.0, 60.0)));
+    let ev = wait_for(&f, "b's first view in a result", 30, |e| {
+        of_kind(e, "result_updated").iter().any(|r| r["session"] == "b" && r["views"] == 1)
+    });
+    let seen = ev.len();
+    put(&f.inbox.join("a/v2.png"), &png_bytes(&a.view(2, 300.0, 60.0)));
+    let ev = wait_for(&f, "a's second view in a result", 30, |e| {
+        of_kind(e, "result_updated").iter().any(|r| r["session"] == "a" && r["views"] == 2)
+    });
+    let a_after: Vec<&Value> = ev[seen..].iter().filter(|e| e["session"] == "a").collect();
+    let v1: Vec<&&Value> =
+        a_after.iter().filter(|e| e["event"] == "view_accepted" && e["file"] == "v1.png").collect();
+    assert_eq!(v1.len(), 1, "a was rebuilt from disk: {a_after:#?}");
+    assert_eq!(v1[0]["from_state"], true, "v1 was realigned");
+    let numbers: Vec<u64> = of_kind(&ev, "result_updated")
+        .iter()
+        .filter(|r| r["session"] == "a")
+        .map(|r| r["number"].as_u64().unwrap())
+        .collect();
+    assert!(numbers.windows(2).all(|w| w[1] == w[0] + 1), "a's numbering restarted: {numbers:?}");
+    assert_eq!(service.terminate(), 0);
+}

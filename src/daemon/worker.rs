@@ -85,7 +85,15 @@ pub fn spawn(
         let cancel = cancel.clone();
         let handle = std::thread::Builder::new()
             .name(format!("clearview-worker-{i}"))
-            .spawn(move || Worker { ctx, sessions: HashMap::new() }.run(&rx, &cancel))
+            .spawn(move || {
+                let w = Worker {
+                    ctx,
+                    sessions: HashMap::new(),
+                    asleep: Default::default(),
+                    used: HashMap::new(),
+                };
+                w.run(&rx, &cancel)
+            })
             .map_err(DaemonError::Thread)?;
         senders.push(tx);
         handles.push(handle);
@@ -171,6 +179,10 @@ impl Slot {
 struct Worker {
     ctx: Ctx,
     sessions: HashMap<String, Slot>,
+    /// Sessions put to sleep (rebuilt from disk when a file arrives).
+    asleep: std::collections::HashSet<String>,
+    /// When each resident session last had a job.
+    used: HashMap<String, Instant>,
 }
 
 impl Worker {
@@ -184,9 +196,14 @@ impl Worker {
                         break;
                     }
                     let session = job.session.clone();
+                    if self.asleep.remove(&session) {
+                        self.wake(&session);
+                    }
+                    self.used.insert(session.clone(), Instant::now());
                     self.handle(job);
                     self.ctx.backlog.done(&session);
                     self.maybe_fill(&session);
+                    self.sleep_beyond_capacity();
                 }
                 Err(RecvTimeoutError::Timeout) => {
                     if cancel.is_cancelled() {
@@ -210,6 +227,61 @@ impl Worker {
         }
     }
 
+    /// Puts the least recently used idle sessions to sleep while more than
+    /// `resident_sessions` are in memory: state saved, everything else dropped.
+    fn sleep_beyond_capacity(&mut self) {
+        while self.sessions.len() > self.ctx.config.resident_sessions.get() {
+            let idle = self
+                .sessions
+                .iter()
+                .filter(|(name, s)| {
+                    !s.session.needs_fill() && self.ctx.backlog.get(name) == 0 && s.parked.is_empty()
+                })
+                .min_by_key(|(name, _)| self.used.get(*name).copied())
+                .map(|(name, _)| name.clone());
+            let Some(name) = idle else { return };
+            let slot = self.sessions.remove(&name).expect("chosen from the map");
+            self.used.remove(&name);
+            state::save(&self.ctx.config.state_dir, &name, &slot.state);
+            tracing::info!(session = %name, "session put to sleep (memory): it is rebuilt when a file arrives");
+            self.asleep.insert(name);
+        }
+    }
+
+    /// Rebuilds a sleeping session from disk: its keyframe, mask and the views whose
+    /// alignments are saved (none is realigned); an unchanged result is not rewritten.
+    fn wake(&mut self, name: &str) {
+        let Self { ctx, sessions, .. } = self;
+        let slot = Self::slot(ctx, sessions, name);
+        let span = tracing::info_span!("session", session = %name);
+        let _enter = span.enter();
+        let Some(key_name) = slot.state.key_file.clone() else { return };
+        let key_path = slot.dir.join(&key_name);
+        let Ok(file) = FileId::of(&key_path) else { return };
+        let Ok(img) = read_and_decode(&key_path, Role::View, file.size, file.mtime, &limits(ctx)) else {
+            return;
+        };
+        let key_id = file.id();
+        for path in watch::scan(&slot.dir) {
+            let Some(c) = watch::classify(&ctx.config.watch_dir, &path, &ctx.config.extensions) else {
+                continue;
+            };
+            let saved = FileId::of(&path).is_ok_and(|f| slot.state.alignment(&f.id(), &key_id).is_some());
+            if c.role == Role::View && path != key_path && saved {
+                let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
+                slot.parked.insert(name, path);
+            }
+        }
+        let rank = match (&ctx.config.keyframe, watch::stem(&key_name)) {
+            (_, "key") => 0,
+            (KeyframeRule::Named(n), s) if n == s => 1,
+            _ => 2,
+        };
+        tracing::info!(views = slot.parked.len(), "waking the session up");
+        take_key(ctx, slot, &file, &key_path, &img, rank);
+        fill(ctx, slot);
+    }
+
     fn slot<'a>(ctx: &Ctx, sessions: &'a mut HashMap<String, Slot>, name: &str) -> &'a mut Slot {
         sessions.entry(name.to_owned()).or_insert_with(|| {
             let dir = if name == watch::ROOT_SESSION {
@@ -225,7 +297,7 @@ impl Worker {
         let span = tracing::info_span!("session", session = %job.session);
         let _enter = span.enter();
         let Job { session, path, role, file, image } = job;
-        let Self { ctx, sessions } = self;
+        let Self { ctx, sessions, .. } = self;
         let slot = Self::slot(ctx, sessions, &session);
         if role == Role::View {
             ctx.registry.metrics.views_received.fetch_add(1, Ordering::Relaxed);
