@@ -61,11 +61,9 @@ pub struct Intake {
 
 /// The worker that owns `session` (stable for the life of the process).
 pub fn worker_for(session: &str, workers: usize) -> usize {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for b in session.bytes() {
-        h = (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
-    }
-    (h % workers as u64) as usize
+    let mut h = crate::session::Fnv::new();
+    h.write(session.as_bytes());
+    (h.finish() % workers as u64) as usize
 }
 
 impl Intake {

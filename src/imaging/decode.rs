@@ -122,9 +122,13 @@ mod tests {
         }
     }
 
+    fn encode_with_exif(mut enc: impl image::ImageEncoder, img: &RgbImage, orientation: u16) {
+        enc.set_exif_metadata(exif_orientation(orientation)).unwrap();
+        enc.write_image(img.as_raw(), img.width(), img.height(), image::ExtendedColorType::Rgb8).unwrap();
+    }
+
     #[test]
     fn every_exif_orientation_comes_out_upright() {
-        use image::ImageEncoder;
         use image::codecs::jpeg::JpegEncoder;
         use image::codecs::png::PngEncoder;
         // Flat 16-pixel blocks, so JPEG's loss cannot confuse one block with another.
@@ -135,28 +139,8 @@ mod tests {
             for format in ["png", "jpeg"] {
                 let mut bytes = Vec::new();
                 match format {
-                    "png" => {
-                        let mut enc = PngEncoder::new(&mut bytes);
-                        enc.set_exif_metadata(exif_orientation(o)).unwrap();
-                        enc.write_image(
-                            stored.as_raw(),
-                            stored.width(),
-                            stored.height(),
-                            image::ExtendedColorType::Rgb8,
-                        )
-                        .unwrap();
-                    }
-                    _ => {
-                        let mut enc = JpegEncoder::new_with_quality(&mut bytes, 95);
-                        enc.set_exif_metadata(exif_orientation(o)).unwrap();
-                        enc.write_image(
-                            stored.as_raw(),
-                            stored.width(),
-                            stored.height(),
-                            image::ExtendedColorType::Rgb8,
-                        )
-                        .unwrap();
-                    }
+                    "png" => encode_with_exif(PngEncoder::new(&mut bytes), &stored, o),
+                    _ => encode_with_exif(JpegEncoder::new_with_quality(&mut bytes, 95), &stored, o),
                 }
                 let img = decode(&bytes, &DecodeLimits::default()).unwrap().to_rgb8();
                 let turned = o >= 5;
