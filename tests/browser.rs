@@ -4,13 +4,13 @@
 //! chromedriver's W3C WebDriver protocol (plain JSON over HTTP on the loopback). Skips,
 //! saying why, only when `chromium` or `chromedriver` is absent.
 
-mod http_common;
+mod daemon_common;
 
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use http_common::*;
+use daemon_common::*;
 use serde_json::{Value, json};
 
 fn find(names: &[&str]) -> Option<PathBuf> {
@@ -180,12 +180,12 @@ fn paint_a_mask_on_the_page_and_see_the_new_result_arrive() {
         return;
     };
     let f = folders("");
-    let s = Service::start(&f, "127.0.0.1:0", &[]);
+    let s = Service::start_http(&f, "127.0.0.1:0", &[]);
     let mut scene = Scene::new(8);
     let dir = f.inbox.join("facade");
     put(&dir.join("key.png"), &png(&scene.key));
     for i in 1..=3 {
-        put(&dir.join(format!("v{i}.png")), &png(&scene.view(i)));
+        put(&dir.join(format!("v{i}.png")), &png(&scene.clear_view(i)));
     }
     wait_session(&s, "facade", "three accepted views", 60, |v| {
         v["views"].as_array().is_some_and(|a| a.iter().filter(|w| w["accepted"] == true).count() == 3)
@@ -216,8 +216,8 @@ fn paint_a_mask_on_the_page_and_see_the_new_result_arrive() {
     let rect: Vec<f64> = rect.as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
     let to_view = |x: f64, y: f64| (rect[0] + x * rect[2] / W as f64, rect[1] + y * rect[3] / H as f64);
     for row in 0..6 {
-        let y = 45.0 + 30.0 * f64::from(row);
-        b.drag(&[to_view(105.0, y), to_view(160.0, y), to_view(215.0, y)]);
+        let y = 56.0 + 37.5 * f64::from(row);
+        b.drag(&[to_view(131.0, y), to_view(200.0, y), to_view(269.0, y)]);
     }
     let painted = b.js(
         "const c = document.getElementById('paint'); const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; \

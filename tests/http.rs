@@ -3,14 +3,14 @@
 //! (checked by a strict parser below), server-sent events, and the two changes a user
 //! can make (paint the mask, choose the keyframe) without losing any file of theirs.
 
-mod http_common;
+mod daemon_common;
 
 use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use http_common::*;
+use daemon_common::*;
 
 #[test]
 fn a_non_local_bind_without_a_token_is_refused_with_64() {
@@ -40,7 +40,7 @@ fn a_non_local_bind_without_a_token_is_refused_with_64() {
 fn beyond_the_loopback_every_read_needs_the_token_too() {
     let f = folders("");
     let token = "a-configured-token-0123456789";
-    let s = Service::start(&f, "0.0.0.0:0", &[("CLEARVIEW_HTTP_TOKEN", token)]);
+    let s = Service::start_http(&f, "0.0.0.0:0", &[("CLEARVIEW_HTTP_TOKEN", token)]);
     assert!(s.token.is_empty(), "a configured token is not printed: {}", s.url);
     assert_eq!(get(&format!("{}/healthz", s.base)).status, 200);
     for path in ["/api/sessions", "/metrics", "/"] {
@@ -93,7 +93,7 @@ impl EventStream {
 #[test]
 fn every_endpoint_on_a_live_session() {
     let f = folders("[http]\nlisten = \"127.0.0.1:0\"\nmax_body_bytes = 65536\n");
-    let s = Service::start(&f, "127.0.0.1:0", &[]);
+    let s = Service::start_http(&f, "127.0.0.1:0", &[]);
     assert_eq!(s.token.len(), 32, "a generated token is printed in the URL: {}", s.url);
     let api = format!("{}/api/sessions/facade", s.base);
     let token = s.token.clone();
@@ -104,7 +104,7 @@ fn every_endpoint_on_a_live_session() {
     put(&dir.join("key.mask.png"), &user_mask);
     put(&dir.join("key.png"), &png(&scene.key));
     for i in 1..=2 {
-        put(&dir.join(format!("v{i}.png")), &png(&scene.view(i)));
+        put(&dir.join(format!("v{i}.png")), &png(&scene.clear_view(i)));
     }
     put(&dir.join("other.png"), &png(&Scene::new(999).key));
     let session = wait_session(&s, "facade", "two views used and one rejected", 60, |v| {

@@ -1,211 +1,17 @@
 //! End-to-end tests of `clearview run` and `clearview check-config`: the real binary on a
 //! temporary folder, fed like a camera would feed it.
 
+mod daemon_common;
+
 use std::io::Write;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::path::Path;
+use std::process::Command;
+use std::time::Duration;
 
-use clearview::geometry::Homography;
-use clearview::imaging::convert::{mask_to_luma8, to_rgb8};
-use clearview::imaging::{Mask, RgbF32};
-use clearview::synth::{self, Occluder};
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
+use clearview::imaging::convert::to_rgb8;
+use clearview::synth;
+use daemon_common::*;
 use serde_json::Value;
-
-const W: usize = 400;
-const H: usize = 300;
-
-fn bin() -> &'static str {
-    env!("CARGO_BIN_EXE_clearview")
-}
-
-/// A facade, its keyframe with a tree in front (and the truth without it), and views.
-struct Scene {
-    scene: RgbF32,
-    centre: Homography,
-    truth: RgbF32,
-    key: RgbF32,
-    mask: Mask,
-    rng: ChaCha8Rng,
-}
-
-impl Scene {
-    fn new(seed: u64) -> Self {
-        let scene = synth::facade(W * 3 / 2, H * 3 / 2, seed);
-        let centre = Homography::translation(W as f64 / 4.0, H as f64 / 4.0);
-        let truth = synth::render_view(&scene, &centre, W, H, [0.5; 3]);
-        let mut key = truth.clone();
-        let mut mask = Mask::new(W, H, 0);
-        synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Tree, 200.0, 160.0, 110.0, 3);
-        Self { scene, centre, truth, key, mask, rng: ChaCha8Rng::seed_from_u64(seed) }
-    }
-
-    /// A view from elsewhere with its own occluder at `(cx, cy)` (keyframe coordinates
-    /// roughly) of `size` (0: none).
-    fn view(&mut self, i: u64, cx: f32, size: f32) -> RgbF32 {
-        let key_to_view = synth::random_homography(&mut self.rng, W, H, 0.1, 0.2, (0.9, 1.1));
-        let view_to_scene = self.centre.after(&key_to_view.inverse().unwrap());
-        let mut v = synth::render_view(&self.scene, &view_to_scene, W, H, [0.5; 3]);
-        if size > 0.0 {
-            synth::paint_occluder(&mut v, None, Occluder::Person, cx, 170.0, size, 100 + i);
-        }
-        synth::expose(&mut v, 0.9 + 0.03 * i as f32, 0.01);
-        v
-    }
-
-    /// Mean absolute error over the masked pixels of `img` against the truth.
-    fn masked_error(&self, img: &image::RgbImage) -> f64 {
-        let (mut sum, mut n) = (0.0, 0usize);
-        for y in 0..H {
-            for x in 0..W {
-                if self.mask.is_hole(x, y) {
-                    let t = self.truth.get(x, y);
-                    let p = img.get_pixel(x as u32, y as u32).0;
-                    sum += (0..3).map(|c| (t[c] as f64 - p[c] as f64 / 255.0).abs()).sum::<f64>() / 3.0;
-                    n += 1;
-                }
-            }
-        }
-        sum / n.max(1) as f64
-    }
-}
-
-fn png_bytes(img: &RgbF32) -> Vec<u8> {
-    let mut out = std::io::Cursor::new(Vec::new());
-    to_rgb8(img).write_to(&mut out, image::ImageFormat::Png).unwrap();
-    out.into_inner()
-}
-
-/// Writes under a hidden name and renames: what a careful uploader does.
-fn put(path: &Path, bytes: &[u8]) {
-    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
-    let tmp = path.with_file_name(format!(".{}.upload", path.file_name().unwrap().to_string_lossy()));
-    std::fs::write(&tmp, bytes).unwrap();
-    std::fs::rename(&tmp, path).unwrap();
-}
-
-fn put_key_and_mask(dir: &Path, s: &Scene) {
-    let mut mask_png = std::io::Cursor::new(Vec::new());
-    mask_to_luma8(&s.mask).write_to(&mut mask_png, image::ImageFormat::Png).unwrap();
-    put(&dir.join("key.mask.png"), &mask_png.into_inner());
-    put(&dir.join("key.png"), &png_bytes(&s.key));
-}
-
-struct Folders {
-    _tmp: tempfile::TempDir,
-    root: PathBuf,
-    inbox: PathBuf,
-    outbox: PathBuf,
-    state: PathBuf,
-    config: PathBuf,
-}
-
-fn folders(extra: &str) -> Folders {
-    let tmp = tempfile::tempdir().unwrap();
-    let root = tmp.path().to_owned();
-    let (inbox, outbox, state) = (root.join("inbox"), root.join("outbox"), root.join("state"));
-    let config = root.join("clearview.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[watch]\ndir = {:?}\nquiet_period_ms = 300\n[output]\ndir = {:?}\nhistory = 3\n[state]\ndir = {:?}\n\
-             [compute]\ngrace_period_ms = 15000\n{extra}",
-            inbox, outbox, state
-        ),
-    )
-    .unwrap();
-    Folders { _tmp: tmp, root, inbox, outbox, state, config }
-}
-
-/// The running service; killed if a test fails before stopping it.
-struct Service {
-    child: Child,
-}
-
-impl Service {
-    fn start(f: &Folders, run: usize) -> Self {
-        let log = std::fs::File::create(f.root.join(format!("service-{run}.log"))).unwrap();
-        let child = Command::new(bin())
-            .args(["run", "--config"])
-            .arg(&f.config)
-            .env("CLEARVIEW_LOG", "clearview=debug")
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
-            .unwrap();
-        Self { child }
-    }
-
-    /// SIGTERM, then the exit code.
-    fn terminate(mut self) -> i32 {
-        let ok = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status().unwrap();
-        assert!(ok.success());
-        let deadline = Instant::now() + Duration::from_secs(30);
-        loop {
-            if let Some(status) = self.child.try_wait().unwrap() {
-                return status.code().expect("exited, not killed by a signal");
-            }
-            assert!(Instant::now() < deadline, "the service did not stop within 30 s of SIGTERM");
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-}
-
-impl Drop for Service {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn events(f: &Folders) -> Vec<Value> {
-    let Ok(text) = std::fs::read_to_string(f.outbox.join("events.jsonl")) else { return Vec::new() };
-    text.lines().map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON: {l}: {e}"))).collect()
-}
-
-fn of_kind<'a>(events: &'a [Value], kind: &str) -> Vec<&'a Value> {
-    events.iter().filter(|e| e["event"] == kind).collect()
-}
-
-/// Waits until `pred` holds on the events, or fails with the log.
-fn wait_for(f: &Folders, what: &str, secs: u64, pred: impl Fn(&[Value]) -> bool) -> Vec<Value> {
-    let deadline = Instant::now() + Duration::from_secs(secs);
-    loop {
-        let ev = events(f);
-        if pred(&ev) {
-            return ev;
-        }
-        if Instant::now() > deadline {
-            let mut logs: Vec<PathBuf> = std::fs::read_dir(&f.root)
-                .unwrap()
-                .flatten()
-                .map(|e| e.path())
-                .filter(|p| p.extension().is_some_and(|e| e == "log"))
-                .collect();
-            logs.sort();
-            let log = logs.last().map(|p| std::fs::read_to_string(p).unwrap_or_default()).unwrap_or_default();
-            panic!("timed out waiting for {what}\nevents:\n{ev:#?}\nlog:\n{log}");
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
-/// Events about `file` (its `file` field).
-fn about<'a>(events: &'a [Value], file: &str) -> Vec<&'a Value> {
-    events.iter().filter(|e| e["file"] == file).collect()
-}
-
-fn no_temporaries(dir: &Path) {
-    for entry in std::fs::read_dir(dir).unwrap().flatten() {
-        let name = entry.file_name().to_string_lossy().into_owned();
-        assert!(!name.contains("clearview-tmp"), "temporary left behind: {}", entry.path().display());
-        if entry.file_type().unwrap().is_dir() {
-            no_temporaries(&entry.path());
-        }
-    }
-}
 
 #[test]
 fn check_config_accepts_the_shipped_file_and_refuses_bad_ones() {
@@ -227,14 +33,14 @@ fn check_config_accepts_the_shipped_file_and_refuses_bad_ones() {
 #[test]
 fn a_session_improves_as_views_arrive_and_bad_files_are_skipped() {
     let f = folders("");
-    let service = Service::start(&f, 1);
+    let service = Service::start(&f);
     let mut scene = Scene::new(11);
     let session = f.inbox.join("facade");
     put_key_and_mask(&session, &scene);
     wait_for(&f, "the session to start", 20, |e| !of_kind(e, "mask_set").is_empty());
 
     // View 1 arrives slowly, in pieces, under its final name: it must not be read early.
-    let v1 = png_bytes(&scene.view(1, 120.0, 70.0));
+    let v1 = png(&scene.view(1, 120.0, 70.0));
     let mut file = std::fs::File::create(session.join("v1.png")).unwrap();
     for chunk in v1.chunks(v1.len() / 4 + 1) {
         file.write_all(chunk).unwrap();
@@ -248,17 +54,17 @@ fn a_session_improves_as_views_arrive_and_bad_files_are_skipped() {
     assert!(about(&ev, "v1.png").iter().all(|e| e["event"] != "file_skipped"), "v1 was read half-written");
 
     // View 2 uploaded as .part and renamed; a corrupt file, an empty one, another scene.
-    let v2 = png_bytes(&scene.view(2, 300.0, 60.0));
+    let v2 = png(&scene.view(2, 300.0, 60.0));
     std::fs::write(session.join("v2.png.part"), &v2).unwrap();
     std::thread::sleep(Duration::from_millis(400));
     std::fs::rename(session.join("v2.png.part"), session.join("v2.png")).unwrap();
-    let mut corrupt = png_bytes(&scene.view(9, 0.0, 0.0));
+    let mut corrupt = png(&scene.view(9, 0.0, 0.0));
     corrupt.truncate(corrupt.len() / 3);
     put(&session.join("corrupt.png"), &corrupt);
     put(&session.join("empty.png"), b"");
     let other = Scene::new(999);
-    put(&session.join("other.png"), &png_bytes(&other.key));
-    put(&session.join("v3.png"), &png_bytes(&scene.view(3, 60.0, 50.0)));
+    put(&session.join("other.png"), &png(&other.key));
+    put(&session.join("v3.png"), &png(&scene.view(3, 60.0, 50.0)));
 
     let ev = wait_for(&f, "every file to be handled", 40, |e| {
         ["v2.png", "v3.png", "corrupt.png", "empty.png", "other.png"].iter().all(|n| !about(e, n).is_empty())
@@ -339,12 +145,12 @@ fn a_session_improves_as_views_arrive_and_bad_files_are_skipped() {
 #[test]
 fn sigterm_mid_session_exits_0_and_leaves_nothing_half_written() {
     let f = folders("");
-    let service = Service::start(&f, 1);
+    let service = Service::start(&f);
     let mut scene = Scene::new(21);
     let session = f.inbox.join("s");
     put_key_and_mask(&session, &scene);
     for i in 1..=4 {
-        put(&session.join(format!("v{i}.png")), &png_bytes(&scene.view(i, 100.0 + 60.0 * i as f32, 60.0)));
+        put(&session.join(format!("v{i}.png")), &png(&scene.view(i, 100.0 + 60.0 * i as f32, 60.0)));
     }
     wait_for(&f, "a first view", 30, |e| !of_kind(e, "view_accepted").is_empty());
     assert_eq!(service.terminate(), 0, "SIGTERM is a clean stop");
@@ -372,11 +178,11 @@ fn a_restart_resumes_from_saved_alignments_without_rewriting_results() {
     let mut scene = Scene::new(31);
     let session = f.inbox.join("s");
     put_key_and_mask(&session, &scene);
-    let views: Vec<Vec<u8>> = (1..=4).map(|i| png_bytes(&scene.view(i, 90.0 * i as f32, 60.0))).collect();
+    let views: Vec<Vec<u8>> = (1..=4).map(|i| png(&scene.view(i, 90.0 * i as f32, 60.0))).collect();
     for (i, v) in views.iter().take(3).enumerate() {
         put(&session.join(format!("v{}.png", i + 1)), v);
     }
-    let service = Service::start(&f, 1);
+    let service = Service::start(&f);
     let ev = wait_for(&f, "a result from three views", 30, |e| {
         of_kind(e, "result_updated").iter().any(|r| r["views"] == 3)
     });
@@ -389,7 +195,7 @@ fn a_restart_resumes_from_saved_alignments_without_rewriting_results() {
 
     // Second run: the same files, nothing new.
     let lines_before = events(&f).len();
-    let service = Service::start(&f, 2);
+    let service = Service::start(&f);
     let ev = wait_for(&f, "the session to resume", 30, |e| {
         e.len() > lines_before && !of_kind(&e[lines_before..], "result_unchanged").is_empty()
     });
@@ -413,7 +219,7 @@ fn a_restart_resumes_from_saved_alignments_without_rewriting_results() {
     let state_file = f.state.join("sessions/s.json");
     std::fs::write(&state_file, b"{\"version\": 1, \"alignments\": {\"v1.png").unwrap();
     let lines_before = events(&f).len();
-    let service = Service::start(&f, 3);
+    let service = Service::start(&f);
     let ev = wait_for(&f, "the session to be rebuilt", 30, |e| {
         e.len() > lines_before
             && of_kind(&e[lines_before..], "view_accepted").len() == 4
@@ -437,11 +243,11 @@ fn a_burst_on_a_polled_folder_with_a_tiny_queue_is_batched_and_nothing_is_lost()
     let mut scene = Scene::new(41);
     let session = f.inbox.join("burst");
     put_key_and_mask(&session, &scene);
-    let service = Service::start(&f, 1);
+    let service = Service::start(&f);
     wait_for(&f, "the first result", 30, |e| !of_kind(e, "result_updated").is_empty());
     let names: Vec<String> = (1..=6).map(|i| format!("b{i}.png")).collect();
     for (i, name) in names.iter().enumerate() {
-        put(&session.join(name), &png_bytes(&scene.view(i as u64 + 1, 80.0 + 50.0 * i as f32, 50.0)));
+        put(&session.join(name), &png(&scene.view(i as u64 + 1, 80.0 + 50.0 * i as f32, 50.0)));
     }
     let ev = wait_for(&f, "every view to be handled and filled", 60, |e| {
         names.iter().all(|n| !about(e, n).is_empty())
@@ -460,19 +266,17 @@ fn a_late_mask_fills_from_the_buffered_views_and_a_new_keyframe_restarts_the_ses
     let f = folders("");
     let mut scene = Scene::new(51);
     let session = f.inbox.join("late");
-    put(&session.join("key.png"), &png_bytes(&scene.key));
-    let service = Service::start(&f, 1);
+    put(&session.join("key.png"), &png(&scene.key));
+    let service = Service::start(&f);
     wait_for(&f, "the session to start", 30, |e| !of_kind(e, "session_started").is_empty());
     for i in 1..=2 {
-        put(&session.join(format!("v{i}.png")), &png_bytes(&scene.view(i, 100.0 * i as f32, 60.0)));
+        put(&session.join(format!("v{i}.png")), &png(&scene.view(i, 100.0 * i as f32, 60.0)));
     }
     let ev = wait_for(&f, "both views", 30, |e| of_kind(e, "view_accepted").len() == 2);
     assert!(of_kind(&ev, "result_updated").is_empty(), "a result without a mask");
 
     // The mask arrives after the views: they are filled from then, not realigned.
-    let mut mask_png = std::io::Cursor::new(Vec::new());
-    mask_to_luma8(&scene.mask).write_to(&mut mask_png, image::ImageFormat::Png).unwrap();
-    put(&session.join("key.mask.png"), &mask_png.into_inner());
+    put(&session.join("key.mask.png"), &mask_png(&scene.mask));
     let ev = wait_for(&f, "a result from the buffered views", 30, |e| {
         of_kind(e, "result_updated").iter().any(|r| r["views"] == 2)
     });
@@ -488,7 +292,7 @@ fn a_late_mask_fills_from_the_buffered_views_and_a_new_keyframe_restarts_the_ses
     let seen = ev.len();
     let mut brighter = scene.key.clone();
     synth::expose(&mut brighter, 1.1, 0.0);
-    put(&session.join("key.png"), &png_bytes(&brighter));
+    put(&session.join("key.png"), &png(&brighter));
     let ev = wait_for(&f, "a result for the new keyframe", 30, |e| {
         e.len() > seen
             && !of_kind(&e[seen..], "keyframe_changed").is_empty()
@@ -503,17 +307,15 @@ fn a_late_mask_fills_from_the_buffered_views_and_a_new_keyframe_restarts_the_ses
 fn without_a_key_file_the_first_image_is_the_keyframe_and_its_mask_follows_its_name() {
     let f = folders("");
     let mut scene = Scene::new(61);
-    let service = Service::start(&f, 1);
+    let service = Service::start(&f);
     // Directly in the watched folder: the `_root` session.
-    put(&f.inbox.join("IMG_0001.png"), &png_bytes(&scene.key));
+    put(&f.inbox.join("IMG_0001.png"), &png(&scene.key));
     let ev = wait_for(&f, "the session to start", 30, |e| !of_kind(e, "session_started").is_empty());
     let started = of_kind(&ev, "session_started");
     assert_eq!(started[0]["keyframe"], "IMG_0001.png");
     assert_eq!(started[0]["session"], "_root");
-    let mut mask_png = std::io::Cursor::new(Vec::new());
-    mask_to_luma8(&scene.mask).write_to(&mut mask_png, image::ImageFormat::Png).unwrap();
-    put(&f.inbox.join("IMG_0001.mask.png"), &mask_png.into_inner());
-    put(&f.inbox.join("IMG_0002.png"), &png_bytes(&scene.view(1, 120.0, 60.0)));
+    put(&f.inbox.join("IMG_0001.mask.png"), &mask_png(&scene.mask));
+    put(&f.inbox.join("IMG_0002.png"), &png(&scene.view(1, 120.0, 60.0)));
     let ev = wait_for(&f, "a result with the view", 30, |e| {
         of_kind(e, "result_updated").iter().any(|r| r["views"] == 1)
     });
@@ -529,11 +331,11 @@ fn with_an_automatic_mask_the_occluder_is_found_and_removed() {
     let f = folders("[session]\nmask = \"auto\"\nauto_mask_views = 2\n");
     let mut scene = Scene::new(71);
     let session = f.inbox.join("auto");
-    put(&session.join("key.png"), &png_bytes(&scene.key));
-    let service = Service::start(&f, 1);
+    put(&session.join("key.png"), &png(&scene.key));
+    let service = Service::start(&f);
     wait_for(&f, "the session to start", 30, |e| !of_kind(e, "session_started").is_empty());
     for i in 1..=3 {
-        put(&session.join(format!("v{i}.png")), &png_bytes(&scene.view(i, 60.0 + 130.0 * i as f32, 50.0)));
+        put(&session.join(format!("v{i}.png")), &png(&scene.view(i, 60.0 + 130.0 * i as f32, 50.0)));
     }
     let ev = wait_for(&f, "a result from the automatic mask", 40, |e| {
         of_kind(e, "result_updated").iter().any(|r| r["views"] == 3)
@@ -557,19 +359,19 @@ fn idle_sessions_sleep_beyond_the_memory_budget_and_wake_without_realigning() {
     let f = folders("workers = 1\nresident_sessions = 1\n");
     let mut a = Scene::new(81);
     let mut b = Scene::new(82);
-    let service = Service::start(&f, 1);
+    let service = Service::start(&f);
     put_key_and_mask(&f.inbox.join("a"), &a);
-    put(&f.inbox.join("a/v1.png"), &png_bytes(&a.view(1, 100.0, 60.0)));
+    put(&f.inbox.join("a/v1.png"), &png(&a.view(1, 100.0, 60.0)));
     wait_for(&f, "a's first view in a result", 30, |e| {
         of_kind(e, "result_updated").iter().any(|r| r["session"] == "a" && r["views"] == 1)
     });
     put_key_and_mask(&f.inbox.join("b"), &b);
-    put(&f.inbox.join("b/v1.png"), &png_bytes(&b.view(1, 100.0, 60.0)));
+    put(&f.inbox.join("b/v1.png"), &png(&b.view(1, 100.0, 60.0)));
     let ev = wait_for(&f, "b's first view in a result", 30, |e| {
         of_kind(e, "result_updated").iter().any(|r| r["session"] == "b" && r["views"] == 1)
     });
     let seen = ev.len();
-    put(&f.inbox.join("a/v2.png"), &png_bytes(&a.view(2, 300.0, 60.0)));
+    put(&f.inbox.join("a/v2.png"), &png(&a.view(2, 300.0, 60.0)));
     let ev = wait_for(&f, "a's second view in a result", 30, |e| {
         of_kind(e, "result_updated").iter().any(|r| r["session"] == "a" && r["views"] == 2)
     });

@@ -1,5 +1,6 @@
-//! Helpers of the HTTP and browser tests: a rendered session, the real binary with its
-//! HTTP server on a free loopback port, and a small HTTP client.
+//! Helpers of the tests that run the real service (`clearview run`) on a temporary
+//! folder: a rendered session, the folders and configuration, the binary itself (with or
+//! without its HTTP server), its event log, and a small HTTP client.
 #![allow(dead_code)]
 
 use std::io::{BufRead, BufReader, Read, Write};
@@ -15,13 +16,15 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde_json::Value;
 
-pub const W: usize = 320;
-pub const H: usize = 240;
+pub const W: usize = 400;
+pub const H: usize = 300;
 
-/// A facade, its keyframe with a tree in front, the tree's mask, and views of it.
+/// A facade, its keyframe with a tree in front (and the truth without it), the tree's
+/// mask, and views of it from elsewhere.
 pub struct Scene {
     scene: RgbF32,
     centre: Homography,
+    pub truth: RgbF32,
     pub key: RgbF32,
     pub mask: Mask,
     rng: ChaCha8Rng,
@@ -31,19 +34,45 @@ impl Scene {
     pub fn new(seed: u64) -> Self {
         let scene = synth::facade(W * 3 / 2, H * 3 / 2, seed);
         let centre = Homography::translation(W as f64 / 4.0, H as f64 / 4.0);
-        let mut key = synth::render_view(&scene, &centre, W, H, [0.5; 3]);
+        let truth = synth::render_view(&scene, &centre, W, H, [0.5; 3]);
+        let mut key = truth.clone();
         let mut mask = Mask::new(W, H, 0);
-        synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Tree, 160.0, 130.0, 90.0, 3);
-        Self { scene, centre, key, mask, rng: ChaCha8Rng::seed_from_u64(seed) }
+        synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Tree, 200.0, 160.0, 110.0, 3);
+        Self { scene, centre, truth, key, mask, rng: ChaCha8Rng::seed_from_u64(seed) }
     }
 
-    /// A view from elsewhere, without occluder.
-    pub fn view(&mut self, i: u64) -> RgbF32 {
+    /// A view from elsewhere with its own occluder, a person at `cx` (keyframe
+    /// coordinates roughly) of `size` (0: none), and its own exposure.
+    pub fn view(&mut self, i: u64, cx: f32, size: f32) -> RgbF32 {
         let key_to_view = synth::random_homography(&mut self.rng, W, H, 0.1, 0.2, (0.9, 1.1));
         let view_to_scene = self.centre.after(&key_to_view.inverse().unwrap());
         let mut v = synth::render_view(&self.scene, &view_to_scene, W, H, [0.5; 3]);
+        if size > 0.0 {
+            synth::paint_occluder(&mut v, None, Occluder::Person, cx, 170.0, size, 100 + i);
+        }
         synth::expose(&mut v, 0.9 + 0.03 * i as f32, 0.01);
         v
+    }
+
+    /// A view from elsewhere with nothing in front.
+    pub fn clear_view(&mut self, i: u64) -> RgbF32 {
+        self.view(i, 0.0, 0.0)
+    }
+
+    /// Mean absolute error over the masked pixels of `img` against the truth.
+    pub fn masked_error(&self, img: &image::RgbImage) -> f64 {
+        let (mut sum, mut n) = (0.0, 0usize);
+        for y in 0..H {
+            for x in 0..W {
+                if self.mask.is_hole(x, y) {
+                    let t = self.truth.get(x, y);
+                    let p = img.get_pixel(x as u32, y as u32).0;
+                    sum += (0..3).map(|c| (t[c] as f64 - p[c] as f64 / 255.0).abs()).sum::<f64>() / 3.0;
+                    n += 1;
+                }
+            }
+        }
+        sum / n.max(1) as f64
     }
 }
 
@@ -67,15 +96,24 @@ pub fn put(path: &Path, bytes: &[u8]) {
     std::fs::rename(&tmp, path).unwrap();
 }
 
+/// The session's keyframe `key.png` and its mask `key.mask.png` (the mask first, so the
+/// session starts with it).
+pub fn put_key_and_mask(dir: &Path, s: &Scene) {
+    put(&dir.join("key.mask.png"), &mask_png(&s.mask));
+    put(&dir.join("key.png"), &png(&s.key));
+}
+
 pub struct Folders {
     pub tmp: tempfile::TempDir,
     pub root: PathBuf,
     pub inbox: PathBuf,
     pub outbox: PathBuf,
+    pub state: PathBuf,
     pub config: PathBuf,
 }
 
-/// Temporary folders and a configuration with a short quiet period; `extra` is appended.
+/// Temporary folders and a configuration with a short quiet period; `extra` is appended
+/// (it starts inside `[compute]`).
 pub fn folders(extra: &str) -> Folders {
     let tmp = tempfile::tempdir().unwrap();
     let root = tmp.path().to_owned();
@@ -84,44 +122,49 @@ pub fn folders(extra: &str) -> Folders {
     std::fs::write(
         &config,
         format!(
-            "[watch]\ndir = {inbox:?}\nquiet_period_ms = 200\n[output]\ndir = {outbox:?}\nhistory = 3\n\
-             [state]\ndir = {state:?}\n[compute]\nworkers = 1\ngrace_period_ms = 10000\n{extra}"
+            "[watch]\ndir = {inbox:?}\nquiet_period_ms = 300\n[output]\ndir = {outbox:?}\nhistory = 3\n\
+             [state]\ndir = {state:?}\n[compute]\ngrace_period_ms = 15000\n{extra}"
         ),
     )
     .unwrap();
-    Folders { tmp, root, inbox, outbox, config }
+    Folders { tmp, root, inbox, outbox, state, config }
 }
 
 pub fn bin() -> &'static str {
     env!("CARGO_BIN_EXE_clearview")
 }
 
-/// The running service with its HTTP server; killed when dropped.
+/// The running service; killed when dropped (a test that fails leaves no process).
 pub struct Service {
     pub child: Child,
-    /// `http://127.0.0.1:PORT`
+    /// Where its standard error (the log) goes: `service-N.log` in the folders' root, one
+    /// per start.
+    pub log: PathBuf,
+    /// With the HTTP server: `http://127.0.0.1:PORT`, the address, the token and the URL
+    /// the service printed. Empty without it.
     pub base: String,
     pub addr: String,
     pub token: String,
-    /// The URL the service printed.
     pub url: String,
-    pub log: PathBuf,
 }
 
 impl Service {
+    /// Starts `clearview run --config F`.
+    pub fn start(f: &Folders) -> Self {
+        let (child, log) = Self::spawn(f, &[], &[], Stdio::null());
+        Self {
+            child,
+            log,
+            base: String::new(),
+            addr: String::new(),
+            token: String::new(),
+            url: String::new(),
+        }
+    }
+
     /// Starts `clearview run --config F --http LISTEN` and reads the printed URL.
-    pub fn start(f: &Folders, listen: &str, env: &[(&str, &str)]) -> Self {
-        let log = f.root.join("service.log");
-        let mut child = Command::new(bin())
-            .args(["run", "--config"])
-            .arg(&f.config)
-            .args(["--http", listen])
-            .envs(env.iter().copied())
-            .env("CLEARVIEW_LOG", "clearview=debug")
-            .stdout(Stdio::piped())
-            .stderr(std::fs::File::create(&log).unwrap())
-            .spawn()
-            .unwrap();
+    pub fn start_http(f: &Folders, listen: &str, env: &[(&str, &str)]) -> Self {
+        let (mut child, log) = Self::spawn(f, &["--http", listen], env, Stdio::piped());
         let stdout = child.stdout.take().unwrap();
         let (tx, rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
@@ -138,23 +181,44 @@ impl Service {
         let (addr, query) = rest.split_once('/').unwrap();
         let token = query.strip_prefix("?token=").unwrap_or("").to_owned();
         let addr = addr.replace("0.0.0.0", "127.0.0.1");
-        Self { child, base: format!("http://{addr}"), addr, token, url, log }
+        Self { child, log, base: format!("http://{addr}"), addr, token, url }
+    }
+
+    fn spawn(f: &Folders, args: &[&str], env: &[(&str, &str)], stdout: Stdio) -> (Child, PathBuf) {
+        let run = (1..).find(|n| !f.root.join(format!("service-{n}.log")).exists()).unwrap();
+        let log = f.root.join(format!("service-{run}.log"));
+        let child = Command::new(bin())
+            .args(["run", "--config"])
+            .arg(&f.config)
+            .args(args)
+            .envs(env.iter().copied())
+            .env("CLEARVIEW_LOG", "clearview=debug")
+            .stdout(stdout)
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap();
+        (child, log)
     }
 
     pub fn log(&self) -> String {
         std::fs::read_to_string(&self.log).unwrap_or_default()
     }
 
+    /// Whether the process is still running.
+    pub fn alive(&mut self) -> bool {
+        self.child.try_wait().unwrap().is_none()
+    }
+
     /// SIGTERM, then the exit code.
     pub fn terminate(mut self) -> i32 {
         let ok = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status().unwrap();
         assert!(ok.success());
-        let deadline = Instant::now() + Duration::from_secs(20);
+        let deadline = Instant::now() + Duration::from_secs(30);
         loop {
             if let Some(status) = self.child.try_wait().unwrap() {
                 return status.code().expect("exited, not killed by a signal");
             }
-            assert!(Instant::now() < deadline, "the service did not stop within 20 s of SIGTERM");
+            assert!(Instant::now() < deadline, "the service did not stop within 30 s of SIGTERM");
             std::thread::sleep(Duration::from_millis(50));
         }
     }
@@ -164,6 +228,55 @@ impl Drop for Service {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+    }
+}
+
+/// The event log (`events.jsonl` in the out folder), parsed.
+pub fn events(f: &Folders) -> Vec<Value> {
+    let Ok(text) = std::fs::read_to_string(f.outbox.join("events.jsonl")) else { return Vec::new() };
+    text.lines().map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON: {l}: {e}"))).collect()
+}
+
+pub fn of_kind<'a>(events: &'a [Value], kind: &str) -> Vec<&'a Value> {
+    events.iter().filter(|e| e["event"] == kind).collect()
+}
+
+/// Events about `file` (its `file` field).
+pub fn about<'a>(events: &'a [Value], file: &str) -> Vec<&'a Value> {
+    events.iter().filter(|e| e["file"] == file).collect()
+}
+
+/// Waits until `pred` holds on the events, or fails with them and the newest log.
+pub fn wait_for(f: &Folders, what: &str, secs: u64, pred: impl Fn(&[Value]) -> bool) -> Vec<Value> {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        let ev = events(f);
+        if pred(&ev) {
+            return ev;
+        }
+        if Instant::now() > deadline {
+            let mut logs: Vec<PathBuf> = std::fs::read_dir(&f.root)
+                .unwrap()
+                .flatten()
+                .map(|e| e.path())
+                .filter(|p| p.extension().is_some_and(|e| e == "log"))
+                .collect();
+            logs.sort();
+            let log = logs.last().map(|p| std::fs::read_to_string(p).unwrap_or_default()).unwrap_or_default();
+            panic!("timed out waiting for {what}\nevents:\n{ev:#?}\nlog:\n{log}");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Fails if a temporary file of the atomic writer is left anywhere under `dir`.
+pub fn no_temporaries(dir: &Path) {
+    for entry in std::fs::read_dir(dir).unwrap().flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        assert!(!name.contains("clearview-tmp"), "temporary left behind: {}", entry.path().display());
+        if entry.file_type().unwrap().is_dir() {
+            no_temporaries(&entry.path());
+        }
     }
 }
 
