@@ -54,7 +54,6 @@ pub struct Intake {
     backlog: Arc<Backlog>,
     emitter: Arc<Emitter>,
     stats: Arc<Stats>,
-    started: Instant,
     files: HashMap<PathBuf, Tracked>,
     decoders: Arc<Semaphore>,
 }
@@ -73,10 +72,9 @@ impl Intake {
         backlog: Arc<Backlog>,
         emitter: Arc<Emitter>,
         stats: Arc<Stats>,
-        started: Instant,
     ) -> Self {
         let decoders = Arc::new(Semaphore::new(config.decoders.get()));
-        Self { config, senders, backlog, emitter, stats, started, files: HashMap::new(), decoders }
+        Self { config, senders, backlog, emitter, stats, files: HashMap::new(), decoders }
     }
 
     pub async fn run(
@@ -92,12 +90,13 @@ impl Intake {
         let mut tick = tokio::time::interval(super::tick_interval(&self.config));
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         let mut last_scan: Option<Instant> = None;
+        let heart = self.stats.heartbeats.register("intake");
         loop {
             tokio::select! {
                 () = cancel.cancelled() => break,
                 Some(path) = hints.recv() => self.observe(path),
                 _ = tick.tick() => {
-                    self.stats.heartbeat_ms.store(super::millis_since(self.started), Ordering::Relaxed);
+                    heart.beat();
                     if last_scan.is_none_or(|t| t.elapsed() >= scan_every) || overflow.swap(false, Ordering::Relaxed) {
                         self.full_scan().await;
                         last_scan = Some(Instant::now());

@@ -100,14 +100,71 @@ impl Backlog {
     }
 }
 
-/// Counters for the systemd status line and the watchdog.
+/// Counters for the systemd status line, and the heartbeats the watchdog vouches for.
 #[derive(Debug, Default)]
 pub struct Stats {
     pub views: AtomicU64,
     pub results: AtomicU64,
     pub skipped: AtomicU64,
-    /// Milliseconds since start of the intake's last tick (the watchdog's heartbeat).
-    pub heartbeat_ms: AtomicU64,
+    pub heartbeats: Arc<Heartbeats>,
+}
+
+/// The loops whose liveness the systemd watchdog vouches for: the intake and each video
+/// source's runner. Each beats as it turns; systemd is pinged only while every loop still
+/// registered has beaten within the watchdog's interval, so a stuck loop gets the service
+/// restarted, whether it watches a folder, reads a video, or both.
+#[derive(Debug)]
+pub struct Heartbeats {
+    epoch: std::time::Instant,
+    next_id: AtomicU64,
+    loops: Mutex<Vec<(u64, String, Arc<AtomicU64>)>>,
+}
+
+impl Default for Heartbeats {
+    fn default() -> Self {
+        Self { epoch: std::time::Instant::now(), next_id: AtomicU64::new(0), loops: Mutex::default() }
+    }
+}
+
+impl Heartbeats {
+    /// A loop named `name` starts: it counts as having just beaten, until its [`Beat`] is dropped.
+    pub fn register(self: &Arc<Self>, name: impl Into<String>) -> Beat {
+        let id = self.next_id.fetch_add(1, Ordering::Relaxed);
+        let last = Arc::new(AtomicU64::new(millis_since(self.epoch)));
+        self.loops.lock().expect("heartbeats lock").push((id, name.into(), last.clone()));
+        Beat { owner: self.clone(), id, last }
+    }
+
+    /// The registered loop that has gone longest without beating, and for how long.
+    pub fn stalest(&self) -> Option<(String, Duration)> {
+        let now = millis_since(self.epoch);
+        let loops = self.loops.lock().expect("heartbeats lock");
+        loops
+            .iter()
+            .map(|(_, name, last)| (name, now.saturating_sub(load(last))))
+            .max_by_key(|&(_, age)| age)
+            .map(|(name, age)| (name.clone(), Duration::from_millis(age)))
+    }
+}
+
+/// One loop's heartbeat; unregistered when dropped (a video that ended is not stuck).
+#[derive(Debug)]
+pub struct Beat {
+    owner: Arc<Heartbeats>,
+    id: u64,
+    last: Arc<AtomicU64>,
+}
+
+impl Beat {
+    pub fn beat(&self) {
+        self.last.store(millis_since(self.owner.epoch), Ordering::Relaxed);
+    }
+}
+
+impl Drop for Beat {
+    fn drop(&mut self) {
+        self.owner.loops.lock().expect("heartbeats lock").retain(|(id, ..)| *id != self.id);
+    }
 }
 
 /// Runs the service on `config` until `shutdown` completes, then stops cleanly within the
@@ -191,19 +248,13 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
         None,
         serde_json::json!({ "watch": config.watch_dir, "pid": std::process::id() }),
     );
-    let intake = intake::Intake::new(
-        config.clone(),
-        senders,
-        backlog.clone(),
-        emitter.clone(),
-        stats.clone(),
-        started,
-    );
+    let intake =
+        intake::Intake::new(config.clone(), senders, backlog.clone(), emitter.clone(), stats.clone());
     if watching {
         tracker.spawn(intake.run(hint_rx, overflow, cancel.clone()));
     }
     systemd::ready();
-    tracker.spawn(systemd::supervise(stats.clone(), started, cancel.clone()));
+    tracker.spawn(systemd::supervise(stats.clone(), cancel.clone()));
     tracker.close();
 
     tokio::select! {
@@ -275,4 +326,28 @@ pub(crate) fn millis_since(start: std::time::Instant) -> u64 {
 
 pub(crate) fn load(stats: &AtomicU64) -> u64 {
     stats.load(Ordering::Relaxed)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_stalest_loop_is_the_one_that_has_not_beaten_and_dropped_loops_do_not_count() {
+        let hb = Arc::new(Heartbeats::default());
+        assert!(hb.stalest().is_none(), "no loop, nothing stuck");
+        let intake = hb.register("intake");
+        let video = hb.register("video facade");
+        std::thread::sleep(Duration::from_millis(30));
+        intake.beat();
+        let (name, age) = hb.stalest().unwrap();
+        assert_eq!(name, "video facade");
+        assert!(age >= Duration::from_millis(30), "{age:?}");
+        drop(video);
+        let (name, age) = hb.stalest().unwrap();
+        assert_eq!(name, "intake");
+        assert!(age < Duration::from_millis(30), "{age:?}");
+        drop(intake);
+        assert!(hb.stalest().is_none());
+    }
 }

@@ -4,7 +4,7 @@
 
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use sd_notify::NotifyState;
 use tokio_util::sync::CancellationToken;
@@ -29,15 +29,17 @@ pub fn stopping() {
 }
 
 /// Updates STATUS every few seconds and, when systemd asks for a watchdog, pings it at
-/// half its interval for as long as the intake's heartbeat is recent (a stuck intake
-/// stops the pings and systemd restarts the service).
-pub async fn supervise(stats: Arc<Stats>, started: Instant, cancel: CancellationToken) {
+/// half its interval for as long as every registered loop (the intake, each video
+/// source) has beaten within the interval: a stuck loop stops the pings and systemd
+/// restarts the service.
+pub async fn supervise(stats: Arc<Stats>, cancel: CancellationToken) {
     if std::env::var_os("NOTIFY_SOCKET").is_none() {
         return;
     }
     let watchdog = sd_notify::watchdog_enabled();
     let period = watchdog.map_or(Duration::from_secs(5), |w| (w / 2).min(Duration::from_secs(5)));
     let mut tick = tokio::time::interval(period);
+    let mut stuck = false;
     loop {
         tokio::select! {
             () = cancel.cancelled() => return,
@@ -49,12 +51,26 @@ pub async fn supervise(stats: Arc<Stats>, started: Instant, cancel: Cancellation
             stats.results.load(Ordering::Relaxed),
             stats.skipped.load(Ordering::Relaxed)
         );
-        let beat = super::millis_since(started).saturating_sub(super::load(&stats.heartbeat_ms));
-        let alive = watchdog.is_none_or(|w| Duration::from_millis(beat) < w);
-        if alive && watchdog.is_some() {
-            send(&[NotifyState::Status(&status), NotifyState::Watchdog]);
-        } else {
+        let Some(w) = watchdog else {
             send(&[NotifyState::Status(&status)]);
+            continue;
+        };
+        match stats.heartbeats.stalest() {
+            Some((name, age)) if age >= w => {
+                if !stuck {
+                    tracing::error!(
+                        task = %name,
+                        silent_ms = age.as_millis() as u64,
+                        "a loop has stopped beating: no more watchdog pings, systemd will restart the service"
+                    );
+                }
+                stuck = true;
+                send(&[NotifyState::Status(&format!("stuck: {name}"))]);
+            }
+            _ => {
+                stuck = false;
+                send(&[NotifyState::Status(&status), NotifyState::Watchdog]);
+            }
         }
     }
 }

@@ -675,7 +675,9 @@ impl Runner {
     fn run(mut self, rx: &Receiver<Msg>, cancel: &CancellationToken) {
         let span = tracing::info_span!("session", session = %self.src.session);
         let _enter = span.enter();
+        let heart = self.ctx.stats.heartbeats.register(format!("video {}", self.src.session));
         loop {
+            heart.beat();
             match rx.recv_timeout(Duration::from_millis(100)) {
                 Ok(Msg::Frame { index, t, key, width, height, rgb, arrived }) => {
                     if cancel.is_cancelled() {
