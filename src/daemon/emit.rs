@@ -126,9 +126,10 @@ impl Emitter {
         })
     }
 
-    /// The folder of a session's results.
+    /// The folder of a session's results: always one plain folder directly in the out
+    /// folder, whatever the session's name ([`super::paths::session_dir_name`]).
     pub fn session_dir(&self, session: &str) -> PathBuf {
-        self.out.join(session)
+        self.out.join(super::paths::session_dir_name(session))
     }
 
     /// The latest result's file name.
