@@ -49,6 +49,7 @@ pub struct RawWatch {
     pub rescan_interval_s: u64,
     pub extensions: Vec<String>,
     pub max_pixels: u64,
+    pub follow_symlinks: bool,
 }
 
 impl Default for RawWatch {
@@ -62,6 +63,7 @@ impl Default for RawWatch {
             rescan_interval_s: 300,
             extensions: ["jpg", "jpeg", "png", "tif", "tiff", "webp"].map(String::from).to_vec(),
             max_pixels: 100_000_000,
+            follow_symlinks: false,
         }
     }
 }
@@ -247,6 +249,9 @@ pub struct Config {
     /// Lower-case extensions without the dot.
     pub extensions: Vec<String>,
     pub max_pixels: u64,
+    /// Whether symbolic links in the watched folder are followed (see
+    /// [`crate::daemon::paths`]); off, every link is refused and reported.
+    pub follow_symlinks: bool,
     pub out_dir: PathBuf,
     pub format: OutputFormat,
     /// Numbered results kept in `history/` (0: none).
@@ -418,6 +423,7 @@ impl RawConfig {
             quiet_period: Duration::from_millis(w.quiet_period_ms),
             extensions,
             max_pixels: w.max_pixels,
+            follow_symlinks: w.follow_symlinks,
             out_dir: o.dir,
             format,
             history: o.history,
@@ -543,7 +549,11 @@ impl RawVideo {
             return Err(invalid("video.input", "empty: a file, URL or device FFmpeg can open"));
         }
         let session = self.session.trim().to_owned();
-        if session.is_empty() || session.contains(['/', '\\']) || session.starts_with('.') {
+        if session.is_empty()
+            || session.contains(['/', '\\'])
+            || session.starts_with('.')
+            || session.chars().any(char::is_control)
+        {
             return Err(invalid("video.session", format!("{session:?} is not a folder name")));
         }
         let keyframe = match (self.keyframe_at_s, self.keyframe_frame) {
@@ -626,6 +636,15 @@ mod tests {
         assert_eq!(shipped.session, builtin.session);
         assert_eq!(shipped.format, builtin.format);
         assert_eq!(shipped.keyframe, builtin.keyframe);
+        assert_eq!(shipped.follow_symlinks, builtin.follow_symlinks);
+    }
+
+    #[test]
+    fn symbolic_links_are_not_followed_unless_asked() {
+        assert!(!parse("").unwrap().follow_symlinks);
+        assert!(parse("[watch]\nfollow_symlinks = true\n").unwrap().follow_symlinks);
+        let e = parse("[watch]\nfollow_symlinks = \"yes\"\n").unwrap_err();
+        assert!(e.to_string().contains("follow_symlinks"), "{e}");
     }
 
     #[test]
@@ -704,6 +723,8 @@ mod tests {
             ("[[video]]\n", "video.input"),
             ("[[video]]\ninput = \"a\"\nkeyframe_at_s = 1\nkeyframe_frame = 1\n", "video.keyframe_at_s"),
             ("[[video]]\ninput = \"a\"\nsession = \"../x\"\n", "video.session"),
+            ("[[video]]\ninput = \"a\"\nsession = \"a\\\\b\"\n", "video.session"),
+            ("[[video]]\ninput = \"a\"\nsession = \"a\\nb\"\n", "video.session"),
             ("[[video]]\ninput = \"a\"\nmin_sharpness = 2\n", "video.min_sharpness"),
             ("[[video]]\ninput = \"a\"\nreconnect_min_ms = 0\n", "video.reconnect_max_ms"),
             ("[[video]]\ninput = \"a\"\nframerate = 3\n", "test.toml"),

@@ -34,8 +34,10 @@ pub fn atomic_write_linked(path: &Path, bytes: &[u8], also: Option<&Path>) -> st
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
     let n = TMP_COUNTER.fetch_add(1, Ordering::Relaxed);
     let tmp = dir.join(format!(".{name}{TMP_MARK}{}-{n}", std::process::id()));
-    let result = (|| {
-        let mut f = File::create(&tmp)?;
+    let result: std::io::Result<()> = (|| {
+        // A new file, never an existing name: a link planted under the temporary's
+        // (guessable) name in the inbox is not followed to write elsewhere (O_EXCL).
+        let mut f = OpenOptions::new().write(true).create_new(true).open(&tmp)?;
         f.write_all(bytes)?;
         f.sync_all()?;
         drop(f);
@@ -53,7 +55,9 @@ pub fn atomic_write_linked(path: &Path, bytes: &[u8], also: Option<&Path>) -> st
         }
         Ok(())
     })();
-    if result.is_err() {
+    if let Err(e) = &result
+        && e.kind() != std::io::ErrorKind::AlreadyExists
+    {
         let _ = std::fs::remove_file(&tmp);
     }
     result
@@ -126,9 +130,10 @@ impl Emitter {
         })
     }
 
-    /// The folder of a session's results.
+    /// The folder of a session's results: always one plain folder directly in the out
+    /// folder, whatever the session's name ([`super::paths::session_dir_name`]).
     pub fn session_dir(&self, session: &str) -> PathBuf {
-        self.out.join(session)
+        self.out.join(super::paths::session_dir_name(session))
     }
 
     /// The latest result's file name.
@@ -266,6 +271,21 @@ mod tests {
         atomic_write(&p, b"two").unwrap();
         assert_eq!(std::fs::read(&p).unwrap(), b"two");
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_link_planted_under_the_temporary_name_is_not_written_through() {
+        let dir = tempfile::tempdir().unwrap();
+        let victim = dir.path().join("victim");
+        std::fs::write(&victim, b"keep").unwrap();
+        let n = TMP_COUNTER.load(Ordering::Relaxed);
+        for k in n..n + 64 {
+            let tmp = dir.path().join(format!(".a.png{TMP_MARK}{}-{k}", std::process::id()));
+            std::os::unix::fs::symlink(&victim, tmp).unwrap();
+        }
+        let _ = atomic_write(&dir.path().join("a.png"), b"new");
+        assert_eq!(std::fs::read(&victim).unwrap(), b"keep");
     }
 
     #[test]

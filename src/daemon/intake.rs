@@ -8,7 +8,7 @@
 //! its files stay ready, on disk, and are queued at a later tick. A file that fails to
 //! decode is reported once (event `file_skipped`) and not retried until it changes.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -19,6 +19,7 @@ use image::DynamicImage;
 use tokio::sync::{Semaphore, mpsc};
 use tokio_util::sync::CancellationToken;
 
+use super::paths::{Inbox, Refusal};
 use super::watch::{self, Role};
 use super::worker::{FileId, Job};
 use super::{Backlog, Stats, emit::Emitter};
@@ -56,6 +57,9 @@ pub struct Intake {
     stats: Arc<Stats>,
     files: HashMap<PathBuf, Tracked>,
     decoders: Arc<Semaphore>,
+    inbox: Inbox,
+    /// Symbolic links refused and reported (each once, while it is there).
+    refused: HashSet<PathBuf>,
 }
 
 /// The worker that owns `session` (stable for the life of the process).
@@ -74,7 +78,18 @@ impl Intake {
         stats: Arc<Stats>,
     ) -> Self {
         let decoders = Arc::new(Semaphore::new(config.decoders.get()));
-        Self { config, senders, backlog, emitter, stats, files: HashMap::new(), decoders }
+        let inbox = Inbox::of(&config);
+        Self {
+            config,
+            senders,
+            backlog,
+            emitter,
+            stats,
+            files: HashMap::new(),
+            decoders,
+            inbox,
+            refused: HashSet::new(),
+        }
     }
 
     pub async fn run(
@@ -111,8 +126,10 @@ impl Intake {
 
     async fn full_scan(&mut self) {
         let root = self.config.watch_dir.clone();
-        let paths = tokio::task::spawn_blocking(move || watch::scan(&root)).await.unwrap_or_default();
-        let present: std::collections::HashSet<&PathBuf> = paths.iter().collect();
+        let follow = self.config.follow_symlinks;
+        let paths = tokio::task::spawn_blocking(move || watch::scan(&root, follow)).await.unwrap_or_default();
+        let present: HashSet<&PathBuf> = paths.iter().collect();
+        self.refused.retain(|p| present.contains(p));
         self.files.retain(|p, t| {
             let keep = present.contains(p);
             if !keep && t.status == Status::Ready {
@@ -127,11 +144,16 @@ impl Intake {
 
     /// A hint that `path` may have changed.
     fn observe(&mut self, path: PathBuf) {
+        if let Some(link) = self.inbox.symlink_on_path(&path) {
+            self.forget(&path);
+            self.refuse_link(link);
+            return;
+        }
         if path.parent() == Some(self.config.watch_dir.as_path()) && path.is_dir() {
             // A new session folder: files can land in it before the watcher watches it.
             if let Ok(entries) = std::fs::read_dir(&path) {
                 for e in entries.flatten() {
-                    if e.file_type().is_ok_and(|t| t.is_file()) {
+                    if e.file_type().is_ok_and(|t| t.is_file() || t.is_symlink()) {
                         self.observe(e.path());
                     }
                 }
@@ -144,11 +166,7 @@ impl Intake {
         let meta = match std::fs::metadata(&path) {
             Ok(m) if m.is_file() => m,
             _ => {
-                if let Some(t) = self.files.remove(&path)
-                    && t.status == Status::Ready
-                {
-                    self.backlog.done(&t.session);
-                }
+                self.forget(&path);
                 return;
             }
         };
@@ -176,6 +194,46 @@ impl Intake {
                 );
             }
         }
+    }
+
+    /// Stops tracking `path`.
+    fn forget(&mut self, path: &PathBuf) {
+        if let Some(t) = self.files.remove(path)
+            && t.status == Status::Ready
+        {
+            self.backlog.done(&t.session);
+        }
+    }
+
+    /// Reports a symbolic link that is not followed: once, while it stays. Links in the
+    /// root and linked session folders are reported whatever their name; a link inside a
+    /// session when it is a candidate by name.
+    fn refuse_link(&mut self, link: PathBuf) {
+        if self.refused.contains(&link) {
+            return;
+        }
+        let root = &self.config.watch_dir;
+        let name = link.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let (session, what) = match watch::classify(root, &link, &self.config.extensions) {
+            Some(c) => (c.session, "file"),
+            None if link.parent() == Some(root.as_path()) && !watch::is_partial_or_hidden(&name) => {
+                (name.clone(), "session folder")
+            }
+            None => return,
+        };
+        let target = std::fs::read_link(&link).ok();
+        let reason = format!(
+            "the {what} is a symbolic link{}: links are not followed (watch.follow_symlinks = false)",
+            target.as_ref().map(|t| format!(" to {}", t.display())).unwrap_or_default()
+        );
+        self.stats.skipped.fetch_add(1, Ordering::Relaxed);
+        tracing::warn!(file = %link.display(), session = %session, %reason, "file skipped");
+        self.emitter.event(
+            "file_skipped",
+            Some(&session),
+            serde_json::json!({ "file": name, "path": link, "reason": reason, "symlink": true }),
+        );
+        self.refused.insert(link);
     }
 
     /// Re-checks settling files; those quiet for long enough become ready.
@@ -225,9 +283,11 @@ impl Intake {
             let (role, size, mtime) = (t.role, t.size, t.mtime);
             let semaphore = self.decoders.clone();
             let p = path.clone();
+            let inbox = self.inbox.clone();
             let handle = tokio::spawn(async move {
                 let _permit = semaphore.acquire_owned().await.expect("never closed");
-                tokio::task::spawn_blocking(move || read_and_decode(&p, role, size, mtime, &limits)).await
+                tokio::task::spawn_blocking(move || read_and_decode(&p, role, size, mtime, &limits, &inbox))
+                    .await
             });
             decodes.push((path, w, handle));
         }
@@ -296,17 +356,26 @@ pub enum DecodeOutcome {
     Failed(String),
 }
 
-/// Reads and decodes a file, checking it did not change meanwhile; views and keyframes
-/// come back as 8-bit RGB, masks as 8-bit grey.
+/// Reads and decodes a file of the watched folder, opened through `inbox` (no symbolic
+/// link followed unless configured, see [`super::paths`]), checking it did not change
+/// meanwhile; views and keyframes come back as 8-bit RGB, masks as 8-bit grey.
 pub fn read_and_decode(
     path: &std::path::Path,
     role: Role,
     size: u64,
     mtime: SystemTime,
     limits: &DecodeLimits,
+    inbox: &Inbox,
 ) -> Result<DynamicImage, DecodeOutcome> {
-    let bytes = std::fs::read(path).map_err(|e| DecodeOutcome::Io(format!("cannot read: {e}")))?;
-    let meta = std::fs::metadata(path).map_err(|e| DecodeOutcome::Io(format!("cannot read: {e}")))?;
+    use std::io::Read;
+    let mut file = inbox.open(path).map_err(|e| match e {
+        Refusal::Io(e) => DecodeOutcome::Io(format!("cannot read: {e}")),
+        refused => DecodeOutcome::Io(refused.to_string()),
+    })?;
+    let mut bytes = Vec::new();
+    file.read_to_end(&mut bytes).map_err(|e| DecodeOutcome::Io(format!("cannot read: {e}")))?;
+    // The same file as was read (its descriptor), not whatever the name means now.
+    let meta = file.metadata().map_err(|e| DecodeOutcome::Io(format!("cannot read: {e}")))?;
     if meta.len() != size || meta.modified().ok() != Some(mtime) || bytes.len() as u64 != size {
         return Err(DecodeOutcome::Changed);
     }

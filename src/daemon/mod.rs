@@ -32,6 +32,7 @@
 pub mod emit;
 pub mod http;
 pub mod intake;
+pub mod paths;
 pub mod provenance;
 pub mod registry;
 pub mod state;
@@ -230,7 +231,7 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
     let _watcher = match config.watch_mode {
         _ if !watching => None,
         crate::config::WatchMode::Notify => Some(
-            watch::start_notify(&config.watch_dir, hint_tx.clone(), overflow.clone())
+            watch::start_notify(&config.watch_dir, config.follow_symlinks, hint_tx.clone(), overflow.clone())
                 .map_err(|source| DaemonError::Watch { path: config.watch_dir.clone(), source })?,
         ),
         crate::config::WatchMode::Poll { .. } => None,

@@ -81,8 +81,10 @@ pub fn sessions_dir(state_dir: &Path) -> PathBuf {
     state_dir.join("sessions")
 }
 
+/// A session's state file: always directly in the sessions folder, whatever the name
+/// ([`super::paths::session_dir_name`]).
 fn path(state_dir: &Path, session: &str) -> PathBuf {
-    sessions_dir(state_dir).join(format!("{session}.json"))
+    sessions_dir(state_dir).join(format!("{}.json", super::paths::session_dir_name(session)))
 }
 
 /// The saved state of `session`, or a fresh one (missing, unreadable, corrupt or of
@@ -152,6 +154,25 @@ mod tests {
         assert_eq!(back, s);
         assert_eq!(back.alignment("v|1|2", "k|3|4"), Some(&record()));
         assert_eq!(back.alignment("v|1|2", "other key"), None);
+    }
+
+    #[test]
+    fn any_session_name_stays_in_the_sessions_folder() {
+        let root = tempfile::tempdir().unwrap();
+        let state_dir = root.path().join("state");
+        std::fs::create_dir_all(sessions_dir(&state_dir)).unwrap();
+        let names = ["../../escaped", "/tmp/abs", "a/b", "..", ".", "", "new\nline", "x".repeat(250).leak()];
+        for (i, name) in names.iter().enumerate() {
+            save(&state_dir, name, &SessionState { last_number: i as u64, ..Default::default() });
+        }
+        for (i, name) in names.iter().enumerate() {
+            assert_eq!(load(&state_dir, name).last_number, i as u64, "{name:?}");
+        }
+        let entries: Vec<_> =
+            std::fs::read_dir(root.path()).unwrap().flatten().map(|e| e.file_name()).collect();
+        assert_eq!(entries, ["state"], "nothing beside the state folder");
+        assert_eq!(std::fs::read_dir(&state_dir).unwrap().count(), 1, "nothing beside sessions/");
+        assert_eq!(std::fs::read_dir(sessions_dir(&state_dir)).unwrap().count(), names.len());
     }
 
     #[test]

@@ -83,8 +83,11 @@ pub fn stem(name: &str) -> &str {
 }
 
 /// Every file directly in `root` or one level below (the candidates among them are
-/// decided by [`classify`]). Unreadable folders are logged and skipped.
-pub fn scan(root: &Path) -> Vec<PathBuf> {
+/// decided by [`classify`]), symbolic links included: the intake refuses them, so a link
+/// is reported rather than silently missed. A linked folder is entered only when links
+/// are followed; otherwise the link itself is listed. Unreadable folders are logged and
+/// skipped.
+pub fn scan(root: &Path, follow_symlinks: bool) -> Vec<PathBuf> {
     let mut out = Vec::new();
     let entries = match std::fs::read_dir(root) {
         Ok(e) => e,
@@ -93,16 +96,19 @@ pub fn scan(root: &Path) -> Vec<PathBuf> {
             return out;
         }
     };
+    let listed = |k: std::fs::FileType| k.is_file() || k.is_symlink();
     for entry in entries.flatten() {
         let Ok(kind) = entry.file_type() else { continue };
-        if kind.is_file() {
+        let is_dir = kind.is_dir()
+            || (follow_symlinks
+                && kind.is_symlink()
+                && std::fs::metadata(entry.path()).is_ok_and(|m| m.is_dir()));
+        if is_dir {
+            if let Ok(inner) = std::fs::read_dir(entry.path()) {
+                out.extend(inner.flatten().filter(|e| e.file_type().is_ok_and(listed)).map(|e| e.path()));
+            }
+        } else if listed(kind) {
             out.push(entry.path());
-        } else if kind.is_dir()
-            && let Ok(inner) = std::fs::read_dir(entry.path())
-        {
-            out.extend(
-                inner.flatten().filter(|e| e.file_type().is_ok_and(|k| k.is_file())).map(|e| e.path()),
-            );
         }
     }
     out.sort();
@@ -110,12 +116,14 @@ pub fn scan(root: &Path) -> Vec<PathBuf> {
 }
 
 /// Starts kernel notifications on `root` (recursive); every touched path becomes a hint.
+/// Linked folders are watched through only when links are followed.
 pub fn start_notify(
     root: &Path,
+    follow_symlinks: bool,
     hints: Sender<PathBuf>,
     overflow: Arc<AtomicBool>,
 ) -> notify::Result<notify::RecommendedWatcher> {
-    let mut watcher = notify::recommended_watcher(move |res: notify::Result<notify::Event>| match res {
+    let handler = move |res: notify::Result<notify::Event>| match res {
         Ok(event) => {
             for path in event.paths {
                 match hints.try_send(path) {
@@ -129,7 +137,9 @@ pub fn start_notify(
             tracing::warn!(error = %e, "file notification error: rescanning");
             overflow.store(true, Ordering::Relaxed);
         }
-    })?;
+    };
+    let config = notify::Config::default().with_follow_symlinks(follow_symlinks);
+    let mut watcher = notify::RecommendedWatcher::new(handler, config)?;
     watcher.watch(root, RecursiveMode::Recursive)?;
     Ok(watcher)
 }
@@ -163,5 +173,25 @@ mod tests {
             assert_eq!(c(ignored), None, "{ignored}");
         }
         assert_eq!(classify(root, Path::new("/elsewhere/a.jpg"), &exts()), None);
+        assert_eq!(c("../a.jpg"), None);
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn scans_list_links_and_enter_linked_folders_only_when_following() {
+        use std::os::unix::fs::symlink;
+        let tmp = tempfile::tempdir().unwrap();
+        let (root, outside) = (tmp.path().join("in"), tmp.path().join("out"));
+        std::fs::create_dir_all(root.join("s1")).unwrap();
+        std::fs::create_dir_all(&outside).unwrap();
+        std::fs::write(outside.join("o.jpg"), b"x").unwrap();
+        std::fs::write(root.join("s1/a.jpg"), b"x").unwrap();
+        symlink(outside.join("o.jpg"), root.join("s1/l.jpg")).unwrap();
+        symlink(&outside, root.join("s2")).unwrap();
+        let rel = |v: Vec<PathBuf>| -> Vec<String> {
+            v.iter().map(|p| p.strip_prefix(&root).unwrap().to_string_lossy().into_owned()).collect()
+        };
+        assert_eq!(rel(scan(&root, false)), ["s1/a.jpg", "s1/l.jpg", "s2"]);
+        assert_eq!(rel(scan(&root, true)), ["s1/a.jpg", "s1/l.jpg", "s2/o.jpg"]);
     }
 }

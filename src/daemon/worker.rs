@@ -17,6 +17,7 @@ use tokio_util::sync::CancellationToken;
 
 use super::emit::{Emitter, rfc3339};
 use super::intake::{DecodeOutcome, read_and_decode};
+use super::paths::Inbox;
 use super::registry::{LegendEntry, Registry, SessionSnapshot, ViewSnapshot};
 use super::state::{self, SavedResult, SessionState};
 use super::watch::{self, Role};
@@ -258,11 +259,13 @@ impl Worker {
         let Some(key_name) = slot.state.key_file.clone() else { return };
         let key_path = slot.dir.join(&key_name);
         let Ok(file) = FileId::of(&key_path) else { return };
-        let Ok(img) = read_and_decode(&key_path, Role::View, file.size, file.mtime, &limits(ctx)) else {
+        let Ok(img) =
+            read_and_decode(&key_path, Role::View, file.size, file.mtime, &limits(ctx), &inbox(ctx))
+        else {
             return;
         };
         let key_id = file.id();
-        for path in watch::scan(&slot.dir) {
+        for path in watch::scan(&slot.dir, ctx.config.follow_symlinks) {
             let Some(c) = watch::classify(&ctx.config.watch_dir, &path, &ctx.config.extensions) else {
                 continue;
             };
@@ -422,7 +425,8 @@ fn take_key(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &Dyna
     );
     if let Some(mask_path) = find_mask(ctx, &slot.dir, &file.name) {
         match FileId::of(&mask_path).map_err(|e| DecodeOutcome::Io(e.to_string())).and_then(|f| {
-            read_and_decode(&mask_path, Role::Mask, f.size, f.mtime, &limits(ctx)).map(|img| (f, img))
+            read_and_decode(&mask_path, Role::Mask, f.size, f.mtime, &limits(ctx), &inbox(ctx))
+                .map(|img| (f, img))
         }) {
             Ok((f, img)) => apply_mask(ctx, slot, &f, &img),
             Err(e) => skip(ctx, slot, &mask_path, &outcome_reason(&e)),
@@ -519,7 +523,9 @@ fn auto_mask(ctx: &Ctx, slot: &mut Slot) {
     let mut images = Vec::new();
     for (_, path, h) in &chosen {
         let Ok(f) = FileId::of(path) else { return };
-        let Ok(img) = read_and_decode(path, Role::View, f.size, f.mtime, &limits(ctx)) else { return };
+        let Ok(img) = read_and_decode(path, Role::View, f.size, f.mtime, &limits(ctx), &inbox(ctx)) else {
+            return;
+        };
         images.push((to_rgb(&img), *h));
     }
     let Ok(mask) = slot.session.auto_mask(&images) else { return };
@@ -544,6 +550,10 @@ fn auto_mask(ctx: &Ctx, slot: &mut Slot) {
 
 fn limits(ctx: &Ctx) -> DecodeLimits {
     DecodeLimits { max_pixels: ctx.config.max_pixels }
+}
+
+fn inbox(ctx: &Ctx) -> Inbox {
+    Inbox::of(&ctx.config)
 }
 
 fn outcome_reason(e: &DecodeOutcome) -> String {
@@ -573,7 +583,7 @@ fn reprocess(ctx: &Ctx, slot: &mut Slot, path: &Path) {
             return;
         }
     };
-    match read_and_decode(path, Role::View, file.size, file.mtime, &limits(ctx)) {
+    match read_and_decode(path, Role::View, file.size, file.mtime, &limits(ctx), &inbox(ctx)) {
         Ok(img) => process_view(ctx, slot, &file, path, &img),
         // A change means the intake will bring the new version.
         Err(DecodeOutcome::Changed) => {}

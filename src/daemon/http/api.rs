@@ -13,6 +13,7 @@
 //!   user gave is overwritten or deleted.
 
 use std::convert::Infallible;
+use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -30,6 +31,7 @@ use tokio_stream::wrappers::ReceiverStream;
 
 use super::{AppState, Shared};
 use crate::daemon::emit::atomic_write;
+use crate::daemon::paths::{Inbox, Refusal};
 use crate::daemon::registry::SessionSnapshot;
 use crate::daemon::watch;
 use crate::imaging::decode::{DecodeLimits, decode};
@@ -111,10 +113,64 @@ pub async fn result(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<
     file(s.emitter.session_dir(&x.id).join(s.emitter.result_name()), "result").await
 }
 
+/// The bytes of a file of the watched folder, opened as the intake opens it (no symbolic
+/// link followed unless configured, nothing outside the folder).
+async fn inbox_file(s: &Shared, path: PathBuf, what: &'static str) -> Result<Response, ApiError> {
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
+    let bytes = read_inbox(Inbox::of(&s.config), path, what).await?;
+    Ok(([(header::CONTENT_TYPE, content_type(&name)), (header::CACHE_CONTROL, "no-store")], bytes)
+        .into_response())
+}
+
+async fn read_inbox(inbox: Inbox, path: PathBuf, what: &'static str) -> Result<Vec<u8>, ApiError> {
+    tokio::task::spawn_blocking(move || {
+        let mut bytes = Vec::new();
+        match inbox.open(&path).and_then(|mut f| f.read_to_end(&mut bytes).map_err(Refusal::Io)) {
+            Ok(_) => Ok(bytes),
+            Err(Refusal::Io(e)) if e.kind() == std::io::ErrorKind::NotFound => {
+                Err(err(StatusCode::NOT_FOUND, format!("the {what}'s file is gone")))
+            }
+            Err(Refusal::Outside { .. }) => {
+                Err(err(StatusCode::NOT_FOUND, format!("the {what} is not a file of the watched folder")))
+            }
+            Err(e @ (Refusal::Symlink { .. } | Refusal::NotAFile)) => {
+                tracing::warn!(file = %path.display(), reason = %e, "refused to the HTTP API");
+                Err(err(StatusCode::FORBIDDEN, e.to_string()))
+            }
+            Err(e) => {
+                tracing::warn!(file = %path.display(), error = %e, "cannot read for the HTTP API");
+                Err(err(StatusCode::INTERNAL_SERVER_ERROR, format!("cannot read the {what}")))
+            }
+        }
+    })
+    .await
+    .map_err(|_| err(StatusCode::INTERNAL_SERVER_ERROR, "read task failed"))?
+}
+
+/// The session's own folder in the watched inbox, where a painted mask or a chosen
+/// keyframe goes: `409` for a session that has none (a video stream's).
+fn inbox_dir(s: &Shared, x: &SessionSnapshot) -> Result<PathBuf, ApiError> {
+    let root = &s.config.watch_dir;
+    let dir = &x.inbox_dir;
+    let plain = dir == root
+        || (dir.parent() == Some(root.as_path())
+            && dir.file_name().and_then(|n| n.to_str()).is_some_and(|n| !watch::is_partial_or_hidden(n)));
+    if !s.config.watch_enabled || !plain {
+        return Err(err(
+            StatusCode::CONFLICT,
+            "this session has no folder in the watched inbox (a video stream): its keyframe and mask come from the configuration",
+        ));
+    }
+    if let Some(link) = Inbox::of(&s.config).symlink_on_path(dir) {
+        return Err(err(StatusCode::FORBIDDEN, Refusal::Symlink { link }.to_string()));
+    }
+    Ok(dir.clone())
+}
+
 pub async fn keyframe(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
     let x = session(&s, &id)?;
     let path = x.key_path.clone().ok_or_else(|| err(StatusCode::NOT_FOUND, "no keyframe yet"))?;
-    file(path, "keyframe").await
+    inbox_file(&s, path, "keyframe").await
 }
 
 pub async fn mask(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
@@ -159,9 +215,8 @@ pub async fn thumb(
     }
     .ok_or_else(|| err(StatusCode::NOT_FOUND, format!("no view {name:?} in session {id:?}")))?;
     let limits = DecodeLimits { max_pixels: s.config.max_pixels };
+    let bytes = read_inbox(Inbox::of(&s.config), path, "view").await?;
     let jpeg = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, ApiError> {
-        let bytes =
-            std::fs::read(&path).map_err(|_| err(StatusCode::NOT_FOUND, "the view's file is gone"))?;
         let img =
             decode(&bytes, &limits).map_err(|e| err(StatusCode::UNPROCESSABLE_ENTITY, e.to_string()))?;
         let small = img.thumbnail(THUMB, THUMB).to_rgb8();
@@ -195,7 +250,8 @@ pub async fn put_mask(
     let limits = DecodeLimits { max_pixels: s.config.max_pixels };
     let extensions = s.config.extensions.clone();
     let record = s.emitter.session_dir(&x.id).join("painted-mask.png");
-    let dir = x.inbox_dir.clone();
+    let dir = inbox_dir(&s, &x)?;
+    let inbox = Inbox::of(&s.config);
     let stored = tokio::task::spawn_blocking(move || -> Result<serde_json::Value, ApiError> {
         let img = decode(&body, &limits)
             .map_err(|e| err(StatusCode::BAD_REQUEST, format!("not a readable image: {e}")))?;
@@ -223,7 +279,12 @@ pub async fn put_mask(
             if !existing.is_file() {
                 continue;
             }
-            let painted_by_us = ext == "png" && ours.is_some() && std::fs::read(&existing).ok() == ours;
+            let theirs = || {
+                let mut b = Vec::new();
+                inbox.open(&existing).ok()?.read_to_end(&mut b).ok()?;
+                Some(b)
+            };
+            let painted_by_us = ext == "png" && ours.is_some() && theirs() == ours;
             if painted_by_us {
                 continue;
             }
@@ -275,7 +336,13 @@ pub async fn choose_keyframe(
             err(StatusCode::NOT_FOUND, format!("no view {:?} in session {id:?}", choice.file))
         })?;
     let from = view.path.clone();
-    let dir = x.inbox_dir.clone();
+    let dir = inbox_dir(&s, &x)?;
+    if from.parent() != Some(dir.as_path()) {
+        return Err(err(
+            StatusCode::CONFLICT,
+            format!("{:?} is not a file of the session's folder", choice.file),
+        ));
+    }
     let extensions = s.config.extensions.clone();
     let done = tokio::task::spawn_blocking(move || -> Result<serde_json::Value, ApiError> {
         let ext = from.extension().and_then(|e| e.to_str()).unwrap_or("png").to_ascii_lowercase();

@@ -24,7 +24,7 @@ mod page;
 
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, Request, State};
@@ -94,14 +94,64 @@ pub async fn bind(http: &HttpConfig, token: &str) -> std::io::Result<Server> {
     Ok(Server { listener, addr, url })
 }
 
-/// Serves until `shared.cancel` is cancelled.
+/// Connections served at once; more wait in the kernel's backlog until one closes.
+pub const MAX_CONNECTIONS: usize = 256;
+
+/// A connection must send a whole request head within this time (idle keep-alive
+/// connections included), or it is closed: a client sending its headers a byte at a
+/// time cannot hold a connection (slow-loris).
+pub const HEADER_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// A request that sends a body must have sent it, and been answered, within this time.
+pub const BODY_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// Serves until `shared.cancel` is cancelled: at most [`MAX_CONNECTIONS`] connections,
+/// each closed when its request head takes longer than [`HEADER_TIMEOUT`].
 pub async fn serve(server: Server, shared: Arc<Shared>, max_body: usize) {
     let cancel = shared.cancel.clone();
     let app = router(shared, max_body);
-    let r = axum::serve(server.listener, app).with_graceful_shutdown(cancel.cancelled_owned()).await;
-    if let Err(e) = r {
-        tracing::error!(error = %e, "the HTTP server stopped");
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
+    let connections = tokio_util::task::TaskTracker::new();
+    loop {
+        let slot = tokio::select! {
+            () = cancel.cancelled() => break,
+            s = slots.clone().acquire_owned() => s.expect("never closed"),
+        };
+        let stream = tokio::select! {
+            () = cancel.cancelled() => break,
+            r = server.listener.accept() => match r {
+                Ok((stream, _)) => stream,
+                Err(e) => {
+                    // Out of descriptors and the like: wait rather than spin.
+                    tracing::warn!(error = %e, "cannot accept an HTTP connection");
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                    continue;
+                }
+            },
+        };
+        let service = hyper_util::service::TowerToHyperService::new(app.clone());
+        let cancel = cancel.clone();
+        connections.spawn(async move {
+            let _slot = slot;
+            let mut builder = hyper::server::conn::http1::Builder::new();
+            builder.timer(hyper_util::rt::TokioTimer::new()).header_read_timeout(HEADER_TIMEOUT);
+            let conn = builder.serve_connection(hyper_util::rt::TokioIo::new(stream), service);
+            tokio::pin!(conn);
+            tokio::select! {
+                r = conn.as_mut() => {
+                    if let Err(e) = r {
+                        tracing::debug!(error = %e, "HTTP connection ended");
+                    }
+                }
+                () = cancel.cancelled() => {
+                    conn.as_mut().graceful_shutdown();
+                    let _ = conn.await;
+                }
+            }
+        });
     }
+    connections.close();
+    connections.wait().await;
 }
 
 fn router(shared: Arc<Shared>, max_body: usize) -> Router {
@@ -125,7 +175,20 @@ fn router(shared: Arc<Shared>, max_body: usize) -> Router {
             declared_length_limit(max_body, req, next)
         }))
         .layer(DefaultBodyLimit::max(max_body))
+        .layer(axum::middleware::from_fn(body_timeout))
         .with_state(shared)
+}
+
+/// Bounds a request that sends a body (anything but GET and HEAD: the server-sent events
+/// stream is a GET and may last) by [`BODY_TIMEOUT`]: 408 beyond.
+async fn body_timeout(req: Request, next: Next) -> Response {
+    if matches!(*req.method(), Method::GET | Method::HEAD) {
+        return next.run(req).await;
+    }
+    match tokio::time::timeout(BODY_TIMEOUT, next.run(req)).await {
+        Ok(r) => r,
+        Err(_) => (StatusCode::REQUEST_TIMEOUT, "the request took too long to arrive\n").into_response(),
+    }
 }
 
 /// Refuses a body whose declared length is over the limit at once, without reading it
