@@ -186,15 +186,19 @@ fn symbolic_links_are_refused_and_nothing_outside_the_watched_folder_is_read() {
     assert!(status.is_none_or(|c| (400..500).contains(&c)), "{status:?}");
     assert_eq!(get(&format!("{}/healthz", s.base)).status, 200);
 
-    // The slow client was cut off within the header timeout (10 s) plus slack.
+    // The slow client was cut off (the header timeout is 10 s; without one it would
+    // still be waiting, and the read would time out).
     slow.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
     let mut buf = [0u8; 256];
     let closed = match slow.read(&mut buf) {
         Ok(n) => n == 0 || String::from_utf8_lossy(&buf[..n]).starts_with("HTTP/1.1 4"),
         Err(e) => !matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut),
     };
-    assert!(closed, "a client sending no full request head keeps its connection");
-    assert!(slow_since.elapsed() < Duration::from_secs(20));
+    assert!(
+        closed,
+        "a client sending no full request head kept its connection for {:?}",
+        slow_since.elapsed()
+    );
 
     // The secret and the outside session are untouched, and nothing was written there.
     assert_eq!(std::fs::read(outside.join("passwd")).unwrap(), secret);

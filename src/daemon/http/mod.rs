@@ -16,7 +16,10 @@
 //!   a web page elsewhere cannot reach the service through DNS rebinding.
 //! - Request bodies are limited (`max_body_bytes`, 413 beyond). Session ids and file
 //!   names in paths are looked up among the sessions and views the workers published,
-//!   never joined to a folder as given.
+//!   never joined to a folder as given; inbox files are opened through
+//!   [`crate::daemon::paths::Inbox`] (no symbolic link followed unless configured).
+//! - A request head must arrive within [`HEADER_TIMEOUT`], a request with a body be done
+//!   within [`BODY_TIMEOUT`]; at most [`MAX_CONNECTIONS`] connections are served at once.
 
 mod api;
 mod metrics;
