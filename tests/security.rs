@@ -149,6 +149,10 @@ fn symbolic_links_are_refused_and_nothing_outside_the_watched_folder_is_read() {
     // After the files were taken, links swapped in under their names: the HTTP server's
     // reads refuse them too (the keyframe, a view's thumbnail).
     let api = format!("{}/api/sessions/s1", s.base);
+    // The registry is published after the events are written: wait for it to list v1.
+    wait_session(&s, "s1", "v1 listed", 30, |v| {
+        v["views"].as_array().is_some_and(|a| a.iter().any(|w| w["file"] == "v1.png"))
+    });
     assert_eq!(get(&format!("{api}/keyframe")).status, 200);
     assert_eq!(get(&format!("{api}/views/v1.png/thumb")).status, 200);
     swap_for_link(&s1.join("key.png"), &outside.join("passwd"));
