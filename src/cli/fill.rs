@@ -15,9 +15,9 @@ use super::load::load_image;
 use super::save::{output_format, save_image};
 use crate::align::{AlignParams, Frame, align};
 use crate::geometry::{Homography, Rows};
-use crate::imaging::convert::{mask_to_luma8, to_luminance, to_mask, to_rgb, to_rgb8};
+use crate::imaging::convert::{crop_rgb8, mask_to_luma8, to_luminance, to_mask, to_rgb, to_rgb8};
 use crate::imaging::decode::DecodeLimits;
-use crate::imaging::{Mask, Rect, RgbF32};
+use crate::imaging::{Mask, Rect, Rgb8};
 use crate::inpaint::region::{footprint, into_crop};
 use crate::inpaint::{AutoMaskParams, FillParams, Observer, Source, Stage, auto_mask, fill};
 
@@ -152,9 +152,10 @@ impl Observer for Progress {
     }
 }
 
-/// A view that survived alignment: the part of it the fill needs.
+/// A view that survived alignment: the part of it the fill needs, in 8 bits (a quarter of
+/// the memory of `f32`; the fill reads it as `f32` where it samples it).
 struct Aligned {
-    crop: RgbF32,
+    crop: Rgb8,
     homography: Homography,
     report: usize,
 }
@@ -228,53 +229,14 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     let mut aligned: Vec<Aligned> = Vec::new();
     for (i, path) in args.views.iter().enumerate() {
         progress.bar.set_position(i as u64);
-        let _span = tracing::info_span!("view", path = %path.display()).entered();
-        let img = match load_image(path, &limits) {
-            Ok(img) => img,
-            Err(e) => {
-                eprintln!("clearview fill: {e}: skipped");
-                reports.push(ViewReport::refused(path, e.to_string()));
-                continue;
-            }
-        };
-        let frame = Frame::new(to_luminance(&img), &params);
-        let a = align(&key_frame, &frame, &params, None);
-        drop(frame);
-        let mut report = ViewReport {
-            path: path.clone(),
-            accepted: a.accepted(),
-            reason: a.rejection.as_ref().map(ToString::to_string),
-            homography: a.homography.as_ref().map(Rows::from),
-            inliers: a.inliers,
-            matches: a.matches,
-            median_residual_px: a.median_residual_px.is_finite().then_some(a.median_residual_px),
-            covered_pixels: 0,
-            filled_pixels: 0,
-            gain: None,
-            offset: None,
-        };
-        match (&a.homography, &a.rejection, &region) {
-            (Some(h), None, Some(region)) => {
-                let (vw, vh) = (img.width() as usize, img.height() as usize);
-                if let Some(crop) = footprint(region, h, vw, vh, 0) {
-                    let part =
-                        img.crop_imm(crop.x as u32, crop.y as u32, crop.width as u32, crop.height as u32);
-                    aligned.push(Aligned {
-                        crop: to_rgb(&part),
-                        homography: into_crop(h, &crop),
-                        report: reports.len(),
-                    });
-                } else {
-                    report.reason = Some("the view does not show the masked region".into());
-                }
-            }
-            (_, Some(r), _) => eprintln!("clearview fill: {}: rejected: {r}", path.display()),
-            _ => {}
+        let (report, crop) = align_view(path, &limits, &key_frame, &params, region.as_ref());
+        if let Some((crop, homography)) = crop {
+            aligned.push(Aligned { crop, homography, report: reports.len() });
         }
         reports.push(report);
     }
 
-    let sources: Vec<Source<'_>> =
+    let sources: Vec<Source<'_, [u8; 3]>> =
         aligned.iter().map(|a| Source { image: &a.crop, homography: a.homography }).collect();
     let mask: Mask = match given_mask {
         Some(m) => m,
@@ -322,6 +284,55 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     print_summary(&report);
     let accepted = report.views.iter().filter(|v| v.accepted).count();
     Ok(if accepted == 0 { exit::REJECTED } else { exit::OK })
+}
+
+/// Decodes and aligns one view; when it is accepted and sees `region`, also the 8-bit crop
+/// of it that the fill needs and the homography into that crop. The decoded image is dropped
+/// as soon as its luminance and the crop are taken.
+fn align_view(
+    path: &Path,
+    limits: &DecodeLimits,
+    key_frame: &Frame,
+    params: &AlignParams,
+    region: Option<&Rect>,
+) -> (ViewReport, Option<(Rgb8, Homography)>) {
+    let _span = tracing::info_span!("view", path = %path.display()).entered();
+    let img = match load_image(path, limits) {
+        Ok(img) => img,
+        Err(e) => {
+            eprintln!("clearview fill: {e}: skipped");
+            return (ViewReport::refused(path, e.to_string()), None);
+        }
+    };
+    let frame = Frame::new(to_luminance(&img), params);
+    let a = align(key_frame, &frame, params, None);
+    drop(frame);
+    let mut report = ViewReport {
+        path: path.to_owned(),
+        accepted: a.accepted(),
+        reason: a.rejection.as_ref().map(ToString::to_string),
+        homography: a.homography.as_ref().map(Rows::from),
+        inliers: a.inliers,
+        matches: a.matches,
+        median_residual_px: a.median_residual_px.is_finite().then_some(a.median_residual_px),
+        covered_pixels: 0,
+        filled_pixels: 0,
+        gain: None,
+        offset: None,
+    };
+    let mut kept = None;
+    match (&a.homography, &a.rejection, region) {
+        (Some(h), None, Some(region)) => {
+            let (vw, vh) = (img.width() as usize, img.height() as usize);
+            match footprint(region, h, vw, vh, 0) {
+                Some(crop) => kept = Some((crop_rgb8(&img, crop), into_crop(h, &crop))),
+                None => report.reason = Some("the view does not show the masked region".into()),
+            }
+        }
+        (_, Some(r), _) => eprintln!("clearview fill: {}: rejected: {r}", path.display()),
+        _ => {}
+    }
+    (report, kept)
 }
 
 fn print_summary(r: &Report<'_>) {
