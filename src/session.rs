@@ -33,12 +33,12 @@ use thiserror::Error;
 use crate::align::{AlignParams, Alignment, Frame, align};
 use crate::geometry::Homography;
 use crate::imaging::convert::luminance;
-use crate::imaging::{GrayF32, Mask, Plane, Rect, RgbF32};
+use crate::imaging::{GrayF32, Mask, Rect, RgbF32};
 use crate::inpaint::region::{footprint, into_crop};
 use crate::inpaint::{self, AutoMaskParams, FALLBACK, FillParams, FillReport, Observer, Provenance, Source};
 
-/// An 8-bit RGB image: what the buffer keeps of a view.
-pub type Rgb8 = Plane<[u8; 3]>;
+/// An 8-bit RGB image: what the buffer keeps of a view (the fill samples it as it is).
+pub use crate::imaging::Rgb8;
 
 /// Parameters of a session.
 #[derive(Debug, Clone, PartialEq)]
@@ -557,24 +557,17 @@ impl Session {
         let mask_region = mask.mask.crop(region);
         let into_region = Homography::translation(region.x as f64, region.y as f64);
         let used: Vec<usize> = (0..self.buffer.len()).filter(|&i| self.buffer[i].crop.is_some()).collect();
-        let images: Vec<RgbF32> = used
+        // The 8-bit crops as they are: the fill reads them as f32 where it samples them.
+        let sources: Vec<Source<'_, [u8; 3]>> = used
             .iter()
             .map(|&i| {
-                self.buffer[i].crop.as_ref().expect("filtered").image.map(|p| p.map(|v| f32::from(v) / 255.0))
-            })
-            .collect();
-        let sources: Vec<Source<'_>> = used
-            .iter()
-            .zip(&images)
-            .map(|(&i, image)| Source {
-                image,
-                homography: self.buffer[i].crop.as_ref().expect("filtered").homography.after(&into_region),
+                let crop = self.buffer[i].crop.as_ref().expect("filtered");
+                Source { image: &crop.image, homography: crop.homography.after(&into_region) }
             })
             .collect();
         let filled =
             inpaint::fill(&key_region, &mask_region, &sources, &self.params.fill, self.params.seed, observer);
         drop(sources);
-        drop(images);
         for (&i, s) in used.iter().zip(&filled.report.sources) {
             self.buffer[i].contribution = Some(s.filled);
         }

@@ -3,6 +3,8 @@
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use clap::Args;
@@ -11,15 +13,20 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
 use super::exit;
-use super::load::load_image;
+use super::load::{LoadError, load_image};
 use super::save::{output_format, save_image};
 use crate::align::{AlignParams, Frame, align};
 use crate::geometry::{Homography, Rows};
-use crate::imaging::convert::{mask_to_luma8, to_luminance, to_mask, to_rgb, to_rgb8};
+use crate::imaging::convert::{crop_rgb8, mask_to_luma8, to_luminance, to_mask, to_rgb, to_rgb8};
 use crate::imaging::decode::DecodeLimits;
-use crate::imaging::{Mask, Rect, RgbF32};
+use crate::imaging::{Mask, Rect, Rgb8, RgbF32};
 use crate::inpaint::region::{footprint, into_crop};
 use crate::inpaint::{AutoMaskParams, FillParams, Observer, Source, Stage, auto_mask, fill};
+
+/// Views decoded and aligned at the same time. JPEG decoding is sequential, so with two in
+/// flight (and the keyframe decoded beside them) both cores stay busy; the alignment inside
+/// is parallel already. At most this many decoded photographs are held at once.
+const VIEWS_IN_FLIGHT: usize = 2;
 
 /// Keyframe pixels kept around the mask for the fill's patches, local search, photometric
 /// ring and blending.
@@ -152,9 +159,10 @@ impl Observer for Progress {
     }
 }
 
-/// A view that survived alignment: the part of it the fill needs.
+/// A view that survived alignment: the part of it the fill needs, in 8 bits (a quarter of
+/// the memory of `f32`; the fill reads it as `f32` where it samples it).
 struct Aligned {
-    crop: RgbF32,
+    crop: Rgb8,
     homography: Homography,
     report: usize,
 }
@@ -196,85 +204,63 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     let mut progress = Progress::new();
 
     progress.begin("decode", 1);
-    let key_img = load_image(&args.keyframe, &limits).map_err(|e| failure(e.to_string()))?;
-    let (kw, kh) = (key_img.width() as usize, key_img.height() as usize);
-    let given_mask = if auto {
-        None
-    } else {
-        let path = Path::new(&args.mask);
-        let m = to_mask(&load_image(path, &limits).map_err(|e| failure(e.to_string()))?);
-        if (m.width(), m.height()) != (kw, kh) {
-            return Err(failure(format!(
-                "{}: the mask is {}x{} but the keyframe {} is {kw}x{kh}",
-                path.display(),
-                m.width(),
-                m.height(),
-                args.keyframe.display()
-            )));
+    // The views are decoded while the keyframe is; they wait for its frame to be aligned.
+    let key_ready: OnceLock<Option<KeyInfo>> = OnceLock::new();
+    let next = AtomicUsize::new(0);
+    let done = AtomicUsize::new(0);
+    let outcomes: Vec<OnceLock<ViewOutcome>> = args.views.iter().map(|_| OnceLock::new()).collect();
+    let keyed = std::thread::scope(|s| {
+        for _ in 0..VIEWS_IN_FLIGHT.min(args.views.len()) {
+            let bar = progress.bar.clone();
+            let (key_ready, next, done, outcomes) = (&key_ready, &next, &done, &outcomes);
+            let (limits, params) = (&limits, &params);
+            s.spawn(move || {
+                loop {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    let Some(path) = args.views.get(i) else { break };
+                    let _span = tracing::info_span!("view", path = %path.display()).entered();
+                    let decoded = decode_view(path, limits, params);
+                    let Some(key) = key_ready.wait() else { break };
+                    let outcome = match decoded {
+                        Ok((img, frame)) => align_view(path, img, &frame, key, params),
+                        Err(e) => ViewOutcome::unreadable(path, &e),
+                    };
+                    outcomes[i].set(outcome).ok().expect("each view is taken once");
+                    bar.set_position(done.fetch_add(1, Ordering::Relaxed) as u64 + 1);
+                }
+            });
         }
-        Some(m)
-    };
-    let key_rgb = to_rgb(&key_img);
-    // The keyframe region the fill works in; with an automatic mask, all of it.
-    let region = match &given_mask {
-        Some(m) => m.hole_bounds().map(|r| r.grown(MARGIN, kw, kh)),
-        None => Some(Rect::full(kw, kh)),
-    };
-    progress.begin("align", args.views.len());
-    let key_frame = Frame::new(to_luminance(&key_img), &params);
-    drop(key_img);
+        match load_key(args, auto, &limits, &params) {
+            Ok((rgb, mask, info)) => {
+                key_ready.set(Some(info)).ok();
+                progress.begin("align", args.views.len());
+                progress.bar.set_position(done.load(Ordering::Relaxed) as u64);
+                Ok((rgb, mask))
+            }
+            Err(e) => {
+                key_ready.set(None).ok();
+                Err(e)
+            }
+        }
+    });
+    let (key_rgb, given_mask) = keyed?;
+    // The keyframe's alignment pyramid is not needed any more.
+    drop(key_ready);
 
     let mut reports = Vec::with_capacity(args.views.len());
     let mut aligned: Vec<Aligned> = Vec::new();
-    for (i, path) in args.views.iter().enumerate() {
-        progress.bar.set_position(i as u64);
-        let _span = tracing::info_span!("view", path = %path.display()).entered();
-        let img = match load_image(path, &limits) {
-            Ok(img) => img,
-            Err(e) => {
-                eprintln!("clearview fill: {e}: skipped");
-                reports.push(ViewReport::refused(path, e.to_string()));
-                continue;
-            }
-        };
-        let frame = Frame::new(to_luminance(&img), &params);
-        let a = align(&key_frame, &frame, &params, None);
-        drop(frame);
-        let mut report = ViewReport {
-            path: path.clone(),
-            accepted: a.accepted(),
-            reason: a.rejection.as_ref().map(ToString::to_string),
-            homography: a.homography.as_ref().map(Rows::from),
-            inliers: a.inliers,
-            matches: a.matches,
-            median_residual_px: a.median_residual_px.is_finite().then_some(a.median_residual_px),
-            covered_pixels: 0,
-            filled_pixels: 0,
-            gain: None,
-            offset: None,
-        };
-        match (&a.homography, &a.rejection, &region) {
-            (Some(h), None, Some(region)) => {
-                let (vw, vh) = (img.width() as usize, img.height() as usize);
-                if let Some(crop) = footprint(region, h, vw, vh, 0) {
-                    let part =
-                        img.crop_imm(crop.x as u32, crop.y as u32, crop.width as u32, crop.height as u32);
-                    aligned.push(Aligned {
-                        crop: to_rgb(&part),
-                        homography: into_crop(h, &crop),
-                        report: reports.len(),
-                    });
-                } else {
-                    report.reason = Some("the view does not show the masked region".into());
-                }
-            }
-            (_, Some(r), _) => eprintln!("clearview fill: {}: rejected: {r}", path.display()),
-            _ => {}
+    for cell in outcomes {
+        let o = cell.into_inner().expect("every view was handled");
+        if let Some(note) = &o.note {
+            eprintln!("clearview fill: {note}");
         }
-        reports.push(report);
+        if let Some((crop, homography)) = o.kept {
+            aligned.push(Aligned { crop, homography, report: reports.len() });
+        }
+        reports.push(o.report);
     }
 
-    let sources: Vec<Source<'_>> =
+    let sources: Vec<Source<'_, [u8; 3]>> =
         aligned.iter().map(|a| Source { image: &a.crop, homography: a.homography }).collect();
     let mask: Mask = match given_mask {
         Some(m) => m,
@@ -322,6 +308,119 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     print_summary(&report);
     let accepted = report.views.iter().filter(|v| v.accepted).count();
     Ok(if accepted == 0 { exit::REJECTED } else { exit::OK })
+}
+
+/// What the view workers need of the keyframe.
+struct KeyInfo {
+    frame: Frame,
+    /// The keyframe region the fill works in (`None`: the mask is empty).
+    region: Option<Rect>,
+}
+
+/// The keyframe in RGB, the given mask (checked against it) and what the views need of it.
+#[allow(clippy::type_complexity)]
+fn load_key(
+    args: &FillArgs,
+    auto: bool,
+    limits: &DecodeLimits,
+    params: &AlignParams,
+) -> Result<(RgbF32, Option<Mask>, KeyInfo), (u8, String)> {
+    let failure = |m: String| (exit::FAILURE, m);
+    let key_img = load_image(&args.keyframe, limits).map_err(|e| failure(e.to_string()))?;
+    let (kw, kh) = (key_img.width() as usize, key_img.height() as usize);
+    let given_mask = if auto {
+        None
+    } else {
+        let path = Path::new(&args.mask);
+        let m = to_mask(&load_image(path, limits).map_err(|e| failure(e.to_string()))?);
+        if (m.width(), m.height()) != (kw, kh) {
+            return Err(failure(format!(
+                "{}: the mask is {}x{} but the keyframe {} is {kw}x{kh}",
+                path.display(),
+                m.width(),
+                m.height(),
+                args.keyframe.display()
+            )));
+        }
+        Some(m)
+    };
+    let key_rgb = to_rgb(&key_img);
+    // The keyframe region the fill works in; with an automatic mask, all of it.
+    let region = match &given_mask {
+        Some(m) => m.hole_bounds().map(|r| r.grown(MARGIN, kw, kh)),
+        None => Some(Rect::full(kw, kh)),
+    };
+    let frame = Frame::new(to_luminance(&key_img), params);
+    Ok((key_rgb, given_mask, KeyInfo { frame, region }))
+}
+
+/// One view's part of the result: its report line, the 8-bit crop of it the fill needs with
+/// the homography into that crop (accepted views that see the region), and what to tell the
+/// user about it.
+struct ViewOutcome {
+    report: ViewReport,
+    kept: Option<(Rgb8, Homography)>,
+    note: Option<String>,
+}
+
+impl ViewOutcome {
+    /// A view that could not be read or decoded.
+    fn unreadable(path: &Path, e: &LoadError) -> Self {
+        Self {
+            report: ViewReport::refused(path, e.to_string()),
+            kept: None,
+            note: Some(format!("{e}: skipped")),
+        }
+    }
+}
+
+/// Decodes a view and builds its alignment frame (the part that needs no keyframe).
+fn decode_view(
+    path: &Path,
+    limits: &DecodeLimits,
+    params: &AlignParams,
+) -> Result<(DynamicImage, Frame), LoadError> {
+    let img = load_image(path, limits)?;
+    let frame = Frame::new(to_luminance(&img), params);
+    Ok((img, frame))
+}
+
+/// Aligns a decoded view to the keyframe and, when it is accepted and sees the region, takes
+/// the 8-bit crop the fill needs; the decoded image is dropped here.
+fn align_view(
+    path: &Path,
+    img: DynamicImage,
+    frame: &Frame,
+    key: &KeyInfo,
+    params: &AlignParams,
+) -> ViewOutcome {
+    let a = align(&key.frame, frame, params, None);
+    let mut report = ViewReport {
+        path: path.to_owned(),
+        accepted: a.accepted(),
+        reason: a.rejection.as_ref().map(ToString::to_string),
+        homography: a.homography.as_ref().map(Rows::from),
+        inliers: a.inliers,
+        matches: a.matches,
+        median_residual_px: a.median_residual_px.is_finite().then_some(a.median_residual_px),
+        covered_pixels: 0,
+        filled_pixels: 0,
+        gain: None,
+        offset: None,
+    };
+    let (mut kept, mut note) = (None, None);
+    match (&a.homography, &a.rejection, &key.region) {
+        (Some(h), None, Some(region)) => {
+            let (vw, vh) = (img.width() as usize, img.height() as usize);
+            match footprint(region, h, vw, vh, 0) {
+                Some(crop) => kept = Some((crop_rgb8(&img, crop), into_crop(h, &crop))),
+                None => report.reason = Some("the view does not show the masked region".into()),
+            }
+        }
+        (_, Some(r), _) => note = Some(format!("{}: rejected: {r}", path.display())),
+        _ => {}
+    }
+    ViewOutcome { report, kept, note }
 }
 
 fn print_summary(r: &Report<'_>) {

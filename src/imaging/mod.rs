@@ -81,6 +81,41 @@ pub type GrayF32 = Plane<f32>;
 pub type RgbF32 = Plane<[f32; 3]>;
 /// An 8-bit mask; a value > 127 means "fill this pixel" (ARCHITECTURE.md).
 pub type Mask = Plane<u8>;
+/// RGB in 8 bits per channel, as photographs are decoded: views are kept this way (a
+/// quarter of [`RgbF32`]'s memory) and read as `f32` only where they are sampled.
+pub type Rgb8 = Plane<[u8; 3]>;
+
+/// An RGB pixel the core can read as `f32` in 0..=1: an [`RgbF32`] pixel as it is, an
+/// [`Rgb8`] one divided by 255 (exactly as `image`'s `to_rgb32f` does, so sampling an 8-bit
+/// image gives the same numbers as converting it first and sampling the copy).
+pub trait RgbPixel: Copy + Send + Sync {
+    fn to_f32(self) -> [f32; 3];
+}
+
+impl RgbPixel for [f32; 3] {
+    #[inline]
+    fn to_f32(self) -> [f32; 3] {
+        self
+    }
+}
+
+/// `v / 255` for every 8-bit value.
+const FROM_U8: [f32; 256] = {
+    let mut t = [0.0; 256];
+    let mut v = 0;
+    while v < 256 {
+        t[v] = v as f32 / 255.0;
+        v += 1;
+    }
+    t
+};
+
+impl RgbPixel for [u8; 3] {
+    #[inline]
+    fn to_f32(self) -> [f32; 3] {
+        self.map(|v| FROM_U8[v as usize])
+    }
+}
 
 impl<T> fmt::Debug for Plane<T> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -310,7 +345,7 @@ pub fn bilinear_clamped(img: &GrayF32, x: f32, y: f32) -> f32 {
 /// Samples an RGB image at a real-valued position with bilinear interpolation; `None`
 /// outside the image.
 #[inline]
-pub fn bilinear_rgb(img: &RgbF32, x: f32, y: f32) -> Option<[f32; 3]> {
+pub fn bilinear_rgb<P: RgbPixel>(img: &Plane<P>, x: f32, y: f32) -> Option<[f32; 3]> {
     if !(x >= 0.0 && y >= 0.0) {
         return None;
     }
@@ -337,7 +372,8 @@ pub fn bilinear_rgb(img: &RgbF32, x: f32, y: f32) -> Option<[f32; 3]> {
         return None;
     };
     let d = &img.data;
-    let (a, b, c, e) = (d[y0 * w + x0], d[y0 * w + x1], d[y1 * w + x0], d[y1 * w + x1]);
+    let (a, b, c, e) =
+        (d[y0 * w + x0].to_f32(), d[y0 * w + x1].to_f32(), d[y1 * w + x0].to_f32(), d[y1 * w + x1].to_f32());
     let mut out = [0.0; 3];
     for k in 0..3 {
         let top = a[k] + (b[k] - a[k]) * fx;
@@ -369,6 +405,17 @@ mod tests {
         let s = bilinear_rgb(&c, 1.3, 2.7).unwrap();
         let v = bilinear(&g, 1.3, 2.7).unwrap();
         assert!((s[0] - v).abs() < 1e-5 && (s[1] - 2.0 * v).abs() < 1e-5 && (s[2] + v).abs() < 1e-5);
+    }
+
+    #[test]
+    fn eight_bit_pixels_sample_as_their_f32_copy() {
+        let img8 = Rgb8::from_fn(5, 4, |x, y| [(x * 60) as u8, (y * 80) as u8, (x * y * 17) as u8]);
+        let img = img8.map(|p| p.map(|v| v as f32 / 255.0));
+        assert_eq!([0u8, 128, 255].to_f32(), [0.0, 128.0 / 255.0, 1.0]);
+        for (x, y) in [(0.0, 0.0), (1.3, 2.7), (3.99, 0.5), (4.0, 3.0)] {
+            assert_eq!(bilinear_rgb(&img8, x, y), bilinear_rgb(&img, x, y), "at {x},{y}");
+        }
+        assert_eq!(bilinear_rgb(&img8, 4.5, 0.0), None);
     }
 
     #[test]

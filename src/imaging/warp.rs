@@ -9,7 +9,7 @@ use nalgebra::Point2;
 use rayon::prelude::*;
 
 pub use super::Rect;
-use super::{Plane, RgbF32, bilinear_rgb};
+use super::{Plane, RgbF32, RgbPixel, bilinear_rgb};
 use crate::geometry::Homography;
 
 /// How a warp samples the view between pixel centres.
@@ -41,9 +41,11 @@ impl Warped {
 
 /// Warps `view` into the keyframe's frame over `rect` (keyframe pixels): the result at key
 /// pixel `p` is `view` sampled at `h · p` (`h` maps keyframe → view). Where `need` is given
-/// (`rect`-sized), only pixels it marks are computed; the others are invalid.
-pub fn warp(
-    view: &RgbF32,
+/// (`rect`-sized), only pixels it marks are computed; the others are invalid. The view may
+/// be 8-bit ([`super::Rgb8`]): it is read as `f32` tap by tap, with the same result as
+/// warping its `f32` copy.
+pub fn warp<P: RgbPixel>(
+    view: &Plane<P>,
     h: &Homography,
     rect: Rect,
     need: Option<&Plane<bool>>,
@@ -55,8 +57,8 @@ pub fn warp(
 }
 
 /// [`warp`] into a reused buffer.
-pub fn warp_into(
-    view: &RgbF32,
+pub fn warp_into<P: RgbPixel>(
+    view: &Plane<P>,
     h: &Homography,
     rect: Rect,
     need: Option<&Plane<bool>>,
@@ -124,7 +126,7 @@ fn catmull_rom(t: f32) -> [f32; 4] {
 /// Samples an RGB image at a real-valued position with Catmull-Rom bicubic interpolation;
 /// `None` outside the pixel-centre rectangle (taps beyond the border are clamped).
 #[inline]
-pub fn bicubic_rgb(img: &RgbF32, x: f32, y: f32) -> Option<[f32; 3]> {
+pub fn bicubic_rgb<P: RgbPixel>(img: &Plane<P>, x: f32, y: f32) -> Option<[f32; 3]> {
     if !(x >= 0.0 && y >= 0.0) || x > (img.width() - 1) as f32 || y > (img.height() - 1) as f32 {
         return None;
     }
@@ -134,7 +136,7 @@ pub fn bicubic_rgb(img: &RgbF32, x: f32, y: f32) -> Option<[f32; 3]> {
     for (j, wyj) in wy.iter().enumerate() {
         let mut row = [0.0f32; 3];
         for (i, wxi) in wx.iter().enumerate() {
-            let p = img.get_clamped(x0 + i as isize - 1, y0 + j as isize - 1);
+            let p = img.get_clamped(x0 + i as isize - 1, y0 + j as isize - 1).to_f32();
             for c in 0..3 {
                 row[c] += wxi * p[c];
             }
@@ -224,6 +226,21 @@ mod tests {
         assert_eq!(out.image.get(3, 4), [0.0; 3]);
         warp_into(&img, &Homography::identity(), Rect::full(20, 20), None, Interpolation::Bilinear, &mut out);
         assert_eq!(out.image.len(), 400);
+    }
+
+    #[test]
+    fn an_eight_bit_view_warps_like_its_f32_copy() {
+        let img8 =
+            super::super::Rgb8::from_fn(30, 20, |x, y| [(x * 8) as u8, (y * 12) as u8, ((x ^ y) * 9) as u8]);
+        let img = img8.map(|p| p.map(|v| v as f32 / 255.0));
+        let h = Homography::from_rows([[0.9, 0.1, 2.5], [-0.05, 1.05, 1.25], [1e-3, 0.0, 1.0]]).unwrap();
+        let rect = Rect { x: 1, y: 2, width: 25, height: 15 };
+        for interp in [Interpolation::Bilinear, Interpolation::Bicubic] {
+            let (a, b) = (warp(&img8, &h, rect, None, interp), warp(&img, &h, rect, None, interp));
+            assert_eq!(a.valid, b.valid, "{interp:?}");
+            assert!(a.valid.as_slice().iter().filter(|&&v| v).count() > 200);
+            assert!(a.image == b.image, "{interp:?}: the 8-bit warp differs");
+        }
     }
 
     #[test]

@@ -12,7 +12,7 @@ use super::Source;
 use crate::geometry::Homography;
 use crate::imaging::photometric::{Gain, GainParams, fit_gain};
 use crate::imaging::warp::{Interpolation, Rect, warp};
-use crate::imaging::{Mask, Plane, RgbF32};
+use crate::imaging::{Mask, Plane, RgbF32, RgbPixel};
 
 /// Parameters of [`auto_mask`].
 #[derive(Debug, Clone, PartialEq)]
@@ -53,7 +53,7 @@ impl Default for AutoMaskParams {
 }
 
 /// The mask of transient objects in `key` (255 = fill), judged against `sources`.
-pub fn auto_mask(key: &RgbF32, sources: &[Source<'_>], params: &AutoMaskParams) -> Mask {
+pub fn auto_mask<P: RgbPixel>(key: &RgbF32, sources: &[Source<'_, P>], params: &AutoMaskParams) -> Mask {
     let (w, h) = (key.width(), key.height());
     if sources.len() < params.min_views.max(1) || w == 0 || h == 0 {
         return Mask::new(w, h, 0);
@@ -135,9 +135,9 @@ fn fit_whole(key: &RgbF32, view: &RgbF32, valid: &Plane<bool>) -> Gain {
 }
 
 /// Box average of `f × f` blocks (the last ones partial).
-fn reduce(img: &RgbF32, f: usize) -> RgbF32 {
+fn reduce<P: RgbPixel>(img: &Plane<P>, f: usize) -> RgbF32 {
     if f <= 1 {
-        return img.clone();
+        return img.map(|p| p.to_f32());
     }
     let (w, h) = (img.width(), img.height());
     let (rw, rh) = (w.div_ceil(f), h.div_ceil(f));
@@ -146,7 +146,7 @@ fn reduce(img: &RgbF32, f: usize) -> RgbF32 {
         let mut n = 0.0;
         for yy in y * f..((y + 1) * f).min(h) {
             for xx in x * f..((x + 1) * f).min(w) {
-                let p = img.get(xx, yy);
+                let p = img.get(xx, yy).to_f32();
                 for c in 0..3 {
                     s[c] += p[c];
                 }

@@ -18,7 +18,7 @@ use rayon::prelude::*;
 use crate::geometry::Homography;
 use crate::imaging::photometric::{GainParams, fit_gain};
 use crate::imaging::warp::{Interpolation, Rect, Warped, warp};
-use crate::imaging::{Mask, Plane, RgbF32};
+use crate::imaging::{Mask, Plane, RgbF32, RgbPixel};
 use automask::dilate;
 use blend::{BlendParams, guidance_rhs, solve_membrane};
 use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region, occlusion_costs};
@@ -34,11 +34,13 @@ pub const KEYFRAME: u16 = 0;
 /// A masked pixel no view could fill: the single-image fallback made it.
 pub const FALLBACK: u16 = u16::MAX;
 
-/// One aligned view, as the fill sees it.
+/// One aligned view, as the fill sees it. Its pixels are [`RgbF32`] by default, or 8-bit
+/// ([`crate::imaging::Rgb8`], a quarter of the memory; the result is the same as with their
+/// `f32` copy).
 #[derive(Debug, Clone, Copy)]
-pub struct Source<'a> {
-    /// The view's pixels (RGB, 0..=1).
-    pub image: &'a RgbF32,
+pub struct Source<'a, P: RgbPixel = [f32; 3]> {
+    /// The view's pixels (RGB, 0..=1 once read as `f32`).
+    pub image: &'a Plane<P>,
     /// Maps keyframe pixel coordinates to this view's (ARCHITECTURE.md convention).
     pub homography: Homography,
 }
@@ -203,10 +205,10 @@ pub struct Filled {
 ///
 /// # Panics
 /// If `mask` is not the size of `key` (the edge checks and reports that).
-pub fn fill(
+pub fn fill<P: RgbPixel>(
     key: &RgbF32,
     mask: &Mask,
-    sources: &[Source<'_>],
+    sources: &[Source<'_, P>],
     params: &FillParams,
     seed: u64,
     observer: &mut dyn Observer,
@@ -680,4 +682,44 @@ fn blend_one(
     let b = guidance_rhs(w, h, omega, &u, guide);
     let c = solve_membrane(w, h, omega, &b, params);
     u.iter().zip(&c).map(|(p, d)| std::array::from_fn(|k| p[k] + d[k])).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::imaging::Rgb8;
+    use crate::synth::{Occluder, facade, paint_occluder, render_view};
+
+    #[test]
+    fn eight_bit_sources_fill_exactly_as_their_f32_copies() {
+        let (w, h) = (160, 120);
+        let scene = facade(w, h, 5);
+        let mut key = scene.clone();
+        let mut mask = Mask::new(w, h, 0);
+        paint_occluder(&mut key, Some(&mut mask), Occluder::Person, 80.0, 65.0, 60.0, 2);
+        let hs = [
+            Homography::translation(4.5, -2.0),
+            Homography::from_rows([[1.02, 0.01, -3.0], [-0.01, 0.99, 2.5], [1e-5, 0.0, 1.0]]).unwrap(),
+        ];
+        let views8: Vec<Rgb8> = hs
+            .iter()
+            .map(|hm| {
+                let v = render_view(&scene, &hm.inverse().unwrap(), w, h, [0.5; 3]);
+                v.map(|p| p.map(|c| (c * 255.0).round().clamp(0.0, 255.0) as u8))
+            })
+            .collect();
+        let views: Vec<RgbF32> = views8.iter().map(|v| v.map(|p| p.map(|c| c as f32 / 255.0))).collect();
+        let s8: Vec<Source<'_, [u8; 3]>> =
+            views8.iter().zip(&hs).map(|(image, &homography)| Source { image, homography }).collect();
+        let s32: Vec<Source<'_>> =
+            views.iter().zip(&hs).map(|(image, &homography)| Source { image, homography }).collect();
+        let params = FillParams::default();
+        let (a, b) =
+            (fill(&key, &mask, &s8, &params, 3, &mut ()), fill(&key, &mask, &s32, &params, 3, &mut ()));
+        assert!(a.report.from_views() > 0.9, "{:?}", a.report);
+        assert_eq!(a.report, b.report);
+        assert!(a.provenance == b.provenance && a.image == b.image, "the 8-bit fill differs");
+        let am = AutoMaskParams { min_views: 2, ..AutoMaskParams::default() };
+        assert!(auto_mask(&key, &s8, &am) == auto_mask(&key, &s32, &am));
+    }
 }
