@@ -356,7 +356,8 @@ fn main() {
         landed.push(Landed { session: s.name.clone(), name: "key.mask.png".into(), kind: Kind::Mask });
     }
 
-    // Let the backlog drain: wait until every landed file is named by an event (or 3 min).
+    // Let the backlog drain: wait until every landed file is named by an event and every
+    // session's mask, put right last, is set again (or 3 min).
     let named = |evs: &[Value]| -> HashMap<(String, String), Vec<Value>> {
         let mut m: HashMap<(String, String), Vec<Value>> = HashMap::new();
         for e in evs {
@@ -369,7 +370,14 @@ fn main() {
     let drain_start = Instant::now();
     while died_at.is_none() && drain_start.elapsed() < Duration::from_secs(180) {
         let m = named(&events(&outbox));
-        if landed.iter().all(|l| m.contains_key(&(l.session.clone(), l.name.clone()))) {
+        let mask_settled = |s: &Scene| {
+            m.get(&(s.name.clone(), "key.mask.png".to_owned()))
+                .and_then(|evs| evs.last())
+                .is_some_and(|e| e["event"] == "mask_set")
+        };
+        if landed.iter().all(|l| m.contains_key(&(l.session.clone(), l.name.clone())))
+            && scenes.iter().all(mask_settled)
+        {
             break;
         }
         if !alive(&mut child) {
