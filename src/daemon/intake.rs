@@ -24,7 +24,7 @@ use super::watch::{self, Role};
 use super::worker::{FileId, Job};
 use super::{Backlog, Stats, emit::Emitter};
 use crate::config::{Config, WatchMode};
-use crate::imaging::decode::{DecodeLimits, decode};
+use crate::imaging::decode::{DecodeError, DecodeLimits, decode};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Status {
@@ -379,8 +379,13 @@ pub fn read_and_decode(
     if meta.len() != size || meta.modified().ok() != Some(mtime) || bytes.len() as u64 != size {
         return Err(DecodeOutcome::Changed);
     }
-    let img = decode(&bytes, limits).map_err(|e| DecodeOutcome::Failed(e.to_string()))?;
-    Ok(match (role, img) {
+    decode_as(&bytes, role, limits).map_err(|e| DecodeOutcome::Failed(e.to_string()))
+}
+
+/// The bytes half of [`read_and_decode`] (also what the fuzz targets drive): decoded
+/// within `limits`, views and keyframes as 8-bit RGB, masks as 8-bit grey.
+pub fn decode_as(bytes: &[u8], role: Role, limits: &DecodeLimits) -> Result<DynamicImage, DecodeError> {
+    Ok(match (role, decode(bytes, limits)?) {
         (Role::Mask, DynamicImage::ImageLuma8(g)) => DynamicImage::ImageLuma8(g),
         (Role::Mask, other) => DynamicImage::ImageLuma8(other.to_luma8()),
         (_, DynamicImage::ImageRgb8(c)) => DynamicImage::ImageRgb8(c),

@@ -7,6 +7,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
+use thiserror::Error;
 
 use crate::session::AlignRecord;
 
@@ -99,10 +100,10 @@ pub fn load(state_dir: &Path, session: &str) -> SessionState {
             return SessionState::default();
         }
     };
-    match serde_json::from_slice::<SessionState>(&bytes) {
-        Ok(s) if s.version == VERSION => s,
-        Ok(s) => {
-            tracing::warn!(file = %p.display(), version = s.version, "saved state of another version: rebuilding it");
+    match parse(&bytes) {
+        Ok(s) => s,
+        Err(StateError::Version(version)) => {
+            tracing::warn!(file = %p.display(), version, "saved state of another version: rebuilding it");
             SessionState::default()
         }
         Err(e) => {
@@ -110,6 +111,48 @@ pub fn load(state_dir: &Path, session: &str) -> SessionState {
             SessionState::default()
         }
     }
+}
+
+/// Why saved bytes were not taken as a session's state.
+#[derive(Debug, Error)]
+pub enum StateError {
+    #[error("{0}")]
+    Corrupt(#[from] serde_json::Error),
+    #[error("format version {0}, not {VERSION}")]
+    Version(u32),
+    #[error("implausible: {0}")]
+    Implausible(String),
+}
+
+/// Counters beyond this (2^53) come from no real run: one save per file for millennia.
+/// Refusing them keeps `+ 1` on a loaded counter from overflowing.
+pub const MAX_COUNTER: u64 = 1 << 53;
+
+/// The state in `bytes` (what [`load`] read), if it parses, has this version and could
+/// have been written by the service: a file edited or damaged into valid JSON is not
+/// trusted either.
+pub fn parse(bytes: &[u8]) -> Result<SessionState, StateError> {
+    let s: SessionState = serde_json::from_slice(bytes)?;
+    if s.version != VERSION {
+        return Err(StateError::Version(s.version));
+    }
+    let implausible = |m: String| Err(StateError::Implausible(m));
+    if s.seq > MAX_COUNTER || s.last_number > MAX_COUNTER {
+        return implausible(format!("counters {} and {} beyond 2^53", s.seq, s.last_number));
+    }
+    if s.alignments.len() > MAX_ALIGNMENTS {
+        return implausible(format!("{} alignments, more than {MAX_ALIGNMENTS}", s.alignments.len()));
+    }
+    for (view, a) in &s.alignments {
+        let (w, h) = a.record.view_size;
+        if a.seq > MAX_COUNTER || w == 0 || h == 0 {
+            return implausible(format!("{view}: sequence {} and size {w}x{h}", a.seq));
+        }
+        if a.record.accepted && a.record.homography().is_none() {
+            return implausible(format!("{view}: accepted without a regular homography"));
+        }
+    }
+    Ok(s)
 }
 
 /// Saves atomically; a failure is logged (the state is an optimisation, not a result).
@@ -183,5 +226,33 @@ mod tests {
         assert_eq!(load(dir.path(), "s1"), SessionState::default());
         std::fs::write(path(dir.path(), "s2"), b"{\"version\": 99}").unwrap();
         assert_eq!(load(dir.path(), "s2"), SessionState::default());
+    }
+
+    /// Valid JSON the service could not have written (found by the `state` fuzz target's
+    /// seeds: a counter at `u64::MAX` overflowed on the next save).
+    #[test]
+    fn implausible_state_is_refused() {
+        let mut good = SessionState::default();
+        good.remember("v|1|2".into(), "k|3|4".into(), record());
+        let json = |s: &SessionState| serde_json::to_vec(s).unwrap();
+        assert_eq!(parse(&json(&good)).unwrap(), good);
+        let mut s = good.clone();
+        s.seq = u64::MAX;
+        assert!(matches!(parse(&json(&s)), Err(StateError::Implausible(_))));
+        let mut s = good.clone();
+        s.last_number = MAX_COUNTER + 1;
+        assert!(matches!(parse(&json(&s)), Err(StateError::Implausible(_))));
+        let mut s = good.clone();
+        s.alignments.values_mut().for_each(|a| a.record.view_size = (0, 48));
+        assert!(matches!(parse(&json(&s)), Err(StateError::Implausible(_))));
+        let mut s = good.clone();
+        s.alignments.values_mut().for_each(|a| a.record.homography = Some([[0.0; 3]; 3]));
+        assert!(matches!(parse(&json(&s)), Err(StateError::Implausible(_))));
+        let mut s = good;
+        s.alignments.values_mut().for_each(|a| {
+            a.record.accepted = false;
+            a.record.homography = None;
+        });
+        assert!(parse(&json(&s)).is_ok(), "a rejection without a homography is what the service saves");
     }
 }

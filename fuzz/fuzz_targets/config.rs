@@ -1,0 +1,6 @@
+//! Fuzz target `config`: arbitrary bytes through [`clearview_fuzz::config`] (see `fuzz/src/lib.rs`).
+#![no_main]
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| {
+    let _ = clearview_fuzz::config(data);
+});
