@@ -111,13 +111,25 @@ pub struct Emitter {
 }
 
 impl Emitter {
+    /// Opens the event log for appending. A last line left without its newline (a crash
+    /// or a full disk in an earlier run) is cut off, so every line of the log is whole.
     pub fn open(config: &Config) -> Result<Self, DaemonError> {
         let path = config.out_dir.join("events.jsonl");
         let events = OpenOptions::new()
             .create(true)
+            .read(true)
             .append(true)
             .open(&path)
-            .map_err(|source| DaemonError::EventLog { path, source })?;
+            .map_err(|source| DaemonError::EventLog { path: path.clone(), source })?;
+        match cut_partial_line(&events) {
+            Ok(0) => {}
+            Ok(n) => {
+                tracing::warn!(file = %path.display(), bytes = n, "removed a partial last line from the event log")
+            }
+            Err(e) => {
+                tracing::warn!(file = %path.display(), error = %e, "cannot check the event log's last line")
+            }
+        }
         Ok(Self {
             out: config.out_dir.clone(),
             format: config.format,
@@ -151,9 +163,19 @@ impl Emitter {
         let mut line = serde_json::Value::Object(obj).to_string();
         line.push('\n');
         let mut f = self.events.lock().expect("event log lock");
-        // One write per line: appends of a line are not interleaved with other writers.
+        // One write per line: appends of a line are not interleaved with other writers. A
+        // line that does not fit (full disk: a short write, then an error) is taken back,
+        // so the log never holds half a line that would break its readers.
+        let before = f.metadata().map(|m| m.len());
         if let Err(e) = f.write_all(line.as_bytes()).and_then(|()| f.flush()) {
-            tracing::error!(error = %e, "cannot append to the event log");
+            let taken_back = before.and_then(|len| f.set_len(len));
+            tracing::error!(
+                file = %self.out.join("events.jsonl").display(),
+                error = %e,
+                event = kind,
+                taken_back = taken_back.is_ok(),
+                "cannot append to the event log: event lost"
+            );
         }
     }
 
@@ -206,6 +228,30 @@ impl Emitter {
         r.map_err(std::io::Error::other)?;
         Ok(out)
     }
+}
+
+/// Cuts `file` back to just after its last newline; returns the bytes removed.
+fn cut_partial_line(file: &File) -> std::io::Result<u64> {
+    use std::io::{Read, Seek, SeekFrom};
+    let len = file.metadata()?.len();
+    let mut f = file;
+    let mut end = len;
+    let mut buf = vec![0u8; 64 * 1024];
+    while end > 0 {
+        let start = end.saturating_sub(buf.len() as u64);
+        let chunk = &mut buf[..(end - start) as usize];
+        f.seek(SeekFrom::Start(start))?;
+        f.read_exact(chunk)?;
+        if let Some(i) = chunk.iter().rposition(|&b| b == b'\n') {
+            end = start + i as u64 + 1;
+            break;
+        }
+        end = start;
+    }
+    if end < len {
+        file.set_len(end)?;
+    }
+    Ok(len - end)
 }
 
 /// RGB 0..=1 to interleaved 8-bit, rows in parallel (as `convert::to_rgb8` rounds).
@@ -284,6 +330,23 @@ mod tests {
         assert_eq!(std::fs::read(&h1).unwrap(), b"one");
         assert_eq!(std::fs::read(&h2).unwrap(), b"two");
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 3);
+    }
+
+    #[test]
+    fn a_partial_last_line_is_cut_back_to_the_last_newline() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("events.jsonl");
+        for (text, want) in [
+            (&b"{\"a\":1}\n{\"b\":"[..], &b"{\"a\":1}\n"[..]),
+            (b"{\"a\":1}\n", b"{\"a\":1}\n"),
+            (b"half", b""),
+            (b"", b""),
+        ] {
+            std::fs::write(&p, text).unwrap();
+            let f = OpenOptions::new().read(true).append(true).open(&p).unwrap();
+            assert_eq!(cut_partial_line(&f).unwrap(), (text.len() - want.len()) as u64);
+            assert_eq!(std::fs::read(&p).unwrap(), want);
+        }
     }
 
     #[test]
