@@ -42,6 +42,13 @@ impl FileId {
         format!("{}|{}|{}", self.name, self.size, ns)
     }
 
+    /// [`FileId::id`] and a digest of the decoded pixels: what saved alignments and
+    /// results are keyed by, so a file replaced under the same name, size and time (a
+    /// sync client that keeps times, a fixed-size format) is not mistaken for the old one.
+    pub fn content_id(&self, image: &DynamicImage) -> String {
+        format!("{}|{:016x}", self.id(), state::content_digest(image.as_bytes()))
+    }
+
     pub fn of(path: &Path) -> std::io::Result<Self> {
         let meta = std::fs::metadata(path)?;
         let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
@@ -303,12 +310,13 @@ impl Worker {
         let Ok(img) = read_and_decode(&key_path, Role::View, file.size, file.mtime, &limits(ctx)) else {
             return;
         };
-        let key_id = file.id();
+        let key_id = format!("{}|", file.id());
         for path in watch::scan(&slot.dir) {
             let Some(c) = watch::classify(&ctx.config.watch_dir, &path, &ctx.config.extensions) else {
                 continue;
             };
-            let saved = FileId::of(&path).is_ok_and(|f| slot.state.alignment(&f.id(), &key_id).is_some());
+            let saved = FileId::of(&path)
+                .is_ok_and(|f| slot.state.has_alignment_for(&format!("{}|", f.id()), &key_id));
             if c.role == Role::View && path != key_path && saved {
                 let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
                 slot.parked.insert(name, path);
@@ -423,7 +431,7 @@ fn has_named_key(ctx: &Ctx, dir: &Path) -> bool {
 }
 
 fn take_key(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &DynamicImage, rank: u8) {
-    let id = file.id();
+    let id = file.content_id(image);
     if slot.session.key_id() == Some(id.as_str()) {
         return;
     }
@@ -520,12 +528,13 @@ fn take_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
 }
 
 fn apply_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
-    if slot.session.mask_id() == Some(file.id().as_str()) {
+    let id = file.content_id(image);
+    if slot.session.mask_id() == Some(id.as_str()) {
         return;
     }
     let mask = to_mask(image);
     let masked = mask.hole_count();
-    match slot.session.set_mask(file.id(), mask) {
+    match slot.session.set_mask(id, mask) {
         Ok(again) => {
             slot.mask_source = Some(format!("file:{}", file.name));
             write_mask(ctx, slot);
@@ -637,7 +646,7 @@ fn rgb8(image: &DynamicImage) -> Rgb8 {
 fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &DynamicImage) {
     let span = tracing::info_span!("view", file = %file.name);
     let _enter = span.enter();
-    let id = file.id();
+    let id = file.content_id(image);
     let Some(key_id) = slot.session.key_id().map(str::to_owned) else { return };
     let start = Instant::now();
     let (record, from_state) = match slot.state.alignment(&id, &key_id) {
