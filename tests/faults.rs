@@ -242,3 +242,206 @@ fn a_full_or_read_only_out_folder_keeps_the_result_and_writing_resumes_when_it_c
     no_temporaries(&f.outbox);
     no_temporaries(&f.state);
 }
+
+/// Temporaries of the atomic writer anywhere under `dirs`.
+fn temporaries(dirs: &[&Path]) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for d in dirs {
+        let Ok(entries) = std::fs::read_dir(d) else { continue };
+        for e in entries.flatten() {
+            if e.file_name().to_string_lossy().contains("clearview-tmp") {
+                out.push(e.path());
+            } else if e.file_type().is_ok_and(|t| t.is_dir()) {
+                out.extend(temporaries(&[&e.path()]));
+            }
+        }
+    }
+    out
+}
+
+/// Every visible result, history entry and state file is whole.
+fn everything_visible_is_whole(f: &Folders, session: &str) {
+    let out = f.outbox.join(session);
+    if out.join("result.json").exists() {
+        let _: Value = serde_json::from_slice(&std::fs::read(out.join("result.json")).unwrap())
+            .expect("result.json is whole");
+    }
+    for p in [out.join("result.png"), out.join("mask.png"), out.join("provenance.png")] {
+        if p.exists() {
+            image::open(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+        }
+    }
+    if let Ok(hist) = std::fs::read_dir(out.join("history")) {
+        for e in hist.flatten().filter(|e| !e.file_name().to_string_lossy().starts_with('.')) {
+            image::open(e.path()).unwrap_or_else(|err| panic!("{}: {err}", e.path().display()));
+        }
+    }
+    for e in std::fs::read_dir(f.state.join("sessions")).unwrap().flatten() {
+        if !e.file_name().to_string_lossy().starts_with('.') {
+            let _: Value =
+                serde_json::from_slice(&std::fs::read(e.path()).unwrap()).expect("whole state file");
+        }
+    }
+}
+
+#[test]
+fn sigkill_while_results_are_written_leaves_only_whole_files_and_a_restart_agrees_with_them() {
+    use rand::{Rng, SeedableRng};
+    let f = folders("");
+    let mut scene = Scene::new(201);
+    let inbox = f.inbox.join("k");
+    let out = f.outbox.join("k");
+    put_key_and_mask(&inbox, &scene);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let (mut caught_mid_write, runs) = (0, 8);
+    for run in 0..runs {
+        let mut service = Service::start(&f);
+        wait_for(&f, "the service to start", 20, |e| of_kind(e, "service_started").len() > run);
+        // A restart leaves no temporary behind, in the out folder or the state folder.
+        assert_eq!(temporaries(&[&f.outbox, &f.state]), Vec::<PathBuf>::new(), "run {run}");
+        let i = run as u64 + 1;
+        put(&inbox.join(format!("v{i}.png")), &png(&scene.view(i, 60.0 + 40.0 * i as f32, 50.0)));
+        if run % 2 == 0 {
+            // Killed the moment a temporary appears: in the middle of writing a file.
+            let deadline = Instant::now() + Duration::from_secs(15);
+            while temporaries(&[&out, &f.state]).is_empty() && Instant::now() < deadline {
+                std::hint::spin_loop();
+            }
+            caught_mid_write += usize::from(!temporaries(&[&out, &f.state]).is_empty());
+        } else {
+            std::thread::sleep(Duration::from_millis(rng.random_range(150..1500)));
+        }
+        service.child.kill().unwrap();
+        service.child.wait().unwrap();
+        everything_visible_is_whole(&f, "k");
+    }
+    eprintln!("{caught_mid_write} of {} kills landed while a file was being written", runs / 2);
+    assert!(caught_mid_write >= 1, "no kill landed in the middle of a write");
+
+    // The last start settles: the result agrees with result.json, with the history and
+    // with the state, and numbering never went back.
+    let service = Service::start(&f);
+    wait_for(&f, "the service to start", 20, |e| of_kind(e, "service_started").len() > runs);
+    assert_eq!(temporaries(&[&f.outbox, &f.state]), Vec::<PathBuf>::new());
+    let names: Vec<String> = (1..=runs).map(|i| format!("v{i}.png")).collect();
+    let seen = events(&f).len();
+    wait_for(&f, "every view to be handled after the last start", 60, |e| {
+        names.iter().all(|n| e[seen..].iter().any(|x| x["file"] == n.as_str()))
+            && (e[seen..].iter().any(|x| x["event"] == "result_updated" || x["event"] == "result_unchanged"))
+    });
+    assert_eq!(service.terminate(), 0);
+    let number = whole_result(&out);
+    let state: Value =
+        serde_json::from_slice(&std::fs::read(f.state.join("sessions/k.json")).unwrap()).unwrap();
+    assert_eq!(state["result"]["number"].as_u64(), Some(number), "the state names another result");
+    assert_eq!(state["last_number"].as_u64(), Some(number));
+    let ev = events(&f);
+    let numbers: Vec<u64> =
+        of_kind(&ev, "result_updated").iter().map(|r| r["number"].as_u64().unwrap()).collect();
+    assert!(numbers.windows(2).all(|w| w[1] > w[0]), "a result number was used twice: {numbers:?}");
+    no_temporaries(&f.outbox);
+    no_temporaries(&f.state);
+}
+
+/// Runs the service on `f` until the session `s` has handled its `views` views after
+/// this start and has its result; returns this start's events.
+fn restart_and_settle(f: &Folders, views: usize) -> Vec<Value> {
+    let seen = events(f).len();
+    let service = Service::start(f);
+    let ev = wait_for(f, "the session to settle", 40, |e| {
+        e.len() > seen
+            && of_kind(&e[seen..], "view_accepted").len() >= views
+            && (!of_kind(&e[seen..], "result_updated").is_empty()
+                || !of_kind(&e[seen..], "result_unchanged").is_empty())
+    });
+    assert_eq!(service.terminate(), 0);
+    ev[seen..].to_vec()
+}
+
+#[test]
+fn a_damaged_edited_or_outdated_state_is_rebuilt_from_the_images() {
+    let f = folders("");
+    let mut scene = Scene::new(301);
+    let inbox = f.inbox.join("s");
+    let out = f.outbox.join("s");
+    // The keyframe is padded after its end so that a different one can take its exact
+    // size later (the decoder ignores bytes after IEND).
+    let mut key = png(&scene.key);
+    let mut brighter = scene.key.clone();
+    clearview::synth::expose(&mut brighter, 1.08, 0.0);
+    let mut other_key = png(&brighter);
+    let size = key.len().max(other_key.len()) + 64;
+    key.resize(size, 0);
+    other_key.resize(size, 0);
+    put(&inbox.join("key.mask.png"), &mask_png(&scene.mask));
+    put(&inbox.join("key.png"), &key);
+    for i in 1..=3 {
+        put(&inbox.join(format!("v{i}.png")), &png(&scene.view(i, 90.0 * i as f32, 60.0)));
+    }
+    let ev = restart_and_settle(&f, 3);
+    assert!(of_kind(&ev, "view_accepted").iter().all(|e| e["from_state"] == false));
+    let first = whole_result(&out);
+    let state_file = f.state.join("sessions/s.json");
+    let good_state = std::fs::read(&state_file).unwrap();
+
+    // Sanity: an intact state is used (nothing realigned, nothing rewritten).
+    let ev = restart_and_settle(&f, 3);
+    assert!(
+        of_kind(&ev, "view_accepted").iter().all(|e| e["from_state"] == true),
+        "{ev:#?}\n{}",
+        std::fs::read_to_string(f.root.join("service-2.log")).unwrap_or_default()
+    );
+    assert!(!of_kind(&ev, "result_unchanged").is_empty());
+
+    let mut number = first;
+    let edited_homographies = {
+        let mut v: Value = serde_json::from_slice(&good_state).unwrap();
+        for (_, a) in v["alignments"].as_object_mut().unwrap() {
+            a["record"]["homography"][0][2] =
+                Value::from(a["record"]["homography"][0][2].as_f64().unwrap() + 40.0);
+        }
+        serde_json::to_vec(&v).unwrap()
+    };
+    let cases: [(&str, Vec<u8>); 3] = [
+        ("cut in half", good_state[..good_state.len() / 2].to_vec()),
+        ("garbage", b"\x00\x17garbage{{{".to_vec()),
+        ("valid JSON with wrong homographies", edited_homographies),
+    ];
+    for (what, bytes) in cases {
+        std::fs::write(&state_file, &bytes).unwrap();
+        let ev = restart_and_settle(&f, 3);
+        let accepted = of_kind(&ev, "view_accepted");
+        assert!(
+            accepted.iter().all(|e| e["from_state"] == false),
+            "{what}: a view was not realigned: {accepted:#?}"
+        );
+        // The result is made again from the images, numbered after the one on disk.
+        let updated = of_kind(&ev, "result_updated");
+        assert_eq!(
+            updated.last().map(|r| r["number"].as_u64().unwrap()),
+            Some(number + 1),
+            "{what}: {ev:#?}"
+        );
+        number += 1;
+        assert_eq!(whole_result(&out), number);
+        let result = image::open(out.join("result.png")).unwrap().to_rgb8();
+        let e_key = scene.masked_error(&clearview::imaging::convert::to_rgb8(&scene.key));
+        let e_result = scene.masked_error(&result);
+        assert!(e_result < 0.5 * e_key, "{what}: the result is poor: {e_key} -> {e_result}");
+    }
+
+    // The keyframe replaced by another of the same size and time: its name, size and
+    // time say "same file", its pixels do not. Realigned, and a new result.
+    let key_path = inbox.join("key.png");
+    let mtime = std::fs::metadata(&key_path).unwrap().modified().unwrap();
+    std::fs::write(&key_path, &other_key).unwrap();
+    std::fs::File::options().write(true).open(&key_path).unwrap().set_modified(mtime).unwrap();
+    assert_eq!(std::fs::metadata(&key_path).unwrap().len(), size as u64);
+    let ev = restart_and_settle(&f, 3);
+    assert!(
+        of_kind(&ev, "view_accepted").iter().all(|e| e["from_state"] == false),
+        "views kept alignments to a keyframe that changed: {ev:#?}"
+    );
+    assert!(of_kind(&ev, "result_unchanged").is_empty(), "the result of the old keyframe was kept");
+    assert_eq!(whole_result(&out), number + 1);
+}
