@@ -234,6 +234,11 @@ impl Worker {
                         break;
                     }
                     let session = job.session.clone();
+                    if self.removed(&session) {
+                        tracing::debug!(file = %job.path.display(), "its session folder is gone: dropped");
+                        self.ctx.backlog.done(&session);
+                        continue;
+                    }
                     if self.asleep.remove(&session) {
                         self.wake(&session);
                     }
@@ -249,7 +254,9 @@ impl Worker {
                     }
                     let names: Vec<String> = self.sessions.keys().cloned().collect();
                     for name in names {
-                        self.maybe_fill(&name);
+                        if !self.removed(&name) {
+                            self.maybe_fill(&name);
+                        }
                     }
                 }
                 Err(RecvTimeoutError::Disconnected) => break,
@@ -270,6 +277,36 @@ impl Worker {
                 );
             }
         }
+    }
+
+    /// Whether the inbox folder of session `name` is gone (deleted while it was handled,
+    /// or with the whole watched folder). A resident session is ended then: its state is
+    /// saved, its results in the out folder are kept (a user never wants them deleted)
+    /// and event `session_removed` says so. If the folder comes back, the session starts
+    /// again from its files.
+    fn removed(&mut self, name: &str) -> bool {
+        if name == watch::ROOT_SESSION || self.ctx.config.watch_dir.join(name).is_dir() {
+            return false;
+        }
+        self.asleep.remove(name);
+        self.used.remove(name);
+        if let Some(mut slot) = self.sessions.remove(name) {
+            save_state(&self.ctx, &mut slot);
+            let kept = slot.state.result.as_ref().map(|r| r.number);
+            tracing::info!(session = %name, dir = %slot.dir.display(), "session folder removed: session ended, its results are kept");
+            self.ctx.emitter.event(
+                "session_removed",
+                Some(name),
+                json!({
+                    "dir": slot.dir,
+                    "reason": "its folder was removed",
+                    "results_kept": self.ctx.emitter.session_dir(name),
+                    "last_result": kept,
+                    "unwritten_result": slot.pending.as_ref().map(|p| p.number),
+                }),
+            );
+        }
+        true
     }
 
     /// Puts the least recently used idle sessions to sleep while more than
