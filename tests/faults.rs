@@ -445,3 +445,98 @@ fn a_damaged_edited_or_outdated_state_is_rebuilt_from_the_images() {
     assert!(of_kind(&ev, "result_unchanged").is_empty(), "the result of the old keyframe was kept");
     assert_eq!(whole_result(&out), number + 1);
 }
+
+#[test]
+fn a_session_folder_deleted_mid_session_ends_that_session_only_and_keeps_its_results() {
+    let f = folders("workers = 2\n");
+    let mut a = Scene::new(401);
+    let mut b = Scene::new(402);
+    let mut service = Service::start(&f);
+    put_key_and_mask(&f.inbox.join("a"), &a);
+    put_key_and_mask(&f.inbox.join("b"), &b);
+    put(&f.inbox.join("b/v1.png"), &png(&b.view(1, 100.0, 60.0)));
+    wait_for(&f, "b's first result", 30, |e| {
+        of_kind(e, "result_updated").iter().any(|r| r["session"] == "b" && r["views"] == 1)
+    });
+    for i in 2..=5 {
+        put(&f.inbox.join(format!("b/v{i}.png")), &png(&b.view(i, 60.0 * i as f32, 50.0)));
+    }
+    // Removed while its views are being aligned and filled.
+    wait_for(&f, "b's views to be handled", 30, |e| {
+        of_kind(e, "view_accepted").iter().any(|v| v["session"] == "b" && v["file"] != "v1.png")
+    });
+    std::fs::remove_dir_all(f.inbox.join("b")).unwrap();
+    let ev = wait_for(&f, "b's end", 20, |e| session_events(e, "b", "session_removed").len() == 1);
+    assert!(service.alive());
+    let removed = session_events(&ev, "b", "session_removed")[0];
+    assert!(removed["reason"].as_str().unwrap().contains("removed"), "{removed}");
+    // Its results are kept, whole.
+    let kept = whole_result(&f.outbox.join("b"));
+    assert!(kept >= 1);
+    // The other session goes on.
+    put(&f.inbox.join("a/v1.png"), &png(&a.view(1, 120.0, 60.0)));
+    wait_for(&f, "a's result", 30, |e| {
+        of_kind(e, "result_updated").iter().any(|r| r["session"] == "a" && r["views"] == 1)
+    });
+    // The folder comes back: the session starts again, numbered after what it kept.
+    put_key_and_mask(&f.inbox.join("b"), &b);
+    put(&f.inbox.join("b/v9.png"), &png(&b.view(9, 200.0, 60.0)));
+    let ev = wait_for(&f, "b to start again", 30, |e| {
+        session_events(e, "b", "session_started").len() == 2
+            && session_events(e, "b", "result_updated")
+                .iter()
+                .any(|r| r["views"] == 1 && r["number"].as_u64().unwrap() > kept)
+    });
+    assert_eq!(session_events(&ev, "b", "session_removed").len(), 1);
+    assert!(whole_result(&f.outbox.join("b")) > kept);
+    assert_eq!(service.terminate(), 0);
+}
+
+fn the_watched_folder_removed_and_recreated_is_watched_again(mode: &str) {
+    // A rescan interval far beyond the test: only re-arming finds the new files.
+    let f = folders("");
+    let text = std::fs::read_to_string(&f.config).unwrap();
+    let watch = match mode {
+        "poll" => "mode = \"poll\"\npoll_interval_ms = 200\n",
+        _ => "rescan_interval_s = 3600\n",
+    };
+    std::fs::write(
+        &f.config,
+        text.replace("quiet_period_ms = 300\n", &format!("quiet_period_ms = 300\n{watch}")),
+    )
+    .unwrap();
+    let mut scene = Scene::new(501);
+    let mut service = Service::start(&f);
+    put_key_and_mask(&f.inbox.join("c"), &scene);
+    wait_for(&f, "the session to start", 30, |e| !of_kind(e, "mask_set").is_empty());
+    std::fs::remove_dir_all(&f.inbox).unwrap();
+    let ev = wait_for(&f, "the folder's loss to be reported", 20, |e| {
+        !of_kind(e, "watch_dir_vanished").is_empty()
+    });
+    assert!(of_kind(&ev, "watch_dir_vanished")[0]["dir"].as_str().unwrap().ends_with("inbox"));
+    wait_for(&f, "the session to end with its folder", 20, |e| {
+        !session_events(e, "c", "session_removed").is_empty()
+    });
+    std::thread::sleep(Duration::from_millis(500));
+    assert!(service.alive());
+    put_key_and_mask(&f.inbox.join("c"), &scene);
+    put(&f.inbox.join("c/v1.png"), &png(&scene.view(1, 120.0, 60.0)));
+    wait_for(&f, "a result from files in the recreated folder", 30, |e| {
+        !of_kind(e, "watch_dir_restored").is_empty()
+            && session_events(e, "c", "result_updated").iter().any(|r| r["views"] == 1)
+    });
+    // And a file that lands later still arrives by notification.
+    put(&f.inbox.join("c/v2.png"), &png(&scene.view(2, 300.0, 60.0)));
+    wait_for(&f, "the later view", 30, |e| !about(e, "v2.png").is_empty());
+    assert_eq!(service.terminate(), 0);
+}
+
+#[test]
+fn the_watched_folder_removed_and_recreated_is_watched_again_with_notify() {
+    the_watched_folder_removed_and_recreated_is_watched_again("notify");
+}
+
+#[test]
+fn the_watched_folder_removed_and_recreated_is_scanned_again_when_polled() {
+    the_watched_folder_removed_and_recreated_is_watched_again("poll");
+}
