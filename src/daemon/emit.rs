@@ -12,6 +12,8 @@ use image::ImageEncoder;
 use image::codecs::jpeg::JpegEncoder;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 
+use thiserror::Error;
+
 use super::DaemonError;
 use crate::config::{Config, OutputFormat};
 use crate::imaging::RgbF32;
@@ -106,6 +108,51 @@ pub fn rfc3339(t: SystemTime) -> String {
     )
 }
 
+/// A result file that could not be written: which one, and the system's reason. The file
+/// already there is untouched.
+#[derive(Debug, Error)]
+#[error("{}: {source}", path.display())]
+pub struct WriteError {
+    pub path: PathBuf,
+    pub source: std::io::Error,
+}
+
+fn at(path: &Path) -> impl FnOnce(std::io::Error) -> WriteError + '_ {
+    move |source| WriteError { path: path.to_owned(), source }
+}
+
+/// Checks that a session's `result.json` describes the image beside it (the size and
+/// digest it records for it); returns the result's number. Both are replaced one after
+/// the other, so a crash between the two renames can leave them disagreeing: the service
+/// then writes both again rather than trust either.
+pub fn check_result(dir: &Path) -> Result<u64, String> {
+    let json = std::fs::read(dir.join("result.json")).map_err(|e| format!("result.json: {e}"))?;
+    let report: serde_json::Value =
+        serde_json::from_slice(&json).map_err(|e| format!("result.json does not parse: {e}"))?;
+    let number = report["number"].as_u64().ok_or("result.json has no number")?;
+    let image = &report["image"];
+    let (Some(file), Some(size), Some(digest)) =
+        (image["file"].as_str(), image["bytes"].as_u64(), image["fnv64"].as_str())
+    else {
+        return Err("result.json does not describe its image".into());
+    };
+    if file.contains(['/', '\\']) || file.starts_with('.') {
+        return Err(format!("result.json names an odd image file {file:?}"));
+    }
+    let bytes = std::fs::read(dir.join(file)).map_err(|e| format!("{file}: {e}"))?;
+    if bytes.len() as u64 != size || fnv64_hex(&bytes) != digest {
+        return Err(format!("{file} is not the image result.json describes (result {number})"));
+    }
+    Ok(number)
+}
+
+/// FNV-1a of `bytes`, as 16 hex digits (a check against mix-ups, not an adversary).
+pub fn fnv64_hex(bytes: &[u8]) -> String {
+    let mut h = crate::session::Fnv::new();
+    h.write(bytes);
+    format!("{:016x}", h.finish())
+}
+
 /// Where results and events go.
 pub struct Emitter {
     out: PathBuf,
@@ -115,13 +162,25 @@ pub struct Emitter {
 }
 
 impl Emitter {
+    /// Opens the event log for appending. A last line left without its newline (a crash
+    /// or a full disk in an earlier run) is cut off, so every line of the log is whole.
     pub fn open(config: &Config) -> Result<Self, DaemonError> {
         let path = config.out_dir.join("events.jsonl");
         let events = OpenOptions::new()
             .create(true)
+            .read(true)
             .append(true)
             .open(&path)
-            .map_err(|source| DaemonError::EventLog { path, source })?;
+            .map_err(|source| DaemonError::EventLog { path: path.clone(), source })?;
+        match cut_partial_line(&events) {
+            Ok(0) => {}
+            Ok(n) => {
+                tracing::warn!(file = %path.display(), bytes = n, "removed a partial last line from the event log")
+            }
+            Err(e) => {
+                tracing::warn!(file = %path.display(), error = %e, "cannot check the event log's last line")
+            }
+        }
         Ok(Self {
             out: config.out_dir.clone(),
             format: config.format,
@@ -156,40 +215,60 @@ impl Emitter {
         let mut line = serde_json::Value::Object(obj).to_string();
         line.push('\n');
         let mut f = self.events.lock().expect("event log lock");
-        // One write per line: appends of a line are not interleaved with other writers.
+        // One write per line: appends of a line are not interleaved with other writers. A
+        // line that does not fit (full disk: a short write, then an error) is taken back,
+        // so the log never holds half a line that would break its readers.
+        let before = f.metadata().map(|m| m.len());
         if let Err(e) = f.write_all(line.as_bytes()).and_then(|()| f.flush()) {
-            tracing::error!(error = %e, "cannot append to the event log");
+            let taken_back = before.and_then(|len| f.set_len(len));
+            tracing::error!(
+                file = %self.out.join("events.jsonl").display(),
+                error = %e,
+                event = kind,
+                taken_back = taken_back.is_ok(),
+                "cannot append to the event log: event lost"
+            );
         }
     }
 
     /// Writes result number `number` of `session`: the history copy, then `result.<ext>`,
-    /// then `result.json`, each atomically; prunes the history. Returns the result's path.
+    /// then `result.json` (to which the image's size and digest are added, see
+    /// [`check_result`]), each atomically; prunes the history. Returns the result's path.
+    /// On failure the files already there are left whole and the error names the file.
     pub fn write_result(
         &self,
         session: &str,
         number: u64,
         image: &RgbF32,
-        report: &serde_json::Value,
-    ) -> std::io::Result<PathBuf> {
+        report: &mut serde_json::Value,
+    ) -> Result<PathBuf, WriteError> {
         let dir = self.session_dir(session);
-        std::fs::create_dir_all(&dir)?;
-        let bytes = self.encode(image)?;
-        let ext = self.format.extension();
+        std::fs::create_dir_all(&dir).map_err(at(&dir))?;
         let path = dir.join(self.result_name());
+        let bytes = self.encode(image).map_err(at(&path))?;
+        let ext = self.format.extension();
         let history = (self.history > 0).then(|| dir.join("history"));
         if let Some(hist) = &history {
-            std::fs::create_dir_all(hist)?;
+            std::fs::create_dir_all(hist).map_err(at(hist))?;
         }
         // Written once; the history entry is a second name for the same file (a hard link
         // made before the rename), so the bytes hit the disk once.
         let hist_path = history.as_ref().map(|h| h.join(format!("result-{number:04}.{ext}")));
-        atomic_write_linked(&path, &bytes, hist_path.as_deref())?;
+        atomic_write_linked(&path, &bytes, hist_path.as_deref()).map_err(at(&path))?;
         if let Some(hist) = &history {
             prune_history(hist, self.history);
         }
-        let mut json = serde_json::to_vec_pretty(report).map_err(std::io::Error::other)?;
+        if let serde_json::Value::Object(m) = report {
+            m.insert(
+                "image".into(),
+                serde_json::json!({ "file": self.result_name(), "bytes": bytes.len(), "fnv64": fnv64_hex(&bytes) }),
+            );
+        }
+        let json_path = dir.join("result.json");
+        let mut json =
+            serde_json::to_vec_pretty(report).map_err(|e| at(&json_path)(std::io::Error::other(e)))?;
         json.push(b'\n');
-        atomic_write(&dir.join("result.json"), &json)?;
+        atomic_write(&json_path, &json).map_err(at(&json_path))?;
         Ok(path)
     }
 
@@ -211,6 +290,30 @@ impl Emitter {
         r.map_err(std::io::Error::other)?;
         Ok(out)
     }
+}
+
+/// Cuts `file` back to just after its last newline; returns the bytes removed.
+fn cut_partial_line(file: &File) -> std::io::Result<u64> {
+    use std::io::{Read, Seek, SeekFrom};
+    let len = file.metadata()?.len();
+    let mut f = file;
+    let mut end = len;
+    let mut buf = vec![0u8; 64 * 1024];
+    while end > 0 {
+        let start = end.saturating_sub(buf.len() as u64);
+        let chunk = &mut buf[..(end - start) as usize];
+        f.seek(SeekFrom::Start(start))?;
+        f.read_exact(chunk)?;
+        if let Some(i) = chunk.iter().rposition(|&b| b == b'\n') {
+            end = start + i as u64 + 1;
+            break;
+        }
+        end = start;
+    }
+    if end < len {
+        file.set_len(end)?;
+    }
+    Ok(len - end)
 }
 
 /// RGB 0..=1 to interleaved 8-bit, rows in parallel (as `convert::to_rgb8` rounds).
@@ -304,6 +407,23 @@ mod tests {
         assert_eq!(std::fs::read(&h1).unwrap(), b"one");
         assert_eq!(std::fs::read(&h2).unwrap(), b"two");
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 3);
+    }
+
+    #[test]
+    fn a_partial_last_line_is_cut_back_to_the_last_newline() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("events.jsonl");
+        for (text, want) in [
+            (&b"{\"a\":1}\n{\"b\":"[..], &b"{\"a\":1}\n"[..]),
+            (b"{\"a\":1}\n", b"{\"a\":1}\n"),
+            (b"half", b""),
+            (b"", b""),
+        ] {
+            std::fs::write(&p, text).unwrap();
+            let f = OpenOptions::new().read(true).append(true).open(&p).unwrap();
+            assert_eq!(cut_partial_line(&f).unwrap(), (text.len() - want.len()) as u64);
+            assert_eq!(std::fs::read(&p).unwrap(), want);
+        }
     }
 
     #[test]

@@ -60,6 +60,42 @@ pub struct Intake {
     inbox: Inbox,
     /// Symbolic links refused and reported (each once, while it is there).
     refused: HashSet<PathBuf>,
+    root: Root,
+}
+
+/// The watched folder's identity (device and inode), to notice it being removed and
+/// recreated (or a file system mounted over it): kernel watches do not survive that.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Root(Option<(u64, u64)>);
+
+#[derive(Debug, PartialEq, Eq)]
+enum RootChange {
+    Same,
+    Vanished,
+    Back,
+}
+
+impl Root {
+    fn of(dir: &std::path::Path) -> Self {
+        use std::os::unix::fs::MetadataExt;
+        Self(std::fs::metadata(dir).ok().filter(|m| m.is_dir()).map(|m| (m.dev(), m.ino())))
+    }
+
+    fn present(&self) -> bool {
+        self.0.is_some()
+    }
+
+    /// Looks again; says what changed.
+    fn check(&mut self, dir: &std::path::Path) -> RootChange {
+        let now = Self::of(dir);
+        let change = match (self.0, now.0) {
+            (a, b) if a == b => RootChange::Same,
+            (_, None) => RootChange::Vanished,
+            (_, Some(_)) => RootChange::Back,
+        };
+        *self = now;
+        change
+    }
 }
 
 /// The worker that owns `session` (stable for the life of the process).
@@ -79,6 +115,7 @@ impl Intake {
     ) -> Self {
         let decoders = Arc::new(Semaphore::new(config.decoders.get()));
         let inbox = Inbox::of(&config);
+        let root = Root::of(&config.watch_dir);
         Self {
             config,
             senders,
@@ -89,14 +126,18 @@ impl Intake {
             decoders,
             inbox,
             refused: HashSet::new(),
+            root,
         }
     }
 
+    /// Runs until `cancel`. `watcher` is the notify watcher (notify mode): it is kept here
+    /// so that it can be armed again when the watched folder is removed and recreated.
     pub async fn run(
         mut self,
         mut hints: mpsc::Receiver<PathBuf>,
         overflow: Arc<AtomicBool>,
         cancel: CancellationToken,
+        mut watcher: Option<notify::RecommendedWatcher>,
     ) {
         let scan_every = match self.config.watch_mode {
             WatchMode::Notify => self.config.rescan_interval,
@@ -112,6 +153,41 @@ impl Intake {
                 Some(path) = hints.recv() => self.observe(path),
                 _ = tick.tick() => {
                     heart.beat();
+                    match self.root.check(&self.config.watch_dir) {
+                        RootChange::Same => {}
+                        RootChange::Vanished => {
+                            tracing::warn!(dir = %self.config.watch_dir.display(), "the watched folder is gone: waiting for it to come back");
+                            self.emitter.event(
+                                "watch_dir_vanished",
+                                None,
+                                serde_json::json!({ "dir": self.config.watch_dir, "reason": "the watched folder was removed or unmounted" }),
+                            );
+                        }
+                        RootChange::Back => {
+                            // Kernel watches die with their folder: armed again, and a
+                            // full scan finds what landed before they were.
+                            let rearmed = watcher.as_mut().map(|w| {
+                                let _ = notify::Watcher::unwatch(w, &self.config.watch_dir);
+                                notify::Watcher::watch(w, &self.config.watch_dir, notify::RecursiveMode::Recursive)
+                            });
+                            if let Some(Err(e)) = &rearmed {
+                                tracing::error!(error = %e, "cannot watch the folder again: relying on rescans");
+                            }
+                            tracing::info!(dir = %self.config.watch_dir.display(), "the watched folder is back: watching and scanning it again");
+                            self.emitter.event(
+                                "watch_dir_restored",
+                                None,
+                                serde_json::json!({
+                                    "dir": self.config.watch_dir,
+                                    "rewatched": rearmed.as_ref().map(Result::is_ok),
+                                }),
+                            );
+                            last_scan = None;
+                        }
+                    }
+                    if !self.root.present() {
+                        continue;
+                    }
                     if last_scan.is_none_or(|t| t.elapsed() >= scan_every) || overflow.swap(false, Ordering::Relaxed) {
                         self.full_scan().await;
                         last_scan = Some(Instant::now());

@@ -228,7 +228,7 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
     }
     let (hint_tx, hint_rx) = tokio::sync::mpsc::channel(watch::HINT_QUEUE);
     let overflow = Arc::new(std::sync::atomic::AtomicBool::new(false));
-    let _watcher = match config.watch_mode {
+    let watcher = match config.watch_mode {
         _ if !watching => None,
         crate::config::WatchMode::Notify => Some(
             watch::start_notify(&config.watch_dir, config.follow_symlinks, hint_tx.clone(), overflow.clone())
@@ -252,7 +252,7 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
     let intake =
         intake::Intake::new(config.clone(), senders, backlog.clone(), emitter.clone(), stats.clone());
     if watching {
-        tracker.spawn(intake.run(hint_rx, overflow, cancel.clone()));
+        tracker.spawn(intake.run(hint_rx, overflow, cancel.clone(), watcher));
     }
     systemd::ready();
     tracker.spawn(systemd::supervise(stats.clone(), cancel.clone()));

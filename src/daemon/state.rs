@@ -1,7 +1,9 @@
 //! What a restart needs, per session (shell layer): each view's alignment keyed by the
-//! view's file identity and the keyframe's, and the digest of the inputs of the last
-//! written result. Saved atomically as JSON; a file that does not parse or has another
-//! version is ignored with a warning and rebuilt, never trusted.
+//! view's identity and the keyframe's (file name, size, time and a digest of the pixels:
+//! see [`content_digest`]), and the digest of the inputs of the last written result.
+//! Saved atomically as JSON with a checksum of its own content; a file that does not
+//! parse, has another version or fails its checksum is ignored with a warning and
+//! rebuilt from the images, never trusted.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -12,7 +14,7 @@ use thiserror::Error;
 use crate::session::AlignRecord;
 
 /// Format version; a file with another is rebuilt.
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
 
 /// Alignments kept per session (the oldest go first): bounded however long it runs.
 pub const MAX_ALIGNMENTS: usize = 4096;
@@ -46,6 +48,10 @@ pub struct SessionState {
     /// Number of the last result written (history numbering goes on from it).
     pub last_number: u64,
     pub seq: u64,
+    /// [`content_digest`] of the file's JSON with this field 0: a state edited, cut or
+    /// damaged on disk fails it and is rebuilt.
+    #[serde(default)]
+    pub checksum: u64,
 }
 
 impl Default for SessionState {
@@ -57,6 +63,7 @@ impl Default for SessionState {
             result: None,
             last_number: 0,
             seq: 0,
+            checksum: 0,
         }
     }
 }
@@ -65,6 +72,12 @@ impl SessionState {
     /// The saved alignment of `view` to `key`, if any.
     pub fn alignment(&self, view: &str, key: &str) -> Option<&AlignRecord> {
         self.alignments.get(view).filter(|a| a.key == key).map(|a| &a.record)
+    }
+
+    /// Whether an alignment is saved for a view whose identity starts with `prefix` (its
+    /// file's name, size and time, before its pixels are read) to the keyframe `key`.
+    pub fn has_alignment_for(&self, prefix: &str, key_prefix: &str) -> bool {
+        self.alignments.iter().any(|(v, a)| v.starts_with(prefix) && a.key.starts_with(key_prefix))
     }
 
     pub fn remember(&mut self, view: String, key: String, record: AlignRecord) {
@@ -76,6 +89,45 @@ impl SessionState {
             self.alignments.remove(&oldest);
         }
     }
+}
+
+/// A fast digest of `bytes` (pixels, a state file): a word-wise multiply–rotate hash,
+/// against damage and mix-ups, not against an adversary.
+pub fn content_digest(bytes: &[u8]) -> u64 {
+    const K: u64 = 0x9e37_79b9_7f4a_7c15;
+    let mut h = 0xcbf2_9ce4_8422_2325 ^ (bytes.len() as u64).wrapping_mul(K);
+    let mut words = bytes.chunks_exact(8);
+    for w in &mut words {
+        h = (h ^ u64::from_le_bytes(w.try_into().expect("8 bytes"))).wrapping_mul(K).rotate_left(29);
+    }
+    for &b in words.remainder() {
+        h = (h ^ u64::from(b)).wrapping_mul(K).rotate_left(29);
+    }
+    h ^ (h >> 32)
+}
+
+/// The bytes of a state file: its JSON with `checksum` (the last member) set to the
+/// digest of the same JSON with `checksum` 0.
+fn encode(state: &SessionState) -> std::io::Result<Vec<u8>> {
+    let plain =
+        serde_json::to_vec(&SessionState { checksum: 0, ..state.clone() }).map_err(std::io::Error::other)?;
+    let zero = b"\"checksum\":0}";
+    if !plain.ends_with(zero) {
+        return Err(std::io::Error::other("the state's JSON does not end with its checksum"));
+    }
+    let mut bytes = plain[..plain.len() - zero.len()].to_vec();
+    bytes.extend_from_slice(format!("\"checksum\":{}}}", content_digest(&plain)).as_bytes());
+    Ok(bytes)
+}
+
+/// Whether the file's bytes carry the right checksum (checked on the bytes as written,
+/// so it does not depend on how numbers parse and print).
+fn verifies(bytes: &[u8], checksum: u64) -> bool {
+    let tail = format!("\"checksum\":{checksum}}}");
+    let Some(head) = bytes.strip_suffix(tail.as_bytes()) else { return false };
+    let mut plain = head.to_vec();
+    plain.extend_from_slice(b"\"checksum\":0}");
+    content_digest(&plain) == checksum
 }
 
 pub fn sessions_dir(state_dir: &Path) -> PathBuf {
@@ -107,7 +159,7 @@ pub fn load(state_dir: &Path, session: &str) -> SessionState {
             SessionState::default()
         }
         Err(e) => {
-            tracing::warn!(file = %p.display(), error = %e, "saved state is corrupt: ignoring and rebuilding it");
+            tracing::warn!(file = %p.display(), error = %e, "saved state not trusted: rebuilding it from the images");
             SessionState::default()
         }
     }
@@ -120,6 +172,8 @@ pub enum StateError {
     Corrupt(#[from] serde_json::Error),
     #[error("format version {0}, not {VERSION}")]
     Version(u32),
+    #[error("fails its checksum (damaged or edited)")]
+    Checksum,
     #[error("implausible: {0}")]
     Implausible(String),
 }
@@ -135,6 +189,9 @@ pub fn parse(bytes: &[u8]) -> Result<SessionState, StateError> {
     let s: SessionState = serde_json::from_slice(bytes)?;
     if s.version != VERSION {
         return Err(StateError::Version(s.version));
+    }
+    if !verifies(bytes, s.checksum) {
+        return Err(StateError::Checksum);
     }
     let implausible = |m: String| Err(StateError::Implausible(m));
     if s.seq > MAX_COUNTER || s.last_number > MAX_COUNTER {
@@ -155,14 +212,17 @@ pub fn parse(bytes: &[u8]) -> Result<SessionState, StateError> {
     Ok(s)
 }
 
-/// Saves atomically; a failure is logged (the state is an optimisation, not a result).
-pub fn save(state_dir: &Path, session: &str, state: &SessionState) {
+/// Saves atomically; a failure is logged (the state is an optimisation, not a result) and
+/// reported as `false`, so the caller can try again later.
+pub fn save(state_dir: &Path, session: &str, state: &SessionState) -> bool {
     let p = path(state_dir, session);
-    let r = serde_json::to_vec(state)
-        .map_err(std::io::Error::other)
-        .and_then(|bytes| super::emit::atomic_write(&p, &bytes));
-    if let Err(e) = r {
-        tracing::warn!(file = %p.display(), error = %e, "cannot save state");
+    let r = encode(state).and_then(|bytes| super::emit::atomic_write(&p, &bytes));
+    match r {
+        Ok(()) => true,
+        Err(e) => {
+            tracing::warn!(file = %p.display(), error = %e, "cannot save state: trying again later");
+            false
+        }
     }
 }
 
@@ -194,7 +254,8 @@ mod tests {
         s.result = Some(SavedResult { digest: u64::MAX - 3, score: 0.75, number: 4 });
         save(dir.path(), "s1", &s);
         let back = load(dir.path(), "s1");
-        assert_eq!(back, s);
+        assert_ne!(back.checksum, 0);
+        assert_eq!(back, SessionState { checksum: back.checksum, ..s.clone() });
         assert_eq!(back.alignment("v|1|2", "k|3|4"), Some(&record()));
         assert_eq!(back.alignment("v|1|2", "other key"), None);
     }
@@ -226,6 +287,14 @@ mod tests {
         assert_eq!(load(dir.path(), "s1"), SessionState::default());
         std::fs::write(path(dir.path(), "s2"), b"{\"version\": 99}").unwrap();
         assert_eq!(load(dir.path(), "s2"), SessionState::default());
+        // Valid JSON, edited: another homography under the same checksum.
+        let mut s = SessionState::default();
+        s.remember("v|1|2".into(), "k|3|4".into(), record());
+        save(dir.path(), "s3", &s);
+        let text = std::fs::read_to_string(path(dir.path(), "s3")).unwrap();
+        assert!(load(dir.path(), "s3").alignment("v|1|2", "k|3|4").is_some());
+        std::fs::write(path(dir.path(), "s3"), text.replace("2.0", "7.0")).unwrap();
+        assert_eq!(load(dir.path(), "s3"), SessionState::default());
     }
 
     /// Valid JSON the service could not have written (found by the `state` fuzz target's
@@ -234,7 +303,7 @@ mod tests {
     fn implausible_state_is_refused() {
         let mut good = SessionState::default();
         good.remember("v|1|2".into(), "k|3|4".into(), record());
-        let json = |s: &SessionState| serde_json::to_vec(s).unwrap();
+        let json = |s: &SessionState| encode(s).unwrap();
         assert_eq!(parse(&json(&good)).unwrap(), good);
         let mut s = good.clone();
         s.seq = u64::MAX;

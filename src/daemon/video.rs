@@ -949,7 +949,9 @@ impl Runner {
     }
 
     fn fill(&mut self) {
+        worker::retry_pending(&self.ctx, &mut self.slot);
         if !self.slot.session.needs_fill() {
+            worker::save_state(&self.ctx, &mut self.slot);
             return;
         }
         let before = self.slot.state.last_number;
@@ -961,10 +963,7 @@ impl Runner {
             self.stats.latency_ms_sum.fetch_add(since.elapsed().as_millis() as u64, Ordering::Relaxed);
             self.stats.latency_n.fetch_add(1, Ordering::Relaxed);
         }
-        if self.slot.state_dirty {
-            state::save(&self.ctx.config.state_dir, &self.slot.name, &self.slot.state);
-            self.slot.state_dirty = false;
-        }
+        worker::save_state(&self.ctx, &mut self.slot);
     }
 }
 

@@ -43,6 +43,13 @@ impl FileId {
         format!("{}|{}|{}", self.name, self.size, ns)
     }
 
+    /// [`FileId::id`] and a digest of the decoded pixels: what saved alignments and
+    /// results are keyed by, so a file replaced under the same name, size and time (a
+    /// sync client that keeps times, a fixed-size format) is not mistaken for the old one.
+    pub fn content_id(&self, image: &DynamicImage) -> String {
+        format!("{}|{:016x}", self.id(), state::content_digest(image.as_bytes()))
+    }
+
     pub fn of(path: &Path) -> std::io::Result<Self> {
         let meta = std::fs::metadata(path)?;
         let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
@@ -140,6 +147,10 @@ pub(super) struct Slot {
     pub(super) views: BTreeMap<String, ViewEntry>,
     pub(super) seq: u64,
     pub(super) state_dirty: bool,
+    /// A result that could not be written yet.
+    pub(super) pending: Option<Pending>,
+    /// When to try again to save a state that could not be saved.
+    pub(super) state_retry: Backoff,
     /// For the status API: the latest result's report, provenance legend, the masked
     /// pixels each view filled in it, the history's numbers, and since when a view has
     /// been waiting for the result it may lead to.
@@ -153,11 +164,36 @@ pub(super) struct Slot {
 impl Slot {
     /// A new slot for session `name` whose files are in `dir`, with its saved state.
     pub(super) fn new(ctx: &Ctx, name: &str, dir: PathBuf) -> Self {
+        let out = ctx.emitter.session_dir(name);
+        let history = saved_history(&out.join("history"));
+        let mut state = state::load(&ctx.config.state_dir, name);
+        // The saved state is checked against the out folder, never trusted over it: a
+        // result it remembers must be the one on disk, whole and agreeing with its
+        // result.json, or it is made again; numbering goes on after every result on disk.
+        let on_disk = super::emit::check_result(&out);
+        if let Some(saved) = &state.result {
+            match &on_disk {
+                Ok(n) if *n == saved.number => {}
+                Ok(n) => {
+                    tracing::warn!(session = %name, saved = saved.number, on_disk = n, "the saved state names another result than the one on disk: it is made again");
+                    state.result = None;
+                }
+                Err(reason) => {
+                    tracing::warn!(session = %name, %reason, "the result on disk is not the one the state saved: it is made again");
+                    state.result = None;
+                }
+            }
+        }
+        let newest = on_disk.iter().copied().chain(history.last().copied()).max().unwrap_or(0);
+        if newest > state.last_number {
+            tracing::info!(session = %name, saved = state.last_number, newest, "results on disk are newer than the saved state: numbering goes on after them");
+            state.last_number = newest;
+        }
         Slot {
             name: name.to_owned(),
             dir,
             session: Session::new(ctx.config.session.clone()),
-            state: state::load(&ctx.config.state_dir, name),
+            state,
             key_path: None,
             key_rank: u8::MAX,
             mask_source: None,
@@ -166,12 +202,14 @@ impl Slot {
             views: BTreeMap::new(),
             seq: 0,
             state_dirty: false,
-            last_report: std::fs::read(ctx.emitter.session_dir(name).join("result.json"))
+            pending: None,
+            state_retry: Backoff::default(),
+            last_report: std::fs::read(out.join("result.json"))
                 .ok()
                 .and_then(|b| serde_json::from_slice(&b).ok()),
             legend: Vec::new(),
             filled_by: HashMap::new(),
-            history: saved_history(&ctx.emitter.session_dir(name).join("history")),
+            history,
             pending_since: None,
         }
     }
@@ -197,6 +235,11 @@ impl Worker {
                         break;
                     }
                     let session = job.session.clone();
+                    if self.removed(&session) {
+                        tracing::debug!(file = %job.path.display(), "its session folder is gone: dropped");
+                        self.ctx.backlog.done(&session);
+                        continue;
+                    }
                     if self.asleep.remove(&session) {
                         self.wake(&session);
                     }
@@ -212,7 +255,9 @@ impl Worker {
                     }
                     let names: Vec<String> = self.sessions.keys().cloned().collect();
                     for name in names {
-                        self.maybe_fill(&name);
+                        if !self.removed(&name) {
+                            self.maybe_fill(&name);
+                        }
                     }
                 }
                 Err(RecvTimeoutError::Disconnected) => break,
@@ -221,11 +266,48 @@ impl Worker {
                 break;
             }
         }
-        for slot in self.sessions.values() {
+        for slot in self.sessions.values_mut() {
             if slot.state_dirty {
                 state::save(&self.ctx.config.state_dir, &slot.name, &slot.state);
             }
+            if let Some(p) = &slot.pending {
+                tracing::warn!(
+                    session = %slot.name,
+                    number = p.number,
+                    "stopping with a result that could not be written: it is made again at the next start"
+                );
+            }
         }
+    }
+
+    /// Whether the inbox folder of session `name` is gone (deleted while it was handled,
+    /// or with the whole watched folder). A resident session is ended then: its state is
+    /// saved, its results in the out folder are kept (a user never wants them deleted)
+    /// and event `session_removed` says so. If the folder comes back, the session starts
+    /// again from its files.
+    fn removed(&mut self, name: &str) -> bool {
+        if name == watch::ROOT_SESSION || self.ctx.config.watch_dir.join(name).is_dir() {
+            return false;
+        }
+        self.asleep.remove(name);
+        self.used.remove(name);
+        if let Some(mut slot) = self.sessions.remove(name) {
+            save_state(&self.ctx, &mut slot);
+            let kept = slot.state.result.as_ref().map(|r| r.number);
+            tracing::info!(session = %name, dir = %slot.dir.display(), "session folder removed: session ended, its results are kept");
+            self.ctx.emitter.event(
+                "session_removed",
+                Some(name),
+                json!({
+                    "dir": slot.dir,
+                    "reason": "its folder was removed",
+                    "results_kept": self.ctx.emitter.session_dir(name),
+                    "last_result": kept,
+                    "unwritten_result": slot.pending.as_ref().map(|p| p.number),
+                }),
+            );
+        }
+        true
     }
 
     /// Puts the least recently used idle sessions to sleep while more than
@@ -236,7 +318,11 @@ impl Worker {
                 .sessions
                 .iter()
                 .filter(|(name, s)| {
-                    !s.session.needs_fill() && self.ctx.backlog.get(name) == 0 && s.parked.is_empty()
+                    !s.session.needs_fill()
+                        && self.ctx.backlog.get(name) == 0
+                        && s.parked.is_empty()
+                        && s.pending.is_none()
+                        && !s.state_dirty
                 })
                 .min_by_key(|(name, _)| self.used.get(*name).copied())
                 .map(|(name, _)| name.clone());
@@ -264,12 +350,13 @@ impl Worker {
         else {
             return;
         };
-        let key_id = file.id();
+        let key_id = format!("{}|", file.id());
         for path in watch::scan(&slot.dir, ctx.config.follow_symlinks) {
             let Some(c) = watch::classify(&ctx.config.watch_dir, &path, &ctx.config.extensions) else {
                 continue;
             };
-            let saved = FileId::of(&path).is_ok_and(|f| slot.state.alignment(&f.id(), &key_id).is_some());
+            let saved = FileId::of(&path)
+                .is_ok_and(|f| slot.state.has_alignment_for(&format!("{}|", f.id()), &key_id));
             if c.role == Role::View && path != key_path && saved {
                 let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
                 slot.parked.insert(name, path);
@@ -322,10 +409,7 @@ impl Worker {
                 None => process_view(ctx, slot, &file, &path, &image),
             },
         }
-        if slot.state_dirty {
-            state::save(&ctx.config.state_dir, &slot.name, &slot.state);
-            slot.state_dirty = false;
-        }
+        save_state(ctx, slot);
         publish(ctx, slot, None);
     }
 
@@ -333,16 +417,21 @@ impl Worker {
         let waiting = self.ctx.backlog.get(name);
         let batch_max = self.ctx.config.batch_max.get();
         let Some(slot) = self.sessions.get_mut(name) else { return };
+        if let Some(number) = retry_pending(&self.ctx, slot) {
+            save_state(&self.ctx, slot);
+            publish(&self.ctx, slot, Some(number));
+        }
+        if slot.state_dirty && slot.state_retry.due() {
+            // A save that failed earlier (full or read-only state folder).
+            save_state(&self.ctx, slot);
+        }
         if !slot.session.needs_fill() || (waiting > 0 && slot.session.admitted_since_fill() < batch_max) {
             return;
         }
         let span = tracing::info_span!("session", session = %name);
         let _enter = span.enter();
         let written = fill(&self.ctx, slot);
-        if slot.state_dirty {
-            state::save(&self.ctx.config.state_dir, &slot.name, &slot.state);
-            slot.state_dirty = false;
-        }
+        save_state(&self.ctx, slot);
         publish(&self.ctx, slot, written);
     }
 }
@@ -382,7 +471,7 @@ fn has_named_key(ctx: &Ctx, dir: &Path) -> bool {
 }
 
 fn take_key(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &DynamicImage, rank: u8) {
-    let id = file.id();
+    let id = file.content_id(image);
     if slot.session.key_id() == Some(id.as_str()) {
         return;
     }
@@ -480,12 +569,13 @@ fn take_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
 }
 
 fn apply_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
-    if slot.session.mask_id() == Some(file.id().as_str()) {
+    let id = file.content_id(image);
+    if slot.session.mask_id() == Some(id.as_str()) {
         return;
     }
     let mask = to_mask(image);
     let masked = mask.hole_count();
-    match slot.session.set_mask(file.id(), mask) {
+    match slot.session.set_mask(id, mask) {
         Ok(again) => {
             slot.mask_source = Some(format!("file:{}", file.name));
             write_mask(ctx, slot);
@@ -603,7 +693,7 @@ fn rgb8(image: &DynamicImage) -> Rgb8 {
 fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &DynamicImage) {
     let span = tracing::info_span!("view", file = %file.name);
     let _enter = span.enter();
-    let id = file.id();
+    let id = file.content_id(image);
     let Some(key_id) = slot.session.key_id().map(str::to_owned) else { return };
     let start = Instant::now();
     let (record, from_state) = match slot.state.alignment(&id, &key_id) {
@@ -750,7 +840,7 @@ pub(super) fn fill(ctx: &Ctx, slot: &mut Slot) -> Option<u64> {
     tracing::debug!(fill_ms, ?timings.done, "fill done");
     let r = &outcome.report;
     let fallback_share = if r.masked == 0 { 0.0 } else { r.fallback as f64 / r.masked as f64 };
-    let Some(image) = &outcome.image else {
+    if outcome.image.is_none() {
         tracing::info!(score = outcome.score, best = outcome.previous, "new fill scores lower: result kept");
         ctx.emitter.event(
             "result_not_better",
@@ -762,22 +852,107 @@ pub(super) fn fill(ctx: &Ctx, slot: &mut Slot) -> Option<u64> {
         return None;
     };
     let number = slot.state.last_number + 1;
-    let ext = ctx.emitter.result_name();
     let report = result_json(ctx, slot, &outcome, number, fallback_share);
+    if slot.pending.take().is_some() {
+        tracing::info!(number, "a newer result replaces the one waiting to be written");
+    }
+    write(ctx, slot, Pending { outcome, report, number, digest, fill_ms, stages, retry: Backoff::default() })
+}
+
+/// Saves the session's state if it changed; a failure keeps it marked changed, to be tried
+/// again (see [`Backoff`]).
+pub(super) fn save_state(ctx: &Ctx, slot: &mut Slot) {
+    if !slot.state_dirty {
+        return;
+    }
+    if state::save(&ctx.config.state_dir, &slot.name, &slot.state) {
+        slot.state_dirty = false;
+        slot.state_retry = Backoff::default();
+    } else {
+        slot.state_retry.failed();
+    }
+}
+
+/// A result that could not be written (full disk, read-only folder): kept in memory and
+/// written again with a growing delay until it is, or until a newer result replaces it.
+/// The files already on disk stay as they were meanwhile.
+pub(super) struct Pending {
+    outcome: crate::session::FillOutcome,
+    report: serde_json::Value,
+    number: u64,
+    digest: u64,
+    fill_ms: f64,
+    stages: serde_json::Map<String, serde_json::Value>,
+    retry: Backoff,
+}
+
+/// When to try again something that failed on the disk: 1 s, then twice as long each
+/// time, at most 30 s.
+#[derive(Debug, Default)]
+pub(super) struct Backoff {
+    failures: u32,
+    next: Option<Instant>,
+}
+
+impl Backoff {
+    const FIRST: Duration = Duration::from_secs(1);
+    const MAX: Duration = Duration::from_secs(30);
+
+    pub(super) fn due(&self) -> bool {
+        self.next.is_none_or(|t| Instant::now() >= t)
+    }
+
+    /// Records a failure; returns the delay before the next try.
+    pub(super) fn failed(&mut self) -> Duration {
+        let delay = Self::FIRST.saturating_mul(1 << self.failures.min(5)).min(Self::MAX);
+        self.failures += 1;
+        self.next = Some(Instant::now() + delay);
+        delay
+    }
+
+    pub(super) fn failures(&self) -> u32 {
+        self.failures
+    }
+}
+
+/// Writes the result waiting to be written, when its next try is due; returns its number
+/// when it was written.
+pub(super) fn retry_pending(ctx: &Ctx, slot: &mut Slot) -> Option<u64> {
+    if !slot.pending.as_ref()?.retry.due() {
+        return None;
+    }
+    let p = slot.pending.take()?;
+    let span = tracing::info_span!("session", session = %slot.name);
+    let _enter = span.enter();
+    tracing::info!(number = p.number, tries = p.retry.failures() + 1, "writing the result again");
+    write(ctx, slot, p)
+}
+
+/// Writes a result; on failure keeps it as the slot's pending result.
+fn write(ctx: &Ctx, slot: &mut Slot, mut p: Pending) -> Option<u64> {
+    let number = p.number;
+    let ext = ctx.emitter.result_name();
     let write_start = Instant::now();
-    match ctx.emitter.write_result(&slot.name, number, image, &report) {
+    let image = p.outcome.image.as_ref().expect("a pending result has an image");
+    match ctx.emitter.write_result(&slot.name, number, image, &mut p.report) {
         Ok(path) => {
             let write_ms = write_start.elapsed().as_secs_f64() * 1e3;
+            let Pending { outcome, report, digest, fill_ms, stages, retry, .. } = p;
+            let r = &outcome.report;
+            let fallback_share = if r.masked == 0 { 0.0 } else { r.fallback as f64 / r.masked as f64 };
             slot.state.last_number = number;
             slot.state.result = Some(SavedResult { digest, score: outcome.score, number });
             slot.state_dirty = true;
             ctx.stats.results.fetch_add(1, Ordering::Relaxed);
+            let (masked, views, score, previous) =
+                (r.masked, outcome.views.len(), outcome.score, outcome.previous);
             after_result(ctx, slot, &outcome, number, report);
             tracing::info!(
                 number,
-                from_views = outcome.score,
+                from_views = score,
                 fallback = fallback_share,
                 fill_ms = fill_ms.round(),
+                tries = retry.failures() + 1,
                 "result updated"
             );
             ctx.emitter.event(
@@ -787,25 +962,40 @@ pub(super) fn fill(ctx: &Ctx, slot: &mut Slot) -> Option<u64> {
                     "number": number,
                     "path": path,
                     "result": ext,
-                    "views": outcome.views.len(),
-                    "masked": r.masked,
-                    "from_views": outcome.score,
+                    "views": views,
+                    "masked": masked,
+                    "from_views": score,
                     "from_fallback": fallback_share,
-                    "previous_score": outcome.previous,
+                    "previous_score": previous,
                     "fill_ms": fill_ms.round(),
                     "write_ms": write_ms.round(),
                     "stages_ms": stages,
+                    "tries": retry.failures() + 1,
                 }),
             );
             Some(number)
         }
         Err(e) => {
-            tracing::error!(error = %e, out = %ctx.emitter.session_dir(&slot.name).display(), "cannot write the result");
+            let delay = p.retry.failed();
+            tracing::error!(
+                file = %e.path.display(),
+                error = %e.source,
+                number,
+                retry_in_ms = delay.as_millis() as u64,
+                "cannot write the result: the previous one stays, this one is tried again"
+            );
             ctx.emitter.event(
                 "result_failed",
                 Some(&slot.name),
-                json!({ "number": number, "reason": e.to_string() }),
+                json!({
+                    "number": number,
+                    "file": e.path,
+                    "reason": e.source.to_string(),
+                    "tries": p.retry.failures(),
+                    "retry_in_ms": delay.as_millis() as u64,
+                }),
             );
+            slot.pending = Some(p);
             None
         }
     }
