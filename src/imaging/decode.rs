@@ -94,36 +94,8 @@ mod tests {
         assert!(matches!(decode(&png[..png.len() / 2], &limits), Err(DecodeError::Corrupt(_))));
     }
 
-    /// A little-endian TIFF block with one IFD entry: Orientation (0x0112) = `o`.
-    fn exif_orientation(o: u16) -> Vec<u8> {
-        let mut e = b"II*\0".to_vec();
-        e.extend(8u32.to_le_bytes());
-        e.extend(1u16.to_le_bytes());
-        e.extend(0x0112u16.to_le_bytes());
-        e.extend(3u16.to_le_bytes());
-        e.extend(1u32.to_le_bytes());
-        e.extend((o as u32).to_le_bytes());
-        e.extend(0u32.to_le_bytes());
-        e
-    }
-
-    /// Where display pixel `(x, y)` comes from in a stored `w × h` image, per EXIF 1–8.
-    fn stored_position(o: u16, x: u32, y: u32, w: u32, h: u32) -> (u32, u32) {
-        match o {
-            1 => (x, y),
-            2 => (w - 1 - x, y),
-            3 => (w - 1 - x, h - 1 - y),
-            4 => (x, h - 1 - y),
-            5 => (y, x),
-            6 => (y, h - 1 - x),
-            7 => (w - 1 - y, h - 1 - x),
-            8 => (w - 1 - y, x),
-            _ => unreachable!(),
-        }
-    }
-
     fn encode_with_exif(mut enc: impl image::ImageEncoder, img: &RgbImage, orientation: u16) {
-        enc.set_exif_metadata(exif_orientation(orientation)).unwrap();
+        enc.set_exif_metadata(crate::synth::exif_orientation(orientation)).unwrap();
         enc.write_image(img.as_raw(), img.width(), img.height(), image::ExtendedColorType::Rgb8).unwrap();
     }
 
@@ -148,9 +120,15 @@ mod tests {
                 assert_eq!((img.width(), img.height()), (w * 16, h * 16), "{format} orientation {o}");
                 for by in 0..h {
                     for bx in 0..w {
-                        let (sx, sy) = stored_position(o, bx, by, bw, bh);
+                        let (sx, sy) = crate::synth::stored_position(
+                            o,
+                            bx as usize,
+                            by as usize,
+                            bw as usize,
+                            bh as usize,
+                        );
                         let got = img.get_pixel(bx * 16 + 8, by * 16 + 8).0;
-                        let want = block(sx, sy);
+                        let want = block(sx as u32, sy as u32);
                         let close = got.iter().zip(want).all(|(&g, w)| (g as i32 - w as i32).abs() <= 8);
                         assert!(
                             close,
