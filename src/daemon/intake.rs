@@ -163,7 +163,7 @@ impl Intake {
                 (t.size, t.mtime, t.since, t.status) = (size, mtime, Instant::now(), Status::Settling);
             }
             None => {
-                tracing::debug!(file = %path.display(), session = %candidate.session, "noticed");
+                tracing::debug!(file = %watch::shown_path(&path), session = %candidate.session, "noticed");
                 self.files.insert(
                     path,
                     Tracked {
@@ -238,7 +238,7 @@ impl Intake {
             let session = t.session.clone();
             match outcome {
                 Some(Ok(image)) => {
-                    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
+                    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
                     let file = FileId { name, size: t.size, mtime: t.mtime };
                     let job = Job { session: session.clone(), path: path.clone(), role: t.role, file, image };
                     if cancel.is_cancelled() {
@@ -265,22 +265,22 @@ impl Intake {
                     t.status = Status::Failed;
                     self.backlog.done(&session);
                     self.stats.skipped.fetch_add(1, Ordering::Relaxed);
-                    tracing::warn!(file = %path.display(), session = %session, %reason, "file skipped");
+                    tracing::warn!(file = %watch::shown_path(&path), session = %session, %reason, "file skipped");
                     self.emitter.event(
                         "file_skipped",
                         Some(&session),
-                        serde_json::json!({ "file": path.file_name().map(|n| n.to_string_lossy()), "path": path, "reason": reason }),
+                        serde_json::json!({ "file": path.file_name().map(|n| n.to_string_lossy()), "path": path.to_string_lossy(), "reason": reason }),
                     );
                 }
                 None => {
                     // The decoder panicked on this file: never again until it changes.
                     t.status = Status::Failed;
                     self.backlog.done(&session);
-                    tracing::error!(file = %path.display(), "the decoder crashed on this file");
+                    tracing::error!(file = %watch::shown_path(&path), reason = "the decoder crashed", "file skipped");
                     self.emitter.event(
                         "file_skipped",
                         Some(&session),
-                        serde_json::json!({ "file": path.file_name().map(|n| n.to_string_lossy()), "path": path, "reason": "the decoder crashed" }),
+                        serde_json::json!({ "file": path.file_name().map(|n| n.to_string_lossy()), "path": path.to_string_lossy(), "reason": "the decoder crashed" }),
                     );
                 }
             }

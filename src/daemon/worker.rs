@@ -44,7 +44,7 @@ impl FileId {
 
     pub fn of(path: &Path) -> std::io::Result<Self> {
         let meta = std::fs::metadata(path)?;
-        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
+        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         Ok(Self { name, size: meta.len(), mtime: meta.modified()? })
     }
 }
@@ -308,7 +308,7 @@ impl Worker {
             Role::View => match key_rank_for(ctx, slot, &file.name) {
                 Some(rank) => take_key(ctx, slot, &file, &path, &image, rank),
                 None if slot.session.key_id().is_none() => {
-                    tracing::info!(file = %file.name, "waiting for the keyframe");
+                    tracing::info!(file = %watch::shown(&file.name), "waiting for the keyframe");
                     ctx.emitter.event(
                         "view_waiting",
                         Some(&slot.name),
@@ -414,7 +414,7 @@ fn take_key(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &Dyna
         slot.state_dirty = true;
     }
     let (w, h) = (image.width(), image.height());
-    tracing::info!(key = %file.name, width = w, height = h, views = again.len(), "keyframe set");
+    tracing::info!(key = %watch::shown(&file.name), width = w, height = h, views = again.len(), "keyframe set");
     ctx.emitter.event(
         if first { "session_started" } else { "keyframe_changed" },
         Some(&slot.name),
@@ -485,7 +485,7 @@ fn apply_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
         Ok(again) => {
             slot.mask_source = Some(format!("file:{}", file.name));
             write_mask(ctx, slot);
-            tracing::info!(mask = %file.name, masked, "mask set");
+            tracing::info!(mask = %watch::shown(&file.name), masked, "mask set");
             ctx.emitter.event(
                 "mask_set",
                 Some(&slot.name),
@@ -555,12 +555,12 @@ fn outcome_reason(e: &DecodeOutcome) -> String {
 
 fn skip(ctx: &Ctx, slot: &Slot, path: &Path, reason: &str) {
     ctx.stats.skipped.fetch_add(1, Ordering::Relaxed);
-    tracing::warn!(file = %path.display(), %reason, "file skipped");
+    tracing::warn!(file = %watch::shown_path(path), %reason, "file skipped");
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
     ctx.emitter.event(
         "file_skipped",
         Some(&slot.name),
-        json!({ "file": name, "path": path, "reason": reason }),
+        json!({ "file": name, "path": path.to_string_lossy(), "reason": reason }),
     );
 }
 
@@ -591,7 +591,7 @@ fn rgb8(image: &DynamicImage) -> Rgb8 {
 }
 
 fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &DynamicImage) {
-    let span = tracing::info_span!("view", file = %file.name);
+    let span = tracing::info_span!("view", file = %watch::shown(&file.name));
     let _enter = span.enter();
     let id = file.id();
     let Some(key_id) = slot.session.key_id().map(str::to_owned) else { return };
@@ -670,7 +670,7 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
                     v.reason = Some("contributed least when the buffer was full".into());
                 }
                 let name = d.split('|').next().unwrap_or(d);
-                tracing::info!(dropped = %name, "view dropped from the buffer");
+                tracing::info!(dropped = %watch::shown(name), "view dropped from the buffer");
                 ctx.emitter.event(
                     "view_dropped",
                     Some(&slot.name),
