@@ -7,6 +7,8 @@
 //! masks before views, older before newer. A worker whose queue is full gets nothing more:
 //! its files stay ready, on disk, and are queued at a later tick. A file that fails to
 //! decode is reported once (event `file_skipped`) and not retried until it changes.
+//! Keyframes and views must look like photographs: at least [`MIN_SIDE`] pixels a side
+//! and at most [`MAX_ASPECT`]:1.
 
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -58,6 +60,14 @@ pub struct Intake {
     files: HashMap<PathBuf, Tracked>,
     decoders: Arc<Semaphore>,
 }
+
+/// Keyframes and views with a side shorter than this are refused: too few pixels for
+/// corners to be found and matched.
+pub const MIN_SIDE: u32 = 32;
+
+/// Keyframes and views longer than this many times their other side are refused: strips,
+/// not photographs of a facade.
+pub const MAX_ASPECT: u32 = 10;
 
 /// The worker that owns `session` (stable for the life of the process).
 pub fn worker_for(session: &str, workers: usize) -> usize {
@@ -312,6 +322,11 @@ pub fn read_and_decode(
         return Err(DecodeOutcome::Changed);
     }
     let img = decode(&bytes, limits).map_err(|e| DecodeOutcome::Failed(e.to_string()))?;
+    if role != Role::Mask
+        && let Some(reason) = shape_problem(img.width(), img.height())
+    {
+        return Err(DecodeOutcome::Failed(reason));
+    }
     Ok(match (role, img) {
         (Role::Mask, DynamicImage::ImageLuma8(g)) => DynamicImage::ImageLuma8(g),
         (Role::Mask, other) => DynamicImage::ImageLuma8(other.to_luma8()),
@@ -320,7 +335,37 @@ pub fn read_and_decode(
     })
 }
 
+/// Why a `width × height` image cannot be a keyframe or a view, if it cannot.
+pub fn shape_problem(width: u32, height: u32) -> Option<String> {
+    let (short, long) = (width.min(height), width.max(height));
+    if short < MIN_SIDE {
+        Some(format!("{width}x{height} is too small to align (at least {MIN_SIDE} pixels a side)"))
+    } else if u64::from(long) > u64::from(short) * u64::from(MAX_ASPECT) {
+        Some(format!(
+            "{width}x{height} is a strip ({}:1), not a photograph of a facade (at most {MAX_ASPECT}:1)",
+            long / short
+        ))
+    } else {
+        None
+    }
+}
+
 /// Time a test or a caller may wait for a file to be taken: quiet period plus two ticks.
 pub fn settle_time(config: &Config) -> Duration {
     config.quiet_period + 2 * super::tick_interval(config)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn photographs_pass_and_dots_and_strips_do_not() {
+        for (w, h) in [(400, 300), (32, 32), (320, 32), (4000, 3000), (300, 3000)] {
+            assert_eq!(shape_problem(w, h), None, "{w}x{h}");
+        }
+        for (w, h) in [(1, 1), (31, 400), (400, 0), (20_000, 50), (33, 331)] {
+            assert!(shape_problem(w, h).is_some(), "{w}x{h}");
+        }
+    }
 }
