@@ -481,16 +481,32 @@ fn apply_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
     }
     let mask = to_mask(image);
     let masked = mask.hole_count();
+    let share = masked as f64 / mask.len().max(1) as f64;
     match slot.session.set_mask(file.id(), mask) {
         Ok(again) => {
             slot.mask_source = Some(format!("file:{}", file.name));
             write_mask(ctx, slot);
-            tracing::info!(mask = %watch::shown(&file.name), masked, "mask set");
-            ctx.emitter.event(
-                "mask_set",
-                Some(&slot.name),
-                json!({ "mask": file.name, "source": "file", "masked": masked }),
-            );
+            let mut fields = json!({ "mask": file.name, "file": file.name, "source": "file", "masked": masked, "share": share });
+            // Masks that are probably mistakes say what will come of them.
+            let warning = if masked == 0 {
+                Some(
+                    "the mask marks no pixel (all black): nothing to fill, the keyframe itself is the result",
+                )
+            } else if share >= 0.999 {
+                Some(
+                    "the mask covers the whole keyframe (all white): the result is made of the views alone, and what no view sees is invented",
+                )
+            } else {
+                None
+            };
+            match warning {
+                Some(w) => {
+                    tracing::warn!(mask = %watch::shown(&file.name), masked, reason = w, "mask set");
+                    fields["warning"] = w.into();
+                }
+                None => tracing::info!(mask = %watch::shown(&file.name), masked, "mask set"),
+            }
+            ctx.emitter.event("mask_set", Some(&slot.name), fields);
             let paths: Vec<PathBuf> = again.iter().filter_map(|i| slot.paths.get(i).cloned()).collect();
             for p in paths {
                 reprocess(ctx, slot, &p);
