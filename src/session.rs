@@ -442,6 +442,20 @@ impl Session {
         Ok(Admission::Accepted { improves, fallback_px, weak_px, dropped })
     }
 
+    /// Forgets the mask (its file was deleted): no fill until a new one is set; buffered
+    /// views keep their alignments but lose their crops, as when a mask changes.
+    pub fn clear_mask(&mut self) {
+        self.mask = None;
+        self.provenance = None;
+        self.best = None;
+        self.dirty = false;
+        self.admitted_since_fill = 0;
+        for b in &mut self.buffer {
+            b.crop = None;
+            b.contribution = None;
+        }
+    }
+
     /// Whether view `pixels`, mapped by keyframe → view `h`, show the keyframe's own
     /// pixels over the mask ([`SAME_AS_KEY`]); `false` when it sees less than half of it.
     fn same_as_key(&self, h: &Homography, pixels: &Rgb8) -> bool {
@@ -753,6 +767,11 @@ mod tests {
         let other = to8(&synth::facade(W, H, 9));
         let a = s.admit("other".into(), record(&Homography::identity()), Some(&other)).unwrap();
         assert!(matches!(a, Admission::Accepted { .. }), "{a:?}");
+        // Forgetting the mask keeps the alignment, drops the pixels, and stops the fills.
+        s.clear_mask();
+        assert!(s.mask().is_none() && !s.needs_fill());
+        assert_eq!(s.buffered().len(), 1);
+        assert!(!s.buffered()[0].has_pixels());
     }
 
     #[test]

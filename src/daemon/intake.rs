@@ -8,7 +8,8 @@
 //! its files stay ready, on disk, and are queued at a later tick. A file that fails to
 //! decode is reported once (event `file_skipped`) and not retried until it changes.
 //! Keyframes and views must look like photographs: at least [`MIN_SIDE`] pixels a side
-//! and at most [`MAX_ASPECT`]:1.
+//! and at most [`MAX_ASPECT`]:1. A mask that a worker has taken and that is then deleted
+//! is reported to that worker (a job without an image).
 
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -59,6 +60,8 @@ pub struct Intake {
     started: Instant,
     files: HashMap<PathBuf, Tracked>,
     decoders: Arc<Semaphore>,
+    /// Masks deleted after a worker took them, still to be told to it: (path, session).
+    removed: Vec<(PathBuf, String)>,
 }
 
 /// Keyframes and views with a side shorter than this are refused: too few pixels for
@@ -86,7 +89,17 @@ impl Intake {
         started: Instant,
     ) -> Self {
         let decoders = Arc::new(Semaphore::new(config.decoders.get()));
-        Self { config, senders, backlog, emitter, stats, started, files: HashMap::new(), decoders }
+        Self {
+            config,
+            senders,
+            backlog,
+            emitter,
+            stats,
+            started,
+            files: HashMap::new(),
+            decoders,
+            removed: Vec::new(),
+        }
     }
 
     pub async fn run(
@@ -124,13 +137,10 @@ impl Intake {
         let root = self.config.watch_dir.clone();
         let paths = tokio::task::spawn_blocking(move || watch::scan(&root)).await.unwrap_or_default();
         let present: std::collections::HashSet<&PathBuf> = paths.iter().collect();
-        self.files.retain(|p, t| {
-            let keep = present.contains(p);
-            if !keep && t.status == Status::Ready {
-                self.backlog.done(&t.session);
-            }
-            keep
-        });
+        let gone: Vec<PathBuf> = self.files.keys().filter(|p| !present.contains(p)).cloned().collect();
+        for p in gone {
+            self.forget(&p);
+        }
         for p in paths {
             self.observe(p);
         }
@@ -155,11 +165,7 @@ impl Intake {
         let meta = match std::fs::metadata(&path) {
             Ok(m) if m.is_file() => m,
             _ => {
-                if let Some(t) = self.files.remove(&path)
-                    && t.status == Status::Ready
-                {
-                    self.backlog.done(&t.session);
-                }
+                self.forget(&path);
                 return;
             }
         };
@@ -189,6 +195,31 @@ impl Intake {
         }
     }
 
+    /// `path` is gone from the folder: it stops being tracked, and a mask a worker took is
+    /// reported to it.
+    fn forget(&mut self, path: &std::path::Path) {
+        let Some(t) = self.files.remove(path) else { return };
+        if t.status == Status::Ready {
+            self.backlog.done(&t.session);
+        }
+        if t.role == Role::Mask && t.status == Status::Queued {
+            self.removed.push((path.to_owned(), t.session));
+        }
+    }
+
+    /// Tells workers about deleted masks while their queues have room.
+    fn report_removed(&mut self) {
+        let workers = self.senders.len();
+        self.removed.retain(|(path, session)| {
+            let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            let file = FileId { name, size: 0, mtime: SystemTime::UNIX_EPOCH };
+            let job =
+                Job { session: session.clone(), path: path.clone(), role: Role::Mask, file, image: None };
+            // Full: kept for the next tick. Disconnected: nobody to tell.
+            matches!(self.senders[worker_for(session, workers)].try_send(job), Err(TrySendError::Full(_)))
+        });
+    }
+
     /// Re-checks settling files; those quiet for long enough become ready.
     fn settle(&mut self) {
         let quiet = self.config.quiet_period;
@@ -208,6 +239,7 @@ impl Intake {
 
     /// Decodes and queues ready files while their workers have room.
     async fn dispatch(&mut self, cancel: &CancellationToken) {
+        self.report_removed();
         let workers = self.senders.len();
         let mut room: Vec<usize> =
             self.senders.iter().map(|s| s.capacity().unwrap_or(usize::MAX).saturating_sub(s.len())).collect();
@@ -250,7 +282,13 @@ impl Intake {
                 Some(Ok(image)) => {
                     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
                     let file = FileId { name, size: t.size, mtime: t.mtime };
-                    let job = Job { session: session.clone(), path: path.clone(), role: t.role, file, image };
+                    let job = Job {
+                        session: session.clone(),
+                        path: path.clone(),
+                        role: t.role,
+                        file,
+                        image: Some(image),
+                    };
                     if cancel.is_cancelled() {
                         // Left on disk for the next start.
                         t.status = Status::Ready;

@@ -55,8 +55,9 @@ pub struct Job {
     pub path: PathBuf,
     pub role: Role,
     pub file: FileId,
-    /// 8-bit RGB for keyframes and views, 8-bit grey for masks.
-    pub image: DynamicImage,
+    /// 8-bit RGB for keyframes and views, 8-bit grey for masks; `None`: the file was
+    /// deleted (only said of masks).
+    pub image: Option<DynamicImage>,
 }
 
 /// The workers' queues and threads.
@@ -200,8 +201,12 @@ impl Worker {
                         self.wake(&session);
                     }
                     self.used.insert(session.clone(), Instant::now());
+                    // A deletion was never in the backlog.
+                    let counted = job.image.is_some();
                     self.handle(job);
-                    self.ctx.backlog.done(&session);
+                    if counted {
+                        self.ctx.backlog.done(&session);
+                    }
                     self.maybe_fill(&session);
                     self.sleep_beyond_capacity();
                 }
@@ -299,6 +304,11 @@ impl Worker {
         let Job { session, path, role, file, image } = job;
         let Self { ctx, sessions, .. } = self;
         let slot = Self::slot(ctx, sessions, &session);
+        let Some(image) = image else {
+            mask_removed(ctx, slot, &file);
+            publish(ctx, slot, None);
+            return;
+        };
         if role == Role::View {
             ctx.registry.metrics.views_received.fetch_add(1, Ordering::Relaxed);
         }
@@ -513,6 +523,38 @@ fn apply_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
             }
         }
         Err(e) => skip(ctx, slot, &slot.dir.join(&file.name), &e.to_string()),
+    }
+}
+
+/// The mask file `file` was deleted. If it was the session's mask, the session forgets
+/// it: no new result until a mask arrives; the last result stays as it is.
+fn mask_removed(ctx: &Ctx, slot: &mut Slot, file: &FileId) {
+    let key_stem =
+        slot.key_path.as_ref().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned());
+    let current = slot.mask_source.as_deref() == Some(format!("file:{}", file.name).as_str());
+    // A session rebuilt from disk since (put to sleep and woken) no longer has it.
+    let was_its = key_stem.as_deref().is_some_and(|k| {
+        let stem = watch::stem(&file.name);
+        slot.session.mask_id().is_none() && (stem == "mask" || stem == format!("{}.mask", watch::stem(k)))
+    });
+    if !current && !was_its {
+        tracing::debug!(mask = %watch::shown(&file.name), "a mask that was not in use was deleted");
+        return;
+    }
+    if current {
+        slot.session.clear_mask();
+        slot.mask_source = None;
+    }
+    let reason = "the mask file was deleted: no new result until a mask arrives; the last result is kept";
+    tracing::warn!(file = %watch::shown(&file.name), reason, "mask removed");
+    ctx.emitter.event("mask_removed", Some(&slot.name), json!({ "file": file.name, "reason": reason }));
+    // Another mask beside the keyframe (`mask.<ext>`) takes over.
+    if let Some(k) = &key_stem
+        && let Some(other) = find_mask(ctx, &slot.dir, k)
+        && let Ok(f) = FileId::of(&other)
+        && let Ok(img) = read_and_decode(&other, Role::Mask, f.size, f.mtime, &limits(ctx))
+    {
+        apply_mask(ctx, slot, &f, &img);
     }
 }
 
