@@ -40,6 +40,12 @@ use crate::inpaint::{self, AutoMaskParams, FALLBACK, FillParams, FillReport, Obs
 /// An 8-bit RGB image: what the buffer keeps of a view (the fill samples it as it is).
 pub use crate::imaging::Rgb8;
 
+/// A view whose pixels over the mask differ from the keyframe's by less than this on
+/// average (0..=1, over the masked pixels it sees) shows what the keyframe shows there: the
+/// same file again, or a shot from the same spot with the occluder where it was. It adds
+/// nothing and would paint the occluder back in, so it is rejected.
+pub const SAME_AS_KEY: f64 = 0.02;
+
 /// Parameters of a session.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SessionParams {
@@ -389,6 +395,14 @@ impl Session {
                 want_h: record.view_size.1,
             });
         }
+        if let Some(p) = pixels
+            && self.same_as_key(&homography, p)
+        {
+            return Ok(Admission::Rejected {
+                reason: "shows what the keyframe shows where the mask is (the same picture): it adds nothing"
+                    .into(),
+            });
+        }
         self.buffer.retain(|b| b.id != id);
         let mut crop = None;
         let (mut fallback_px, mut weak_px) = (0, 0);
@@ -426,6 +440,47 @@ impl Session {
             self.admitted_since_fill += 1;
         }
         Ok(Admission::Accepted { improves, fallback_px, weak_px, dropped })
+    }
+
+    /// Forgets the mask (its file was deleted): no fill until a new one is set; buffered
+    /// views keep their alignments but lose their crops, as when a mask changes.
+    pub fn clear_mask(&mut self) {
+        self.mask = None;
+        self.provenance = None;
+        self.best = None;
+        self.dirty = false;
+        self.admitted_since_fill = 0;
+        for b in &mut self.buffer {
+            b.crop = None;
+            b.contribution = None;
+        }
+    }
+
+    /// Whether view `pixels`, mapped by keyframe → view `h`, show the keyframe's own
+    /// pixels over the mask ([`SAME_AS_KEY`]); `false` when it sees less than half of it.
+    fn same_as_key(&self, h: &Homography, pixels: &Rgb8) -> bool {
+        let (Some(key), Some(mask)) = (&self.key, &self.mask) else { return false };
+        let Some(region) = mask.region else { return false };
+        let step = if mask.mask.hole_count() > 250_000 { 2 } else { 1 };
+        let (w, h_px) = (pixels.width() as f64, pixels.height() as f64);
+        let (mut sum, mut seen, mut holes) = (0.0f64, 0usize, 0usize);
+        for y in (region.y..region.y1()).step_by(step) {
+            for x in (region.x..region.x1()).step_by(step) {
+                if !mask.mask.is_hole(x, y) {
+                    continue;
+                }
+                holes += 1;
+                let Some(p) = h.apply(Point2::new(x as f64, y as f64)) else { continue };
+                let (vx, vy) = (p.x.round(), p.y.round());
+                if vx < 0.0 || vy < 0.0 || vx >= w || vy >= h_px {
+                    continue;
+                }
+                let (v, k) = (pixels.get(vx as usize, vy as usize), key.rgb.get(x, y));
+                sum += (0..3).map(|c| f64::from((f32::from(v[c]) / 255.0 - k[c]).abs())).sum::<f64>() / 3.0;
+                seen += 1;
+            }
+        }
+        seen > 0 && seen * 2 >= holes && sum / (seen as f64) < SAME_AS_KEY
     }
 
     /// Ids of buffered views whose pixels are not in memory (the mask arrived, or changed,
@@ -691,6 +746,25 @@ mod tests {
             let b = bilinear_rgb(&crop_f, c.x as f32, c.y as f32).unwrap();
             assert!((0..3).all(|k| (a[k] - b[k]).abs() < 1e-5), "{a:?} vs {b:?} at ({x},{y})");
         }
+    }
+
+    #[test]
+    fn a_view_showing_the_keyframe_over_the_mask_is_rejected_and_another_is_not() {
+        let mut s = session_with_key();
+        s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+        let key = to8(&synth::facade(W, H, 5));
+        let a = s.admit("same".into(), record(&Homography::identity()), Some(&key)).unwrap();
+        assert!(matches!(&a, Admission::Rejected { reason } if reason.contains("adds nothing")), "{a:?}");
+        assert!(s.buffered().is_empty());
+        // Without the check, that view would be buffered; one that sees something else is.
+        let other = to8(&synth::facade(W, H, 9));
+        let a = s.admit("other".into(), record(&Homography::identity()), Some(&other)).unwrap();
+        assert!(matches!(a, Admission::Accepted { .. }), "{a:?}");
+        // Forgetting the mask keeps the alignment, drops the pixels, and stops the fills.
+        s.clear_mask();
+        assert!(s.mask().is_none() && !s.needs_fill());
+        assert_eq!(s.buffered().len(), 1);
+        assert!(!s.buffered()[0].has_pixels());
     }
 
     #[test]

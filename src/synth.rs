@@ -311,6 +311,50 @@ pub fn random_homography(
         .after(&Homography::translation(-w / 2.0, -h / 2.0))
 }
 
+/// The EXIF block (a little-endian TIFF header with one IFD entry) that tags an image with
+/// orientation `o` (1–8), as a camera writes it.
+pub fn exif_orientation(o: u16) -> Vec<u8> {
+    let mut e = b"II*\0".to_vec();
+    e.extend(8u32.to_le_bytes());
+    e.extend(1u16.to_le_bytes());
+    e.extend(0x0112u16.to_le_bytes());
+    e.extend(3u16.to_le_bytes());
+    e.extend(1u32.to_le_bytes());
+    e.extend(u32::from(o).to_le_bytes());
+    e.extend(0u32.to_le_bytes());
+    e
+}
+
+/// Where display pixel `(x, y)` comes from in a stored `w × h` image tagged with EXIF
+/// orientation `o` (1–8; anything else is 1).
+pub fn stored_position(o: u16, x: usize, y: usize, w: usize, h: usize) -> (usize, usize) {
+    match o {
+        2 => (w - 1 - x, y),
+        3 => (w - 1 - x, h - 1 - y),
+        4 => (x, h - 1 - y),
+        5 => (y, x),
+        6 => (y, h - 1 - x),
+        7 => (w - 1 - y, h - 1 - x),
+        8 => (w - 1 - y, x),
+        _ => (x, y),
+    }
+}
+
+/// The pixels a camera stores for the upright image `upright` when it tags them with
+/// orientation `o`: a viewer that applies the tag shows `upright` again.
+pub fn stored_for_orientation(upright: &RgbF32, o: u16) -> RgbF32 {
+    let (w, h) = (upright.width(), upright.height());
+    let (sw, sh) = if (5..=8).contains(&o) { (h, w) } else { (w, h) };
+    let mut stored = RgbF32::new(sw, sh, [0.0; 3]);
+    for y in 0..h {
+        for x in 0..w {
+            let (sx, sy) = stored_position(o, x, y, sw, sh);
+            stored.set(sx, sy, upright.get(x, y));
+        }
+    }
+    stored
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -330,6 +374,22 @@ mod tests {
         let a = facade(64, 48, 1);
         let v = render_view(&a, &Homography::identity(), 64, 48, [0.0; 3]);
         assert!(a == v);
+    }
+
+    #[test]
+    fn a_stored_orientation_maps_back_to_the_upright_image() {
+        let up = RgbF32::from_fn(5, 3, |x, y| [x as f32, y as f32, 0.0]);
+        for o in 1..=8 {
+            let stored = stored_for_orientation(&up, o);
+            let (sw, sh) = (stored.width(), stored.height());
+            assert_eq!((sw, sh), if o >= 5 { (3, 5) } else { (5, 3) });
+            for y in 0..3 {
+                for x in 0..5 {
+                    let (sx, sy) = stored_position(o, x, y, sw, sh);
+                    assert_eq!(stored.get(sx, sy), up.get(x, y), "orientation {o} at ({x}, {y})");
+                }
+            }
+        }
     }
 
     #[test]

@@ -7,6 +7,9 @@
 //! masks before views, older before newer. A worker whose queue is full gets nothing more:
 //! its files stay ready, on disk, and are queued at a later tick. A file that fails to
 //! decode is reported once (event `file_skipped`) and not retried until it changes.
+//! Keyframes and views must look like photographs: at least [`MIN_SIDE`] pixels a side
+//! and at most [`MAX_ASPECT`]:1. A mask that a worker has taken and that is then deleted
+//! is reported to that worker (a job without an image).
 
 use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
@@ -61,6 +64,8 @@ pub struct Intake {
     /// Symbolic links refused and reported (each once, while it is there).
     refused: HashSet<PathBuf>,
     root: Root,
+    /// Masks deleted after a worker took them, still to be told to it: (path, session).
+    removed: Vec<(PathBuf, String)>,
 }
 
 /// The watched folder's identity (device and inode), to notice it being removed and
@@ -98,6 +103,14 @@ impl Root {
     }
 }
 
+/// Keyframes and views with a side shorter than this are refused: too few pixels for
+/// corners to be found and matched.
+pub const MIN_SIDE: u32 = 32;
+
+/// Keyframes and views longer than this many times their other side are refused: strips,
+/// not photographs of a facade.
+pub const MAX_ASPECT: u32 = 10;
+
 /// The worker that owns `session` (stable for the life of the process).
 pub fn worker_for(session: &str, workers: usize) -> usize {
     let mut h = crate::session::Fnv::new();
@@ -127,6 +140,7 @@ impl Intake {
             inbox,
             refused: HashSet::new(),
             root,
+            removed: Vec::new(),
         }
     }
 
@@ -206,13 +220,10 @@ impl Intake {
         let paths = tokio::task::spawn_blocking(move || watch::scan(&root, follow)).await.unwrap_or_default();
         let present: HashSet<&PathBuf> = paths.iter().collect();
         self.refused.retain(|p| present.contains(p));
-        self.files.retain(|p, t| {
-            let keep = present.contains(p);
-            if !keep && t.status == Status::Ready {
-                self.backlog.done(&t.session);
-            }
-            keep
-        });
+        let gone: Vec<PathBuf> = self.files.keys().filter(|p| !present.contains(p)).cloned().collect();
+        for p in gone {
+            self.forget(&p);
+        }
         for p in paths {
             self.observe(p);
         }
@@ -256,7 +267,7 @@ impl Intake {
                 (t.size, t.mtime, t.since, t.status) = (size, mtime, Instant::now(), Status::Settling);
             }
             None => {
-                tracing::debug!(file = %path.display(), session = %candidate.session, "noticed");
+                tracing::debug!(file = %watch::shown_path(&path), session = %candidate.session, "noticed");
                 self.files.insert(
                     path,
                     Tracked {
@@ -272,13 +283,29 @@ impl Intake {
         }
     }
 
-    /// Stops tracking `path`.
-    fn forget(&mut self, path: &PathBuf) {
-        if let Some(t) = self.files.remove(path)
-            && t.status == Status::Ready
-        {
+    /// `path` is gone from the folder: it stops being tracked, and a mask a worker took is
+    /// reported to it.
+    fn forget(&mut self, path: &std::path::Path) {
+        let Some(t) = self.files.remove(path) else { return };
+        if t.status == Status::Ready {
             self.backlog.done(&t.session);
         }
+        if t.role == Role::Mask && t.status == Status::Queued {
+            self.removed.push((path.to_owned(), t.session));
+        }
+    }
+
+    /// Tells workers about deleted masks while their queues have room.
+    fn report_removed(&mut self) {
+        let workers = self.senders.len();
+        self.removed.retain(|(path, session)| {
+            let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            let file = FileId { name, size: 0, mtime: SystemTime::UNIX_EPOCH };
+            let job =
+                Job { session: session.clone(), path: path.clone(), role: Role::Mask, file, image: None };
+            // Full: kept for the next tick. Disconnected: nobody to tell.
+            matches!(self.senders[worker_for(session, workers)].try_send(job), Err(TrySendError::Full(_)))
+        });
     }
 
     /// Reports a symbolic link that is not followed: once, while it stays. Links in the
@@ -331,6 +358,7 @@ impl Intake {
 
     /// Decodes and queues ready files while their workers have room.
     async fn dispatch(&mut self, cancel: &CancellationToken) {
+        self.report_removed();
         let workers = self.senders.len();
         let mut room: Vec<usize> =
             self.senders.iter().map(|s| s.capacity().unwrap_or(usize::MAX).saturating_sub(s.len())).collect();
@@ -373,9 +401,15 @@ impl Intake {
             let session = t.session.clone();
             match outcome {
                 Some(Ok(image)) => {
-                    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
+                    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
                     let file = FileId { name, size: t.size, mtime: t.mtime };
-                    let job = Job { session: session.clone(), path: path.clone(), role: t.role, file, image };
+                    let job = Job {
+                        session: session.clone(),
+                        path: path.clone(),
+                        role: t.role,
+                        file,
+                        image: Some(image),
+                    };
                     if cancel.is_cancelled() {
                         // Left on disk for the next start.
                         t.status = Status::Ready;
@@ -400,22 +434,22 @@ impl Intake {
                     t.status = Status::Failed;
                     self.backlog.done(&session);
                     self.stats.skipped.fetch_add(1, Ordering::Relaxed);
-                    tracing::warn!(file = %path.display(), session = %session, %reason, "file skipped");
+                    tracing::warn!(file = %watch::shown_path(&path), session = %session, %reason, "file skipped");
                     self.emitter.event(
                         "file_skipped",
                         Some(&session),
-                        serde_json::json!({ "file": path.file_name().map(|n| n.to_string_lossy()), "path": path, "reason": reason }),
+                        serde_json::json!({ "file": path.file_name().map(|n| n.to_string_lossy()), "path": path.to_string_lossy(), "reason": reason }),
                     );
                 }
                 None => {
                     // The decoder panicked on this file: never again until it changes.
                     t.status = Status::Failed;
                     self.backlog.done(&session);
-                    tracing::error!(file = %path.display(), "the decoder crashed on this file");
+                    tracing::error!(file = %watch::shown_path(&path), reason = "the decoder crashed", "file skipped");
                     self.emitter.event(
                         "file_skipped",
                         Some(&session),
-                        serde_json::json!({ "file": path.file_name().map(|n| n.to_string_lossy()), "path": path, "reason": "the decoder crashed" }),
+                        serde_json::json!({ "file": path.file_name().map(|n| n.to_string_lossy()), "path": path.to_string_lossy(), "reason": "the decoder crashed" }),
                     );
                 }
             }
@@ -455,7 +489,13 @@ pub fn read_and_decode(
     if meta.len() != size || meta.modified().ok() != Some(mtime) || bytes.len() as u64 != size {
         return Err(DecodeOutcome::Changed);
     }
-    decode_as(&bytes, role, limits).map_err(|e| DecodeOutcome::Failed(e.to_string()))
+    let img = decode_as(&bytes, role, limits).map_err(|e| DecodeOutcome::Failed(e.to_string()))?;
+    if role != Role::Mask
+        && let Some(reason) = shape_problem(img.width(), img.height())
+    {
+        return Err(DecodeOutcome::Failed(reason));
+    }
+    Ok(img)
 }
 
 /// The bytes half of [`read_and_decode`] (also what the fuzz targets drive): decoded
@@ -469,7 +509,37 @@ pub fn decode_as(bytes: &[u8], role: Role, limits: &DecodeLimits) -> Result<Dyna
     })
 }
 
+/// Why a `width × height` image cannot be a keyframe or a view, if it cannot.
+pub fn shape_problem(width: u32, height: u32) -> Option<String> {
+    let (short, long) = (width.min(height), width.max(height));
+    if short < MIN_SIDE {
+        Some(format!("{width}x{height} is too small to align (at least {MIN_SIDE} pixels a side)"))
+    } else if u64::from(long) > u64::from(short) * u64::from(MAX_ASPECT) {
+        Some(format!(
+            "{width}x{height} is a strip ({}:1), not a photograph of a facade (at most {MAX_ASPECT}:1)",
+            long / short
+        ))
+    } else {
+        None
+    }
+}
+
 /// Time a test or a caller may wait for a file to be taken: quiet period plus two ticks.
 pub fn settle_time(config: &Config) -> Duration {
     config.quiet_period + 2 * super::tick_interval(config)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn photographs_pass_and_dots_and_strips_do_not() {
+        for (w, h) in [(400, 300), (32, 32), (320, 32), (4000, 3000), (300, 3000)] {
+            assert_eq!(shape_problem(w, h), None, "{w}x{h}");
+        }
+        for (w, h) in [(1, 1), (31, 400), (400, 0), (20_000, 50), (33, 331)] {
+            assert!(shape_problem(w, h).is_some(), "{w}x{h}");
+        }
+    }
 }

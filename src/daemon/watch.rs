@@ -54,12 +54,19 @@ pub fn is_partial_or_hidden(name: &str) -> bool {
 /// What `path` (inside `root`) is, or `None` when it is not a candidate.
 pub fn classify(root: &Path, path: &Path, extensions: &[String]) -> Option<Candidate> {
     let rel = path.strip_prefix(root).ok()?;
-    let parts: Vec<&str> = rel.iter().map(|p| p.to_str()).collect::<Option<_>>()?;
+    // A file name that is not UTF-8 is read under its lossy name (U+FFFD for the bad
+    // bytes); a session's folder name must be UTF-8 (it names an output folder).
+    let parts: Vec<&std::ffi::OsStr> = rel.iter().collect();
+    let lossy = |n: &std::ffi::OsStr| n.to_string_lossy().into_owned();
     let (session, name) = match parts.as_slice() {
-        [name] => (ROOT_SESSION, *name),
-        [dir, name] if !is_partial_or_hidden(dir) => (*dir, *name),
+        [name] => (ROOT_SESSION, lossy(name)),
+        [dir, name] => match dir.to_str() {
+            Some(dir) if !is_partial_or_hidden(dir) => (dir, lossy(name)),
+            _ => return None,
+        },
         _ => return None,
     };
+    let name = name.as_str();
     if is_partial_or_hidden(name) {
         return None;
     }
@@ -75,6 +82,26 @@ pub fn classify(root: &Path, path: &Path, extensions: &[String]) -> Option<Candi
         Role::View
     };
     Some(Candidate { session: session.to_owned(), role })
+}
+
+/// A file name as the log shows it: control characters (a newline…) escaped, so that a
+/// name cannot break or forge a log line. Events carry the name itself (JSON escapes it).
+pub fn shown(name: &str) -> std::borrow::Cow<'_, str> {
+    if !name.chars().any(char::is_control) {
+        return name.into();
+    }
+    name.chars()
+        .flat_map(|c| {
+            let escaped: Vec<char> = if c.is_control() { c.escape_default().collect() } else { vec![c] };
+            escaped
+        })
+        .collect::<String>()
+        .into()
+}
+
+/// [`shown`] for a whole path.
+pub fn shown_path(path: &Path) -> String {
+    shown(&path.to_string_lossy()).into_owned()
 }
 
 /// The stem of a file name (`IMG_1.jpg` → `IMG_1`, `key.mask.png` → `key.mask`).
@@ -174,6 +201,17 @@ mod tests {
         }
         assert_eq!(classify(root, Path::new("/elsewhere/a.jpg"), &exts()), None);
         assert_eq!(c("../a.jpg"), None);
+        use std::os::unix::ffi::OsStrExt;
+        let odd = root.join("s1").join(std::ffi::OsStr::from_bytes(b"caf\xe9.png"));
+        assert_eq!(classify(root, &odd, &exts()), Some(Candidate { session: "s1".into(), role: Role::View }));
+        let odd_dir = root.join(std::ffi::OsStr::from_bytes(b"s\xff")).join("a.png");
+        assert_eq!(classify(root, &odd_dir, &exts()), None);
+    }
+
+    #[test]
+    fn log_names_escape_control_characters() {
+        assert_eq!(shown("a b.png"), "a b.png");
+        assert_eq!(shown("new\nline\t.png"), "new\\nline\\t.png");
     }
 
     #[cfg(unix)]

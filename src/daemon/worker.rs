@@ -52,7 +52,7 @@ impl FileId {
 
     pub fn of(path: &Path) -> std::io::Result<Self> {
         let meta = std::fs::metadata(path)?;
-        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
+        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         Ok(Self { name, size: meta.len(), mtime: meta.modified()? })
     }
 }
@@ -63,8 +63,9 @@ pub struct Job {
     pub path: PathBuf,
     pub role: Role,
     pub file: FileId,
-    /// 8-bit RGB for keyframes and views, 8-bit grey for masks.
-    pub image: DynamicImage,
+    /// 8-bit RGB for keyframes and views, 8-bit grey for masks; `None`: the file was
+    /// deleted (only said of masks).
+    pub image: Option<DynamicImage>,
 }
 
 /// The workers' queues and threads.
@@ -244,8 +245,12 @@ impl Worker {
                         self.wake(&session);
                     }
                     self.used.insert(session.clone(), Instant::now());
+                    // A deletion was never in the backlog.
+                    let counted = job.image.is_some();
                     self.handle(job);
-                    self.ctx.backlog.done(&session);
+                    if counted {
+                        self.ctx.backlog.done(&session);
+                    }
                     self.maybe_fill(&session);
                     self.sleep_beyond_capacity();
                 }
@@ -389,6 +394,11 @@ impl Worker {
         let Job { session, path, role, file, image } = job;
         let Self { ctx, sessions, .. } = self;
         let slot = Self::slot(ctx, sessions, &session);
+        let Some(image) = image else {
+            mask_removed(ctx, slot, &file);
+            publish(ctx, slot, None);
+            return;
+        };
         if role == Role::View {
             ctx.registry.metrics.views_received.fetch_add(1, Ordering::Relaxed);
         }
@@ -398,7 +408,7 @@ impl Worker {
             Role::View => match key_rank_for(ctx, slot, &file.name) {
                 Some(rank) => take_key(ctx, slot, &file, &path, &image, rank),
                 None if slot.session.key_id().is_none() => {
-                    tracing::info!(file = %file.name, "waiting for the keyframe");
+                    tracing::info!(file = %watch::shown(&file.name), "waiting for the keyframe");
                     ctx.emitter.event(
                         "view_waiting",
                         Some(&slot.name),
@@ -506,7 +516,7 @@ fn take_key(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &Dyna
         slot.state_dirty = true;
     }
     let (w, h) = (image.width(), image.height());
-    tracing::info!(key = %file.name, width = w, height = h, views = again.len(), "keyframe set");
+    tracing::info!(key = %watch::shown(&file.name), width = w, height = h, views = again.len(), "keyframe set");
     ctx.emitter.event(
         if first { "session_started" } else { "keyframe_changed" },
         Some(&slot.name),
@@ -575,22 +585,70 @@ fn apply_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
     }
     let mask = to_mask(image);
     let masked = mask.hole_count();
+    let share = masked as f64 / mask.len().max(1) as f64;
     match slot.session.set_mask(id, mask) {
         Ok(again) => {
             slot.mask_source = Some(format!("file:{}", file.name));
             write_mask(ctx, slot);
-            tracing::info!(mask = %file.name, masked, "mask set");
-            ctx.emitter.event(
-                "mask_set",
-                Some(&slot.name),
-                json!({ "mask": file.name, "source": "file", "masked": masked }),
-            );
+            let mut fields = json!({ "mask": file.name, "file": file.name, "source": "file", "masked": masked, "share": share });
+            // Masks that are probably mistakes say what will come of them.
+            let warning = if masked == 0 {
+                Some(
+                    "the mask marks no pixel (all black): nothing to fill, the keyframe itself is the result",
+                )
+            } else if share >= 0.999 {
+                Some(
+                    "the mask covers the whole keyframe (all white): the result is made of the views alone, and what no view sees is invented",
+                )
+            } else {
+                None
+            };
+            match warning {
+                Some(w) => {
+                    tracing::warn!(mask = %watch::shown(&file.name), masked, reason = w, "mask set");
+                    fields["warning"] = w.into();
+                }
+                None => tracing::info!(mask = %watch::shown(&file.name), masked, "mask set"),
+            }
+            ctx.emitter.event("mask_set", Some(&slot.name), fields);
             let paths: Vec<PathBuf> = again.iter().filter_map(|i| slot.paths.get(i).cloned()).collect();
             for p in paths {
                 reprocess(ctx, slot, &p);
             }
         }
         Err(e) => skip(ctx, slot, &slot.dir.join(&file.name), &e.to_string()),
+    }
+}
+
+/// The mask file `file` was deleted. If it was the session's mask, the session forgets
+/// it: no new result until a mask arrives; the last result stays as it is.
+fn mask_removed(ctx: &Ctx, slot: &mut Slot, file: &FileId) {
+    let key_stem =
+        slot.key_path.as_ref().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned());
+    let current = slot.mask_source.as_deref() == Some(format!("file:{}", file.name).as_str());
+    // A session rebuilt from disk since (put to sleep and woken) no longer has it.
+    let was_its = key_stem.as_deref().is_some_and(|k| {
+        let stem = watch::stem(&file.name);
+        slot.session.mask_id().is_none() && (stem == "mask" || stem == format!("{}.mask", watch::stem(k)))
+    });
+    if !current && !was_its {
+        tracing::debug!(mask = %watch::shown(&file.name), "a mask that was not in use was deleted");
+        return;
+    }
+    if current {
+        slot.session.clear_mask();
+        slot.mask_source = None;
+    }
+    let reason = "the mask file was deleted: no new result until a mask arrives; the last result is kept";
+    tracing::warn!(file = %watch::shown(&file.name), reason, "mask removed");
+    ctx.emitter.event("mask_removed", Some(&slot.name), json!({ "file": file.name, "reason": reason }));
+    // Another mask beside the keyframe (`mask.<ext>`) takes over.
+    if let Some(k) = &key_stem
+        && let Some(other) = find_mask(ctx, &slot.dir, k)
+        && let Ok(f) = FileId::of(&other)
+        && let Ok(img) = read_and_decode(&other, Role::Mask, f.size, f.mtime, &limits(ctx), &inbox(ctx))
+    {
+        apply_mask(ctx, slot, &f, &img);
     }
 }
 
@@ -655,12 +713,12 @@ fn outcome_reason(e: &DecodeOutcome) -> String {
 
 fn skip(ctx: &Ctx, slot: &Slot, path: &Path, reason: &str) {
     ctx.stats.skipped.fetch_add(1, Ordering::Relaxed);
-    tracing::warn!(file = %path.display(), %reason, "file skipped");
+    tracing::warn!(file = %watch::shown_path(path), %reason, "file skipped");
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
     ctx.emitter.event(
         "file_skipped",
         Some(&slot.name),
-        json!({ "file": name, "path": path, "reason": reason }),
+        json!({ "file": name, "path": path.to_string_lossy(), "reason": reason }),
     );
 }
 
@@ -691,7 +749,7 @@ fn rgb8(image: &DynamicImage) -> Rgb8 {
 }
 
 fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &DynamicImage) {
-    let span = tracing::info_span!("view", file = %file.name);
+    let span = tracing::info_span!("view", file = %watch::shown(&file.name));
     let _enter = span.enter();
     let id = file.content_id(image);
     let Some(key_id) = slot.session.key_id().map(str::to_owned) else { return };
@@ -770,7 +828,7 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
                     v.reason = Some("contributed least when the buffer was full".into());
                 }
                 let name = d.split('|').next().unwrap_or(d);
-                tracing::info!(dropped = %name, "view dropped from the buffer");
+                tracing::info!(dropped = %watch::shown(name), "view dropped from the buffer");
                 ctx.emitter.event(
                     "view_dropped",
                     Some(&slot.name),

@@ -23,7 +23,7 @@ impl Default for DecodeLimits {
 /// Why bytes did not become an image. Every variant is the input's fault, not ours.
 #[derive(Debug, Error)]
 pub enum DecodeError {
-    #[error("empty file")]
+    #[error("empty file: 0 bytes (an upload that never started?)")]
     Empty,
     #[error("not an image in a format clearview reads (JPEG, PNG, TIFF, WebP)")]
     UnknownFormat,
@@ -31,7 +31,9 @@ pub enum DecodeError {
     TooLarge { width: u32, height: u32, pixels: u64, limit: u64 },
     #[error("image has no pixels ({width}x{height})")]
     Degenerate { width: u32, height: u32 },
-    #[error("cannot decode: {0}")]
+    #[error("the file ends before the image does (cut short: an upload that did not finish?)")]
+    CutShort,
+    #[error("cannot decode: {}", .0.to_string().trim_end())]
     Corrupt(#[source] image::ImageError),
 }
 
@@ -45,6 +47,11 @@ pub fn decode(bytes: &[u8], limits: &DecodeLimits) -> Result<DynamicImage, Decod
         .map_err(|e| DecodeError::Corrupt(image::ImageError::IoError(e)))?;
     if reader.format().is_none() {
         return Err(DecodeError::UnknownFormat);
+    }
+    if reader.format() == Some(image::ImageFormat::Jpeg) && jpeg_cut_short(bytes) {
+        // The JPEG decoder pads a missing end with grey rather than failing: a cut file
+        // would become a view with a grey band.
+        return Err(DecodeError::CutShort);
     }
     let mut decoder = reader.into_decoder().map_err(DecodeError::Corrupt)?;
     let (width, height) = decoder.dimensions();
@@ -65,6 +72,46 @@ pub fn decode(bytes: &[u8], limits: &DecodeLimits) -> Result<DynamicImage, Decod
         img.apply_orientation(o);
     }
     Ok(img)
+}
+
+/// Whether a JPEG stream stops before its end-of-image marker: its segments are walked
+/// from the start, the entropy-coded data of each scan skipped, until the marker that ends
+/// the image (anything after it, such as a camera's trailer, is allowed).
+fn jpeg_cut_short(bytes: &[u8]) -> bool {
+    const EOI: u8 = 0xd9;
+    const SOS: u8 = 0xda;
+    let mut i = 2;
+    loop {
+        // A marker: 0xFF (fill bytes allowed), then its code.
+        while bytes.get(i) == Some(&0xff) && bytes.get(i + 1) == Some(&0xff) {
+            i += 1;
+        }
+        let (Some(0xff), Some(&code)) = (bytes.get(i), bytes.get(i + 1)) else { return true };
+        i += 2;
+        match code {
+            EOI => return false,
+            0x01 | 0xd0..=0xd7 => continue,
+            _ => {}
+        }
+        let Some(len) = bytes.get(i..i + 2).map(|b| usize::from(u16::from_be_bytes([b[0], b[1]]))) else {
+            return true;
+        };
+        i += len;
+        if i > bytes.len() {
+            return true;
+        }
+        if code == SOS {
+            // Entropy-coded data: up to the next 0xFF that is not a stuffed zero or a restart.
+            loop {
+                match (bytes.get(i), bytes.get(i + 1)) {
+                    (Some(0xff), Some(0x00 | 0xd0..=0xd7)) => i += 2,
+                    (Some(0xff), Some(_)) => break,
+                    (Some(_), _) => i += 1,
+                    (None, _) => return true,
+                }
+            }
+        }
+    }
 }
 
 #[cfg(test)]
@@ -94,36 +141,28 @@ mod tests {
         assert!(matches!(decode(&png[..png.len() / 2], &limits), Err(DecodeError::Corrupt(_))));
     }
 
-    /// A little-endian TIFF block with one IFD entry: Orientation (0x0112) = `o`.
-    fn exif_orientation(o: u16) -> Vec<u8> {
-        let mut e = b"II*\0".to_vec();
-        e.extend(8u32.to_le_bytes());
-        e.extend(1u16.to_le_bytes());
-        e.extend(0x0112u16.to_le_bytes());
-        e.extend(3u16.to_le_bytes());
-        e.extend(1u32.to_le_bytes());
-        e.extend((o as u32).to_le_bytes());
-        e.extend(0u32.to_le_bytes());
-        e
-    }
-
-    /// Where display pixel `(x, y)` comes from in a stored `w × h` image, per EXIF 1–8.
-    fn stored_position(o: u16, x: u32, y: u32, w: u32, h: u32) -> (u32, u32) {
-        match o {
-            1 => (x, y),
-            2 => (w - 1 - x, y),
-            3 => (w - 1 - x, h - 1 - y),
-            4 => (x, h - 1 - y),
-            5 => (y, x),
-            6 => (y, h - 1 - x),
-            7 => (w - 1 - y, h - 1 - x),
-            8 => (w - 1 - y, x),
-            _ => unreachable!(),
+    #[test]
+    fn a_jpeg_cut_anywhere_is_refused_and_a_whole_one_with_a_trailer_is_not() {
+        let img = RgbImage::from_fn(64, 48, |x, y| image::Rgb([(x * 4) as u8, (y * 5) as u8, (x ^ y) as u8]));
+        let mut jpeg = Vec::new();
+        img.write_to(&mut Cursor::new(&mut jpeg), ImageFormat::Jpeg).unwrap();
+        let limits = DecodeLimits::default();
+        assert!(decode(&jpeg, &limits).is_ok());
+        for share in [0.1, 0.5, 0.9, 0.99] {
+            let cut = &jpeg[..(jpeg.len() as f64 * share) as usize];
+            let err = decode(cut, &limits).unwrap_err();
+            assert!(matches!(err, DecodeError::CutShort | DecodeError::Corrupt(_)), "{share}: {err}");
         }
+        // The decoder alone pads the missing end: without the check, the cut file is an image.
+        assert!(jpeg_cut_short(&jpeg[..jpeg.len() - 40]));
+        let mut trailer = jpeg.clone();
+        trailer.extend(b"camera trailer after the end marker");
+        assert!(!jpeg_cut_short(&trailer));
+        assert!(decode(&trailer, &limits).is_ok());
     }
 
     fn encode_with_exif(mut enc: impl image::ImageEncoder, img: &RgbImage, orientation: u16) {
-        enc.set_exif_metadata(exif_orientation(orientation)).unwrap();
+        enc.set_exif_metadata(crate::synth::exif_orientation(orientation)).unwrap();
         enc.write_image(img.as_raw(), img.width(), img.height(), image::ExtendedColorType::Rgb8).unwrap();
     }
 
@@ -148,9 +187,15 @@ mod tests {
                 assert_eq!((img.width(), img.height()), (w * 16, h * 16), "{format} orientation {o}");
                 for by in 0..h {
                     for bx in 0..w {
-                        let (sx, sy) = stored_position(o, bx, by, bw, bh);
+                        let (sx, sy) = crate::synth::stored_position(
+                            o,
+                            bx as usize,
+                            by as usize,
+                            bw as usize,
+                            bh as usize,
+                        );
                         let got = img.get_pixel(bx * 16 + 8, by * 16 + 8).0;
-                        let want = block(sx, sy);
+                        let want = block(sx as u32, sy as u32);
                         let close = got.iter().zip(want).all(|(&g, w)| (g as i32 - w as i32).abs() <= 8);
                         assert!(
                             close,
