@@ -359,13 +359,23 @@ impl Intake {
     /// Decodes and queues ready files while their workers have room.
     async fn dispatch(&mut self, cancel: &CancellationToken) {
         self.report_removed();
-        let workers = self.senders.len();
         let mut room: Vec<usize> =
             self.senders.iter().map(|s| s.capacity().unwrap_or(usize::MAX).saturating_sub(s.len())).collect();
+        // A file refused at decoding never reaches a worker: the room it was given is given
+        // back and more files are taken in the same tick, so a flood of bad files is
+        // reported as fast as it decodes, not `workers × queue` files a tick.
+        while self.dispatch_round(&mut room, cancel).await {}
+    }
+
+    /// Decodes as many ready files as the workers' queues have `room` for and queues them;
+    /// whether room was given back by files that did not become jobs (another round may
+    /// take more).
+    async fn dispatch_round(&mut self, room: &mut [usize], cancel: &CancellationToken) -> bool {
+        let workers = self.senders.len();
         let mut ready: Vec<(&PathBuf, &Tracked)> =
             self.files.iter().filter(|(_, t)| t.status == Status::Ready).collect();
-        if ready.is_empty() {
-            return;
+        if ready.is_empty() || cancel.is_cancelled() {
+            return false;
         }
         ready.sort_by(|a, b| {
             (&a.1.session, a.1.role, a.1.mtime, a.0).cmp(&(&b.1.session, b.1.role, b.1.mtime, b.0))
@@ -379,6 +389,10 @@ impl Intake {
             room[w] -= 1;
             planned.push((path.clone(), w));
         }
+        if planned.is_empty() {
+            return false;
+        }
+        let mut given_back = false;
         let limits = DecodeLimits { max_pixels: self.config.max_pixels };
         let mut decodes = Vec::with_capacity(planned.len());
         for (path, w) in planned {
@@ -426,11 +440,13 @@ impl Intake {
                 }
                 Some(Err(DecodeOutcome::Changed)) => {
                     // Written to while we read it: wait for it to settle again.
+                    (room[w], given_back) = (room[w] + 1, true);
                     t.status = Status::Settling;
                     t.since = Instant::now();
                     self.backlog.done(&session);
                 }
                 Some(Err(DecodeOutcome::Failed(reason))) | Some(Err(DecodeOutcome::Io(reason))) => {
+                    (room[w], given_back) = (room[w] + 1, true);
                     t.status = Status::Failed;
                     self.backlog.done(&session);
                     self.stats.skipped.fetch_add(1, Ordering::Relaxed);
@@ -443,6 +459,7 @@ impl Intake {
                 }
                 None => {
                     // The decoder panicked on this file: never again until it changes.
+                    (room[w], given_back) = (room[w] + 1, true);
                     t.status = Status::Failed;
                     self.backlog.done(&session);
                     tracing::error!(file = %watch::shown_path(&path), reason = "the decoder crashed", "file skipped");
@@ -454,6 +471,7 @@ impl Intake {
                 }
             }
         }
+        given_back
     }
 }
 
