@@ -141,6 +141,9 @@ pub(super) struct Slot {
     /// 0: named `key`; 1: named by the configuration; 2: first to arrive.
     pub(super) key_rank: u8,
     pub(super) mask_source: Option<String>,
+    /// The mask (its content id) refused for the current keyframe: reported once, though
+    /// it is read both beside the keyframe and as a file of its own.
+    pub(super) refused_mask: Option<String>,
     /// Views waiting for their keyframe, by file name.
     pub(super) parked: BTreeMap<String, PathBuf>,
     /// Where each buffered view's file is (to re-read it).
@@ -198,6 +201,7 @@ impl Slot {
             key_path: None,
             key_rank: u8::MAX,
             mask_source: None,
+            refused_mask: None,
             parked: BTreeMap::new(),
             paths: HashMap::new(),
             views: BTreeMap::new(),
@@ -507,6 +511,7 @@ fn take_key(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &Dyna
     slot.key_path = Some(path.to_owned());
     slot.key_rank = rank;
     slot.mask_source = None;
+    slot.refused_mask = None;
     slot.paths.clear();
     for v in slot.views.values_mut() {
         v.status = "superseded";
@@ -583,10 +588,14 @@ fn apply_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
     if slot.session.mask_id() == Some(id.as_str()) {
         return;
     }
+    if slot.refused_mask.as_deref() == Some(id.as_str()) {
+        tracing::debug!(mask = %watch::shown(&file.name), "refused already for this keyframe");
+        return;
+    }
     let mask = to_mask(image);
     let masked = mask.hole_count();
     let share = masked as f64 / mask.len().max(1) as f64;
-    match slot.session.set_mask(id, mask) {
+    match slot.session.set_mask(id.clone(), mask) {
         Ok(again) => {
             slot.mask_source = Some(format!("file:{}", file.name));
             write_mask(ctx, slot);
@@ -616,7 +625,10 @@ fn apply_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
                 reprocess(ctx, slot, &p);
             }
         }
-        Err(e) => skip(ctx, slot, &slot.dir.join(&file.name), &e.to_string()),
+        Err(e) => {
+            skip(ctx, slot, &slot.dir.join(&file.name), &e.to_string());
+            slot.refused_mask = Some(id);
+        }
     }
 }
 
