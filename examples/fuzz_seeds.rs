@@ -30,17 +30,9 @@ fn encode(img: &DynamicImage, format: ImageFormat) -> Vec<u8> {
 
 /// A JPEG carrying an EXIF orientation tag.
 fn jpeg_with_orientation(img: &image::RgbImage, orientation: u16) -> Vec<u8> {
-    let mut exif = b"II*\0".to_vec();
-    exif.extend(8u32.to_le_bytes());
-    exif.extend(1u16.to_le_bytes());
-    exif.extend(0x0112u16.to_le_bytes());
-    exif.extend(3u16.to_le_bytes());
-    exif.extend(1u32.to_le_bytes());
-    exif.extend(u32::from(orientation).to_le_bytes());
-    exif.extend(0u32.to_le_bytes());
     let mut bytes = Vec::new();
     let mut enc = JpegEncoder::new_with_quality(&mut bytes, 85);
-    enc.set_exif_metadata(exif).unwrap();
+    enc.set_exif_metadata(clearview::synth::exif_orientation(orientation)).unwrap();
     enc.write_image(img.as_raw(), img.width(), img.height(), ExtendedColorType::Rgb8).unwrap();
     bytes
 }
