@@ -245,7 +245,12 @@ fn no_session_name_leads_a_write_out_of_the_out_folder() {
     let ev = wait_for(&f, "every session's mask", 60, |e| {
         names.iter().all(|n| e.iter().any(|x| x["event"] == "mask_set" && x["session"] == n.as_str()))
     });
+    let log = s.log();
     assert_eq!(s.terminate(), 0);
+    // Log lines name sessions with their control characters escaped: a newline in a
+    // folder's name cannot split a line or forge one.
+    assert!(log.contains("new\\nline"), "the escaped name is logged:\n{log}");
+    assert!(!log.lines().any(|l| l.starts_with("line")), "a session's name split a log line:\n{log}");
     let sessions: BTreeSet<&str> = ev.iter().filter_map(|e| e["session"].as_str()).collect();
     assert_eq!(sessions, names.iter().map(String::as_str).collect(), "names are kept as given in events");
 

@@ -267,7 +267,7 @@ impl Intake {
                 (t.size, t.mtime, t.since, t.status) = (size, mtime, Instant::now(), Status::Settling);
             }
             None => {
-                tracing::debug!(file = %watch::shown_path(&path), session = %candidate.session, "noticed");
+                tracing::debug!(file = %watch::shown_path(&path), session = %watch::shown(&candidate.session), "noticed");
                 self.files.insert(
                     path,
                     Tracked {
@@ -330,7 +330,7 @@ impl Intake {
             target.as_ref().map(|t| format!(" to {}", t.display())).unwrap_or_default()
         );
         self.stats.skipped.fetch_add(1, Ordering::Relaxed);
-        tracing::warn!(file = %link.display(), session = %session, %reason, "file skipped");
+        tracing::warn!(file = %watch::shown_path(&link), session = %watch::shown(&session), %reason, "file skipped");
         self.emitter.event(
             "file_skipped",
             Some(&session),
@@ -450,7 +450,7 @@ impl Intake {
                     t.status = Status::Failed;
                     self.backlog.done(&session);
                     self.stats.skipped.fetch_add(1, Ordering::Relaxed);
-                    tracing::warn!(file = %watch::shown_path(&path), session = %session, %reason, "file skipped");
+                    tracing::warn!(file = %watch::shown_path(&path), session = %watch::shown(&session), %reason, "file skipped");
                     self.emitter.event(
                         "file_skipped",
                         Some(&session),

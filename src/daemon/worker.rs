@@ -179,18 +179,18 @@ impl Slot {
             match &on_disk {
                 Ok(n) if *n == saved.number => {}
                 Ok(n) => {
-                    tracing::warn!(session = %name, saved = saved.number, on_disk = n, "the saved state names another result than the one on disk: it is made again");
+                    tracing::warn!(session = %watch::shown(name), saved = saved.number, on_disk = n, "the saved state names another result than the one on disk: it is made again");
                     state.result = None;
                 }
                 Err(reason) => {
-                    tracing::warn!(session = %name, %reason, "the result on disk is not the one the state saved: it is made again");
+                    tracing::warn!(session = %watch::shown(name), %reason, "the result on disk is not the one the state saved: it is made again");
                     state.result = None;
                 }
             }
         }
         let newest = on_disk.iter().copied().chain(history.last().copied()).max().unwrap_or(0);
         if newest > state.last_number {
-            tracing::info!(session = %name, saved = state.last_number, newest, "results on disk are newer than the saved state: numbering goes on after them");
+            tracing::info!(session = %watch::shown(name), saved = state.last_number, newest, "results on disk are newer than the saved state: numbering goes on after them");
             state.last_number = newest;
         }
         Slot {
@@ -281,7 +281,7 @@ impl Worker {
             }
             if let Some(p) = &slot.pending {
                 tracing::warn!(
-                    session = %slot.name,
+                    session = %watch::shown(&slot.name),
                     number = p.number,
                     "stopping with a result that could not be written: it is made again at the next start"
                 );
@@ -303,7 +303,7 @@ impl Worker {
         if let Some(mut slot) = self.sessions.remove(name) {
             save_state(&self.ctx, &mut slot);
             let kept = slot.state.result.as_ref().map(|r| r.number);
-            tracing::info!(session = %name, dir = %slot.dir.display(), "session folder removed: session ended, its results are kept");
+            tracing::info!(session = %watch::shown(name), dir = %slot.dir.display(), "session folder removed: session ended, its results are kept");
             self.ctx.emitter.event(
                 "session_removed",
                 Some(name),
@@ -339,7 +339,7 @@ impl Worker {
             let slot = self.sessions.remove(&name).expect("chosen from the map");
             self.used.remove(&name);
             state::save(&self.ctx.config.state_dir, &name, &slot.state);
-            tracing::info!(session = %name, "session put to sleep (memory): it is rebuilt when a file arrives");
+            tracing::info!(session = %watch::shown(&name), "session put to sleep (memory): it is rebuilt when a file arrives");
             self.asleep.insert(name);
         }
     }
@@ -349,7 +349,7 @@ impl Worker {
     fn wake(&mut self, name: &str) {
         let Self { ctx, sessions, .. } = self;
         let slot = Self::slot(ctx, sessions, name);
-        let span = tracing::info_span!("session", session = %name);
+        let span = tracing::info_span!("session", session = %watch::shown(name));
         let _enter = span.enter();
         let Some(key_name) = slot.state.key_file.clone() else { return };
         let key_path = slot.dir.join(&key_name);
@@ -393,7 +393,7 @@ impl Worker {
     }
 
     fn handle(&mut self, job: Job) {
-        let span = tracing::info_span!("session", session = %job.session);
+        let span = tracing::info_span!("session", session = %watch::shown(&job.session));
         let _enter = span.enter();
         let Job { session, path, role, file, image } = job;
         let Self { ctx, sessions, .. } = self;
@@ -442,7 +442,7 @@ impl Worker {
         if !slot.session.needs_fill() || (waiting > 0 && slot.session.admitted_since_fill() < batch_max) {
             return;
         }
-        let span = tracing::info_span!("session", session = %name);
+        let span = tracing::info_span!("session", session = %watch::shown(name));
         let _enter = span.enter();
         let written = fill(&self.ctx, slot);
         save_state(&self.ctx, slot);
@@ -992,7 +992,7 @@ pub(super) fn retry_pending(ctx: &Ctx, slot: &mut Slot) -> Option<u64> {
         return None;
     }
     let p = slot.pending.take()?;
-    let span = tracing::info_span!("session", session = %slot.name);
+    let span = tracing::info_span!("session", session = %watch::shown(&slot.name));
     let _enter = span.enter();
     tracing::info!(number = p.number, tries = p.retry.failures() + 1, "writing the result again");
     write(ctx, slot, p)
