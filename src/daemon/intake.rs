@@ -411,10 +411,14 @@ impl Intake {
         }
         for (path, w, handle) in decodes {
             let outcome = handle.await.ok().and_then(|r| r.ok());
+            // A decoder that panicked on this file: refused like any other, never again until
+            // it changes.
+            let crashed = outcome.is_none();
+            let outcome = outcome.unwrap_or_else(|| Err(DecodeOutcome::Failed("the decoder crashed".into())));
             let t = self.files.get_mut(&path).expect("planned from the map");
             let session = t.session.clone();
             match outcome {
-                Some(Ok(image)) => {
+                Ok(image) => {
                     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
                     let file = FileId { name, size: t.size, mtime: t.mtime };
                     let job = Job {
@@ -438,35 +442,28 @@ impl Intake {
                         }
                     }
                 }
-                Some(Err(DecodeOutcome::Changed)) => {
+                Err(DecodeOutcome::Changed) => {
                     // Written to while we read it: wait for it to settle again.
                     (room[w], given_back) = (room[w] + 1, true);
                     t.status = Status::Settling;
                     t.since = Instant::now();
                     self.backlog.done(&session);
                 }
-                Some(Err(DecodeOutcome::Failed(reason))) | Some(Err(DecodeOutcome::Io(reason))) => {
+                Err(DecodeOutcome::Failed(reason)) | Err(DecodeOutcome::Io(reason)) => {
                     (room[w], given_back) = (room[w] + 1, true);
                     t.status = Status::Failed;
                     self.backlog.done(&session);
                     self.stats.skipped.fetch_add(1, Ordering::Relaxed);
-                    tracing::warn!(file = %watch::shown_path(&path), session = %watch::shown(&session), %reason, "file skipped");
+                    let (file, session_shown) = (watch::shown_path(&path), watch::shown(&session));
+                    if crashed {
+                        tracing::error!(%file, session = %session_shown, %reason, "file skipped");
+                    } else {
+                        tracing::warn!(%file, session = %session_shown, %reason, "file skipped");
+                    }
                     self.emitter.event(
                         "file_skipped",
                         Some(&session),
                         serde_json::json!({ "file": path.file_name().map(|n| n.to_string_lossy()), "path": path.to_string_lossy(), "reason": reason }),
-                    );
-                }
-                None => {
-                    // The decoder panicked on this file: never again until it changes.
-                    (room[w], given_back) = (room[w] + 1, true);
-                    t.status = Status::Failed;
-                    self.backlog.done(&session);
-                    tracing::error!(file = %watch::shown_path(&path), reason = "the decoder crashed", "file skipped");
-                    self.emitter.event(
-                        "file_skipped",
-                        Some(&session),
-                        serde_json::json!({ "file": path.file_name().map(|n| n.to_string_lossy()), "path": path.to_string_lossy(), "reason": "the decoder crashed" }),
                     );
                 }
             }
