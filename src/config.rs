@@ -444,6 +444,21 @@ impl RawConfig {
     }
 }
 
+impl Config {
+    /// The folders the service reads and writes, by their configuration keys: the watched
+    /// one (when a folder is watched), the output and the state folders. They must be
+    /// apart (`daemon::paths::check_apart`, which needs the file system).
+    pub fn folders(&self) -> Vec<(&'static str, &Path)> {
+        let mut v = Vec::with_capacity(3);
+        if self.watch_enabled {
+            v.push(("watch.dir", self.watch_dir.as_path()));
+        }
+        v.push(("output.dir", self.out_dir.as_path()));
+        v.push(("state.dir", self.state_dir.as_path()));
+        v
+    }
+}
+
 // ---------------------------------------------------------------------------------------
 // Video sources (`[[video]]` tables).
 

@@ -19,7 +19,11 @@ pub fn run(args: &CheckConfigArgs) -> u8 {
         println!("built-in configuration: valid");
         return exit::OK;
     };
-    match Config::load(path) {
+    let checked = Config::load(path).map_err(|e| e.to_string()).and_then(|c| {
+        crate::daemon::paths::check_apart(&c.folders()).map_err(|e| e.to_string())?;
+        Ok(c)
+    });
+    match checked {
         Ok(c) => {
             println!(
                 "{}: valid (watch {}, out {}, state {})",

@@ -95,9 +95,6 @@ pub fn run(args: &RunArgs) -> u8 {
     }
     if let Some(d) = &args.state {
         config.state_dir = d.clone();
-    } else if args.video.video.is_some() && args.config.is_none() {
-        // A one-off video run keeps its state beside its results, not in the cwd.
-        config.state_dir = config.out_dir.join(".clearview");
     }
     let watch = config.watch_enabled && (args.config.is_some() || args.watch.is_some());
     if let Err(e) = args.video.apply(&mut config, watch) {
@@ -108,8 +105,8 @@ pub fn run(args: &RunArgs) -> u8 {
         eprintln!("clearview run: {e}");
         return exit::USAGE;
     }
-    if config.out_dir == config.watch_dir || config.state_dir == config.watch_dir {
-        eprintln!("clearview run: the output and state folders must differ from the watched one");
+    if let Err(e) = daemon::paths::check_apart(&config.folders()) {
+        eprintln!("clearview run: {e}");
         return exit::USAGE;
     }
     let runtime = match tokio::runtime::Builder::new_multi_thread().enable_all().worker_threads(2).build() {

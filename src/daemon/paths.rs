@@ -211,6 +211,94 @@ impl Inbox {
     }
 }
 
+/// Two of the service's folders that overlap: the same folder, or one inside the other.
+#[derive(Debug, Error, PartialEq, Eq)]
+#[error("{} and {} {}: the watched, output and state folders must be apart (none equal to or inside another), or the service would read what it writes and write where it reads", .a_key, .b_key, .how)]
+pub struct Overlap {
+    pub a_key: String,
+    pub b_key: String,
+    pub how: String,
+}
+
+/// Checks that the folders named in `folders` (`(what, path)`: `watch.dir`, `output.dir`,
+/// `state.dir`) are apart: none is the same folder as another or inside another, however
+/// they are spelled (`inbox`, `./inbox`, `/x/../inbox`, an absolute path, a symbolic link
+/// on the way, a bind mount of the same folder). Paths are resolved against the current
+/// folder; the part of a path that exists is resolved through the file system (links,
+/// `..`), the rest by its components. Folders that do not exist yet are compared by path.
+pub fn check_apart(folders: &[(&str, &Path)]) -> Result<(), Overlap> {
+    let resolved: Vec<(&str, &Path, PathBuf)> = folders.iter().map(|&(k, p)| (k, p, resolve(p))).collect();
+    for (i, (ka, pa, ra)) in resolved.iter().enumerate() {
+        for (kb, pb, rb) in &resolved[i + 1..] {
+            let shown = |k: &str, p: &Path| format!("{k} ({})", p.display());
+            let (a, b) = (shown(ka, pa), shown(kb, pb));
+            let overlap = if ra == rb || same_folder(ra, rb) {
+                Some((a, b, format!("are the same folder ({})", ra.display())))
+            } else if inside(ra, rb) {
+                Some((a, b, format!("are nested: the first is inside the second ({})", rb.display())))
+            } else if inside(rb, ra) {
+                Some((b, a, format!("are nested: the first is inside the second ({})", ra.display())))
+            } else {
+                None
+            };
+            if let Some((a_key, b_key, how)) = overlap {
+                return Err(Overlap { a_key, b_key, how });
+            }
+        }
+    }
+    Ok(())
+}
+
+/// `path` made absolute: its longest existing ancestor canonicalised (links and `..`
+/// resolved by the file system), the rest appended with `.` dropped and `..` taken back.
+pub fn resolve(path: &Path) -> PathBuf {
+    let abs = if path.is_absolute() {
+        path.to_owned()
+    } else {
+        std::env::current_dir().unwrap_or_else(|_| PathBuf::from("/")).join(path)
+    };
+    let comps: Vec<Component> = abs.components().collect();
+    for cut in (1..=comps.len()).rev() {
+        let head: PathBuf = comps[..cut].iter().collect();
+        if let Ok(mut base) = std::fs::canonicalize(&head) {
+            for c in &comps[cut..] {
+                match c {
+                    Component::ParentDir => {
+                        base.pop();
+                    }
+                    Component::Normal(n) => base.push(n),
+                    _ => {}
+                }
+            }
+            return base;
+        }
+    }
+    abs
+}
+
+/// Whether `a` is strictly inside `b`: by path, or because one of `a`'s existing
+/// ancestors is `b`'s folder itself (device and inode: a bind mount of `b` elsewhere).
+fn inside(a: &Path, b: &Path) -> bool {
+    a != b && (a.starts_with(b) || a.ancestors().skip(1).any(|up| same_folder(up, b)))
+}
+
+/// Whether two existing paths are the same folder (device and inode).
+fn same_folder(a: &Path, b: &Path) -> bool {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        match (std::fs::metadata(a), std::fs::metadata(b)) {
+            (Ok(x), Ok(y)) => x.is_dir() && x.dev() == y.dev() && x.ino() == y.ino(),
+            _ => false,
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = (a, b);
+        false
+    }
+}
+
 fn open_following(path: &Path) -> Result<File, Refusal> {
     let mut o = std::fs::OpenOptions::new();
     o.read(true);
@@ -225,6 +313,35 @@ fn open_following(path: &Path) -> Result<File, Refusal> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn folders_spelled_differently_are_still_the_same_or_nested() {
+        let tmp = tempfile::tempdir().unwrap();
+        let t = tmp.path().canonicalize().unwrap();
+        std::fs::create_dir_all(t.join("in/sub")).unwrap();
+        std::fs::create_dir_all(t.join("other")).unwrap();
+        #[cfg(unix)]
+        std::os::unix::fs::symlink(t.join("in"), t.join("alias")).unwrap();
+        let check = |w: PathBuf, o: PathBuf, s: PathBuf| {
+            check_apart(&[("watch.dir", &w), ("output.dir", &o), ("state.dir", &s)])
+        };
+        let ok = check(t.join("in"), t.join("out"), t.join("state"));
+        assert_eq!(ok, Ok(()));
+        for (w, o, s, keys) in [
+            (t.join("in"), t.join("in/."), t.join("st"), ("watch.dir", "output.dir")),
+            (t.join("in"), t.join("other/../in"), t.join("st"), ("watch.dir", "output.dir")),
+            (t.join("in"), t.join("alias"), t.join("st"), ("watch.dir", "output.dir")),
+            (t.join("in"), t.join("out"), t.join("in/sub/state"), ("state.dir", "watch.dir")),
+            (t.join("in"), t.join("out"), t.join("alias/new/state"), ("state.dir", "watch.dir")),
+            (t.join("in"), t.join("out"), t.join("out"), ("output.dir", "state.dir")),
+            (t.join("in/sub"), t.join("in"), t.join("st"), ("watch.dir", "output.dir")),
+            (t.join("x"), t.join("y"), t.join("y/z/.."), ("output.dir", "state.dir")),
+        ] {
+            let e = check(w.clone(), o.clone(), s.clone()).expect_err(&format!("{w:?} {o:?} {s:?}"));
+            assert!(e.a_key.starts_with(keys.0) && e.b_key.starts_with(keys.1), "{e}");
+            assert!(e.to_string().contains(keys.0) && e.to_string().contains(keys.1), "{e}");
+        }
+    }
 
     #[test]
     fn ordinary_names_are_kept() {
