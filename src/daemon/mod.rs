@@ -223,6 +223,7 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
             loopback: server.addr.ip().is_loopback(),
             started,
             cancel: cancel.clone(),
+            limits: http::limits::Limits::default(),
         });
         tracker.spawn(http::serve(server, shared, h.max_body_bytes));
     }

@@ -29,6 +29,7 @@ use serde_json::json;
 use tokio_stream::StreamExt;
 use tokio_stream::wrappers::ReceiverStream;
 
+use super::limits::ThumbKey;
 use super::{AppState, Shared};
 use crate::daemon::emit::atomic_write;
 use crate::daemon::paths::{Inbox, Refusal};
@@ -63,14 +64,17 @@ fn content_type(name: &str) -> &'static str {
     }
 }
 
-/// The bytes of a file the service knows, never cached by the browser (it changes).
+/// An open file as a response body, read as it is sent (never whole in memory).
+fn streamed(file: tokio::fs::File, name: &str) -> Response {
+    let body = axum::body::Body::from_stream(tokio_util::io::ReaderStream::new(file));
+    ([(header::CONTENT_TYPE, content_type(name)), (header::CACHE_CONTROL, "no-store")], body).into_response()
+}
+
+/// A file the service knows, never cached by the browser (it changes).
 async fn file(path: PathBuf, what: &str) -> Result<Response, ApiError> {
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
-    match tokio::fs::read(&path).await {
-        Ok(bytes) => {
-            Ok(([(header::CONTENT_TYPE, content_type(&name)), (header::CACHE_CONTROL, "no-store")], bytes)
-                .into_response())
-        }
+    match tokio::fs::File::open(&path).await {
+        Ok(f) => Ok(streamed(f, &name)),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             Err(err(StatusCode::NOT_FOUND, format!("no {what} yet")))
         }
@@ -117,30 +121,51 @@ pub async fn result(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<
 /// link followed unless configured, nothing outside the folder).
 async fn inbox_file(s: &Shared, path: PathBuf, what: &'static str) -> Result<Response, ApiError> {
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
-    let bytes = read_inbox(Inbox::of(&s.config), path, what).await?;
-    Ok(([(header::CONTENT_TYPE, content_type(&name)), (header::CACHE_CONTROL, "no-store")], bytes)
-        .into_response())
+    let f = open_inbox(Inbox::of(&s.config), path, what).await?;
+    Ok(streamed(tokio::fs::File::from_std(f), &name))
 }
 
-async fn read_inbox(inbox: Inbox, path: PathBuf, what: &'static str) -> Result<Vec<u8>, ApiError> {
+/// The bytes of a file of the watched folder and its identity (for the thumbnail cache).
+async fn read_inbox(
+    inbox: Inbox,
+    path: PathBuf,
+    what: &'static str,
+) -> Result<(Vec<u8>, ThumbKey), ApiError> {
+    let mut f = open_inbox(inbox, path.clone(), what).await?;
     tokio::task::spawn_blocking(move || {
+        use std::os::unix::fs::MetadataExt;
+        let meta = f.metadata().map_err(|e| io_error(&path, what, e))?;
+        let key = (path.clone(), meta.len(), meta.mtime(), meta.mtime_nsec(), meta.ino());
         let mut bytes = Vec::new();
-        match inbox.open(&path).and_then(|mut f| f.read_to_end(&mut bytes).map_err(Refusal::Io)) {
-            Ok(_) => Ok(bytes),
-            Err(Refusal::Io(e)) if e.kind() == std::io::ErrorKind::NotFound => {
-                Err(err(StatusCode::NOT_FOUND, format!("the {what}'s file is gone")))
-            }
-            Err(Refusal::Outside { .. }) => {
-                Err(err(StatusCode::NOT_FOUND, format!("the {what} is not a file of the watched folder")))
-            }
-            Err(e @ (Refusal::Symlink { .. } | Refusal::NotAFile)) => {
-                tracing::warn!(file = %path.display(), reason = %e, "refused to the HTTP API");
-                Err(err(StatusCode::FORBIDDEN, e.to_string()))
-            }
-            Err(e) => {
-                tracing::warn!(file = %path.display(), error = %e, "cannot read for the HTTP API");
-                Err(err(StatusCode::INTERNAL_SERVER_ERROR, format!("cannot read the {what}")))
-            }
+        f.read_to_end(&mut bytes).map_err(|e| io_error(&path, what, e))?;
+        Ok((bytes, key))
+    })
+    .await
+    .map_err(|_| err(StatusCode::INTERNAL_SERVER_ERROR, "read task failed"))?
+}
+
+fn io_error(path: &Path, what: &str, e: std::io::Error) -> ApiError {
+    tracing::warn!(file = %path.display(), error = %e, "cannot read for the HTTP API");
+    err(StatusCode::INTERNAL_SERVER_ERROR, format!("cannot read the {what}"))
+}
+
+/// Opens a file of the watched folder as the intake does.
+async fn open_inbox(inbox: Inbox, path: PathBuf, what: &'static str) -> Result<std::fs::File, ApiError> {
+    tokio::task::spawn_blocking(move || match inbox.open(&path) {
+        Ok(f) => Ok(f),
+        Err(Refusal::Io(e)) if e.kind() == std::io::ErrorKind::NotFound => {
+            Err(err(StatusCode::NOT_FOUND, format!("the {what}'s file is gone")))
+        }
+        Err(Refusal::Outside { .. }) => {
+            Err(err(StatusCode::NOT_FOUND, format!("the {what} is not a file of the watched folder")))
+        }
+        Err(e @ (Refusal::Symlink { .. } | Refusal::NotAFile)) => {
+            tracing::warn!(file = %path.display(), reason = %e, "refused to the HTTP API");
+            Err(err(StatusCode::FORBIDDEN, e.to_string()))
+        }
+        Err(e) => {
+            tracing::warn!(file = %path.display(), error = %e, "cannot read for the HTTP API");
+            Err(err(StatusCode::INTERNAL_SERVER_ERROR, format!("cannot read the {what}")))
         }
     })
     .await
@@ -215,20 +240,34 @@ pub async fn thumb(
     }
     .ok_or_else(|| err(StatusCode::NOT_FOUND, format!("no view {name:?} in session {id:?}")))?;
     let limits = DecodeLimits { max_pixels: s.config.max_pixels };
-    let bytes = read_inbox(Inbox::of(&s.config), path, "view").await?;
-    let jpeg = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, ApiError> {
-        let img =
-            decode(&bytes, &limits).map_err(|e| err(StatusCode::UNPROCESSABLE_ENTITY, e.to_string()))?;
-        let small = img.thumbnail(THUMB, THUMB).to_rgb8();
-        let mut out = std::io::Cursor::new(Vec::new());
-        small
-            .write_to(&mut out, image::ImageFormat::Jpeg)
-            .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
-        Ok(out.into_inner())
-    })
-    .await
-    .map_err(|_| err(StatusCode::INTERNAL_SERVER_ERROR, "thumbnail task failed"))??;
-    Ok(([(header::CONTENT_TYPE, "image/jpeg"), (header::CACHE_CONTROL, "max-age=60")], jpeg).into_response())
+    // One decode at a time (a 24 MP view is 72 MB decoded): 48 thumbnails asked at once
+    // took 3.6 GB. Made once per version of the file, then served from the cache.
+    let _turn = s.limits.decode().await;
+    let (bytes, key) = read_inbox(Inbox::of(&s.config), path, "view").await?;
+    let jpeg = match s.limits.thumb(&key) {
+        Some(jpeg) => jpeg,
+        None => {
+            let jpeg = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, ApiError> {
+                let img = decode(&bytes, &limits)
+                    .map_err(|e| err(StatusCode::UNPROCESSABLE_ENTITY, e.to_string()))?;
+                drop(bytes);
+                let small = img.thumbnail(THUMB, THUMB).to_rgb8();
+                drop(img);
+                let mut out = std::io::Cursor::new(Vec::new());
+                small
+                    .write_to(&mut out, image::ImageFormat::Jpeg)
+                    .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+                Ok(out.into_inner())
+            })
+            .await
+            .map_err(|_| err(StatusCode::INTERNAL_SERVER_ERROR, "thumbnail task failed"))??;
+            let jpeg = Arc::new(jpeg);
+            s.limits.keep_thumb(key, jpeg.clone());
+            jpeg
+        }
+    };
+    let body = Vec::clone(&jpeg);
+    Ok(([(header::CONTENT_TYPE, "image/jpeg"), (header::CACHE_CONTROL, "max-age=60")], body).into_response())
 }
 
 /// The first `base-N` (N = 1, 2, ...) for which `exists` is false.
@@ -252,6 +291,17 @@ pub async fn put_mask(
     let record = s.emitter.session_dir(&x.id).join("painted-mask.png");
     let dir = inbox_dir(&s, &x)?;
     let inbox = Inbox::of(&s.config);
+    // The size from the header, before anything is decoded: a 10000x10000 mask is refused
+    // for what it says it is, not after 100 MB were spent on it.
+    let (w, h) = image::ImageReader::new(std::io::Cursor::new(&body[..]))
+        .with_guessed_format()
+        .map_err(|e| err(StatusCode::BAD_REQUEST, format!("not a readable image: {e}")))?
+        .into_dimensions()
+        .map_err(|e| err(StatusCode::BAD_REQUEST, format!("not a readable image: {e}")))?;
+    if (w as usize, h as usize) != (kw, kh) {
+        return Err(err(StatusCode::BAD_REQUEST, format!("the mask is {w}x{h}, the keyframe {kw}x{kh}")));
+    }
+    let _turn = s.limits.decode().await;
     let stored = tokio::task::spawn_blocking(move || -> Result<serde_json::Value, ApiError> {
         let img = decode(&body, &limits)
             .map_err(|e| err(StatusCode::BAD_REQUEST, format!("not a readable image: {e}")))?;
@@ -347,22 +397,34 @@ pub async fn choose_keyframe(
     let done = tokio::task::spawn_blocking(move || -> Result<serde_json::Value, ApiError> {
         let ext = from.extension().and_then(|e| e.to_str()).unwrap_or("png").to_ascii_lowercase();
         let mut kept = Vec::new();
-        for e in &extensions {
-            let old = dir.join(format!("key.{e}"));
-            if old.is_file() {
-                let to = free_name(&dir, |n| format!("former-key-{n}.{e}"));
-                std::fs::rename(&old, &to)
-                    .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, format!("cannot keep key.{e}: {e}")))?;
-                kept.push(to.file_name().map(|n| n.to_string_lossy().into_owned()));
+        // Every `key.<ext>` and `key.mask.<ext>` whatever the extension's case: a `key.JPG`
+        // left beside the new `key.jpg` took the session back after a restart.
+        let entries = std::fs::read_dir(&dir)
+            .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, format!("cannot list the session's folder: {e}")))?;
+        let mut olds: Vec<(String, &'static str, String)> = Vec::new();
+        for entry in entries.flatten() {
+            let Ok(name) = entry.file_name().into_string() else { continue };
+            let Some((stem, ext)) = name.rsplit_once('.') else { continue };
+            if !entry.file_type().is_ok_and(|t| t.is_file()) || !extensions.iter().any(|e| e.eq_ignore_ascii_case(ext)) {
+                continue;
             }
-            // Its mask belongs to the old keyframe: kept aside, not applied to the new one.
-            let old_mask = dir.join(format!("key.mask.{e}"));
-            if old_mask.is_file() {
-                let to = free_name(&dir, |n| format!("key.mask.{e}.user-{n}"));
-                std::fs::rename(&old_mask, &to)
-                    .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, format!("cannot keep key.mask: {e}")))?;
-                kept.push(to.file_name().map(|n| n.to_string_lossy().into_owned()));
+            match stem {
+                "key" => olds.push((name.clone(), "former-key", ext.to_owned())),
+                // Its mask belongs to the old keyframe: kept aside, not applied to the new one.
+                "key.mask" => olds.push((name.clone(), "mask", ext.to_owned())),
+                _ => {}
             }
+        }
+        olds.sort();
+        for (name, kind, ext) in olds {
+            let to = if kind == "mask" {
+                free_name(&dir, |n| format!("{name}.user-{n}"))
+            } else {
+                free_name(&dir, |n| format!("former-key-{n}.{ext}"))
+            };
+            std::fs::rename(dir.join(&name), &to)
+                .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, format!("cannot keep {name}: {e}")))?;
+            kept.push(to.file_name().map(|n| n.to_string_lossy().into_owned()));
         }
         let to = dir.join(format!("key.{ext}"));
         std::fs::rename(&from, &to).map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
@@ -376,11 +438,16 @@ pub async fn choose_keyframe(
 
 /// Server-sent events: `session` when a session changed, `result` when a new result
 /// landed (`data` is the JSON of [`crate::daemon::registry::Update`]). Ends on shutdown.
-pub async fn events(State(s): AppState) -> Sse<impl tokio_stream::Stream<Item = Result<Event, Infallible>>> {
+/// At most [`super::limits::MAX_EVENT_STREAMS`] at once: 503 beyond.
+pub async fn events(State(s): AppState) -> Response {
+    let Some(place) = s.limits.stream() else {
+        return super::busy("too many event streams open: try again shortly\n");
+    };
     let (tx, rx) = tokio::sync::mpsc::channel(16);
     let mut updates = s.registry.subscribe();
     let cancel = s.cancel.clone();
     tokio::spawn(async move {
+        let _place = place;
         loop {
             tokio::select! {
                 () = cancel.cancelled() => break,
@@ -404,5 +471,6 @@ pub async fn events(State(s): AppState) -> Sse<impl tokio_stream::Stream<Item = 
         }
     });
     let hello = tokio_stream::once(Event::default().event("hello").data("{}"));
-    Sse::new(hello.chain(ReceiverStream::new(rx)).map(Ok)).keep_alive(KeepAlive::default())
+    let stream = hello.chain(ReceiverStream::new(rx)).map(Ok::<_, Infallible>);
+    Sse::new(stream).keep_alive(KeepAlive::default()).into_response()
 }

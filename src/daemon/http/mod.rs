@@ -20,8 +20,12 @@
 //!   [`crate::daemon::paths::Inbox`] (no symbolic link followed unless configured).
 //! - A request head must arrive within [`HEADER_TIMEOUT`], a request with a body be done
 //!   within [`BODY_TIMEOUT`]; at most [`MAX_CONNECTIONS`] connections are served at once.
+//! - Memory and connections are bounded whatever the requests ([`limits`]): event streams
+//!   are capped (503 beyond), images are decoded one at a time (thumbnails cached), a few
+//!   bodies at a time are held, files are streamed from disk.
 
 mod api;
+pub mod limits;
 mod metrics;
 mod page;
 
@@ -58,6 +62,8 @@ pub struct Shared {
     pub loopback: bool,
     pub started: Instant,
     pub cancel: CancellationToken,
+    /// Event streams, decodes, bodies and thumbnails, bounded ([`limits`]).
+    pub limits: limits::Limits,
 }
 
 type AppState = State<Arc<Shared>>;
@@ -173,6 +179,7 @@ fn router(shared: Arc<Shared>, max_body: usize) -> Router {
         .route("/api/sessions/{id}/provenance", get(api::provenance))
         .route("/api/sessions/{id}/provenance.json", get(api::legend))
         .route("/api/sessions/{id}/views/{file}/thumb", get(api::thumb))
+        .layer(axum::middleware::from_fn_with_state(shared.clone(), body_slots))
         .layer(axum::middleware::from_fn_with_state(shared.clone(), guard))
         .layer(axum::middleware::from_fn(move |req: Request, next: Next| {
             declared_length_limit(max_body, req, next)
@@ -192,6 +199,28 @@ async fn body_timeout(req: Request, next: Next) -> Response {
         Ok(r) => r,
         Err(_) => (StatusCode::REQUEST_TIMEOUT, "the request took too long to arrive\n").into_response(),
     }
+}
+
+/// At most [`limits::MAX_BODIES`] requests with a body are served at once (each may
+/// hold up to `max_body_bytes` in memory); more are answered 503 at once.
+async fn body_slots(State(s): AppState, req: Request, next: Next) -> Response {
+    if matches!(*req.method(), Method::GET | Method::HEAD) {
+        return next.run(req).await;
+    }
+    let Some(_slot) = s.limits.body() else {
+        return busy("too many uploads at once: try again shortly\n");
+    };
+    next.run(req).await
+}
+
+/// 503 with a hint to come back, and the connection closed (a refused client does not
+/// keep holding one).
+pub(crate) fn busy(message: &'static str) -> Response {
+    let mut r = (StatusCode::SERVICE_UNAVAILABLE, message).into_response();
+    let h = r.headers_mut();
+    h.insert(header::RETRY_AFTER, HeaderValue::from_static("5"));
+    h.insert(header::CONNECTION, HeaderValue::from_static("close"));
+    r
 }
 
 /// Refuses a body whose declared length is over the limit at once, without reading it
