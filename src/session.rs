@@ -442,6 +442,22 @@ impl Session {
         Ok(Admission::Accepted { improves, fallback_px, weak_px, dropped })
     }
 
+    /// Forgets buffered view `id` (its file now holds other pixels, or none): its pixels
+    /// leave the buffer. When the current result took pixels from it, that result no
+    /// longer stands for any file: the next fill is published whatever it scores. Whether
+    /// the view was buffered.
+    pub fn forget_view(&mut self, id: &str) -> bool {
+        let Some(i) = self.buffer.iter().position(|b| b.id == id) else { return false };
+        let gone = self.buffer.remove(i);
+        if gone.contribution.is_some_and(|c| c > 0) {
+            self.best = None;
+        }
+        if self.key.is_some() && self.mask.is_some() {
+            self.dirty = true;
+        }
+        true
+    }
+
     /// Forgets the mask (its file was deleted): no fill until a new one is set; buffered
     /// views keep their alignments but lose their crops, as when a mask changes.
     pub fn clear_mask(&mut self) {
@@ -593,7 +609,8 @@ impl Session {
     }
 
     /// Re-inpaints the keyframe's masked region from the buffered views and updates their
-    /// contributions. `None` without a keyframe and mask.
+    /// contributions. `None` without a keyframe and mask, or when `observer` cancelled the
+    /// fill (nothing of it is kept).
     pub fn fill(&mut self, observer: &mut dyn Observer) -> Option<FillOutcome> {
         let key = self.key.as_ref()?;
         let mask = self.mask.as_ref()?;
@@ -623,6 +640,11 @@ impl Session {
         let filled =
             inpaint::fill(&key_region, &mask_region, &sources, &self.params.fill, self.params.seed, observer);
         drop(sources);
+        if observer.cancelled() {
+            // Unfinished: thrown away, and the session still wants its fill.
+            self.dirty = true;
+            return None;
+        }
         for (&i, s) in used.iter().zip(&filled.report.sources) {
             self.buffer[i].contribution = Some(s.filled);
         }

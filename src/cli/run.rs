@@ -116,7 +116,12 @@ pub fn run(args: &RunArgs) -> u8 {
             return exit::FAILURE;
         }
     };
-    match runtime.block_on(daemon::run(config, daemon::shutdown_signal())) {
+    let outcome = runtime.block_on(daemon::run(config, daemon::shutdown_signal()));
+    // The grace period was spent inside `run`: a step still running past it (a worker
+    // thread joined from a blocking task) is not waited for again here, as dropping the
+    // runtime would; it has been told to stop and can write nothing more.
+    runtime.shutdown_timeout(std::time::Duration::from_millis(100));
+    match outcome {
         Ok(()) => exit::OK,
         Err(e) => {
             tracing::error!(error = %e, "service failed");

@@ -4,8 +4,8 @@
 use std::fs::{File, OpenOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Mutex, RwLock};
 use std::time::SystemTime;
 
 use image::ImageEncoder;
@@ -158,7 +158,73 @@ pub struct Emitter {
     out: PathBuf,
     format: OutputFormat,
     history: usize,
-    events: Mutex<File>,
+    /// The event log; `None` while it cannot be opened again.
+    events: Mutex<Option<File>>,
+    /// Closed (`true`) once the service has said `service_stopped`: from then on nothing
+    /// is written, no event, no result. Writers hold it shared for the whole write, so the
+    /// last line is written after every write in progress, never before one.
+    closed: RwLock<bool>,
+}
+
+/// Opens the event log at `path` for appending, cutting off a last line left without its
+/// newline (a crash or a full disk in an earlier run), so every line of the log is whole.
+fn open_log(path: &Path) -> std::io::Result<File> {
+    let events = OpenOptions::new().create(true).read(true).append(true).open(path)?;
+    match cut_partial_line(&events) {
+        Ok(0) => {}
+        Ok(n) => {
+            tracing::warn!(file = %path.display(), bytes = n, "removed a partial last line from the event log")
+        }
+        Err(e) => {
+            tracing::warn!(file = %path.display(), error = %e, "cannot check the event log's last line")
+        }
+    }
+    Ok(events)
+}
+
+/// Refuses a folder of the out tree that has been replaced by a symbolic link since the
+/// start (the out folder was resolved then): results are not written through it to
+/// wherever it points. A folder that does not exist yet is fine (it is made).
+fn no_link(dir: &Path) -> std::io::Result<()> {
+    match std::fs::symlink_metadata(dir) {
+        Ok(m) if m.file_type().is_symlink() => Err(std::io::Error::other(
+            "is a symbolic link (the folder was replaced by one since the start): results are not written through links",
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// One line of the event log: `time`, `event`, `session`, then `fields`' members.
+fn line(time: String, kind: &str, session: Option<&str>, fields: serde_json::Value) -> String {
+    let mut obj = serde_json::Map::new();
+    obj.insert("time".into(), time.into());
+    obj.insert("event".into(), kind.into());
+    if let Some(s) = session {
+        obj.insert("session".into(), s.into());
+    }
+    if let serde_json::Value::Object(m) = fields {
+        obj.extend(m);
+    }
+    let mut line = serde_json::Value::Object(obj).to_string();
+    line.push('\n');
+    line
+}
+
+/// Whether `path` still names the open file `f` (not deleted, not replaced).
+fn still_names(path: &Path, f: &File) -> bool {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        match (std::fs::metadata(path), f.metadata()) {
+            (Ok(a), Ok(b)) => a.dev() == b.dev() && a.ino() == b.ino(),
+            _ => false,
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = f;
+        path.exists()
+    }
 }
 
 impl Emitter {
@@ -166,26 +232,14 @@ impl Emitter {
     /// or a full disk in an earlier run) is cut off, so every line of the log is whole.
     pub fn open(config: &Config) -> Result<Self, DaemonError> {
         let path = config.out_dir.join("events.jsonl");
-        let events = OpenOptions::new()
-            .create(true)
-            .read(true)
-            .append(true)
-            .open(&path)
-            .map_err(|source| DaemonError::EventLog { path: path.clone(), source })?;
-        match cut_partial_line(&events) {
-            Ok(0) => {}
-            Ok(n) => {
-                tracing::warn!(file = %path.display(), bytes = n, "removed a partial last line from the event log")
-            }
-            Err(e) => {
-                tracing::warn!(file = %path.display(), error = %e, "cannot check the event log's last line")
-            }
-        }
+        let events =
+            open_log(&path).map_err(|source| DaemonError::EventLog { path: path.clone(), source })?;
         Ok(Self {
             out: config.out_dir.clone(),
             format: config.format,
             history: config.history,
-            events: Mutex::new(events),
+            events: Mutex::new(Some(events)),
+            closed: RwLock::new(false),
         })
     }
 
@@ -203,18 +257,34 @@ impl Emitter {
     /// Appends one event, a JSON object on one line: `time`, `event`, `session`, then
     /// `fields`' members. A failure to log is itself logged, never fatal.
     pub fn event(&self, kind: &str, session: Option<&str>, fields: serde_json::Value) {
-        let mut obj = serde_json::Map::new();
-        obj.insert("time".into(), rfc3339(SystemTime::now()).into());
-        obj.insert("event".into(), kind.into());
-        if let Some(s) = session {
-            obj.insert("session".into(), s.into());
+        let line = line(rfc3339(SystemTime::now()), kind, session, fields);
+        let closed = self.closed.read().expect("emitter gate");
+        if *closed {
+            tracing::debug!(event = kind, "after service_stopped: not logged");
+            return;
         }
-        if let serde_json::Value::Object(m) = fields {
-            obj.extend(m);
+        self.append(kind, &line);
+    }
+
+    /// Writes the run's last event, `service_stopped` with `fields`, once every write in
+    /// progress has ended; nothing is written after it.
+    pub fn close(&self, fields: serde_json::Value) {
+        let mut closed = self.closed.write().expect("emitter gate");
+        if *closed {
+            return;
         }
-        let mut line = serde_json::Value::Object(obj).to_string();
-        line.push('\n');
-        let mut f = self.events.lock().expect("event log lock");
+        *closed = true;
+        self.append("service_stopped", &line(rfc3339(SystemTime::now()), "service_stopped", None, fields));
+    }
+
+    /// Whether the service has said `service_stopped` (then nothing more is written).
+    pub fn is_closed(&self) -> bool {
+        *self.closed.read().expect("emitter gate")
+    }
+
+    fn append(&self, kind: &str, line: &str) {
+        let mut guard = self.events.lock().expect("event log lock");
+        let Some(f) = self.log_file(&mut guard, kind) else { return };
         // One write per line: appends of a line are not interleaved with other writers. A
         // line that does not fit (full disk: a short write, then an error) is taken back,
         // so the log never holds half a line that would break its readers.
@@ -231,6 +301,30 @@ impl Emitter {
         }
     }
 
+    /// The open event log, opened again when its path no longer leads to it (the out
+    /// folder or the log was deleted or replaced: appends to the old file would be lost
+    /// without a word); `None` (the event is lost, and that is logged) when it cannot be.
+    fn log_file<'a>(&self, slot: &'a mut Option<File>, kind: &str) -> Option<&'a mut File> {
+        let path = self.out.join("events.jsonl");
+        if slot.as_ref().is_some_and(|f| still_names(&path, f)) {
+            return slot.as_mut();
+        }
+        let reopened = no_link(&self.out)
+            .and_then(|()| std::fs::create_dir_all(&self.out))
+            .and_then(|()| open_log(&path));
+        match reopened {
+            Ok(f) => {
+                tracing::warn!(file = %path.display(), "the event log was deleted or replaced: writing to a new one");
+                *slot = Some(f);
+            }
+            Err(e) => {
+                tracing::error!(file = %path.display(), error = %e, event = kind, "cannot open the event log: event lost");
+                *slot = None;
+            }
+        }
+        slot.as_mut()
+    }
+
     /// Writes result number `number` of `session`: the history copy, then `result.<ext>`,
     /// then `result.json` (to which the image's size and digest are added, see
     /// [`check_result`]), each atomically; prunes the history. Returns the result's path.
@@ -243,12 +337,20 @@ impl Emitter {
         report: &mut serde_json::Value,
     ) -> Result<PathBuf, WriteError> {
         let dir = self.session_dir(session);
+        let closed = self.closed.read().expect("emitter gate");
+        if *closed {
+            let e = std::io::Error::other("the service has stopped: nothing more is written");
+            return Err(WriteError { path: dir, source: e });
+        }
+        no_link(&self.out).map_err(at(&self.out))?;
+        no_link(&dir).map_err(at(&dir))?;
         std::fs::create_dir_all(&dir).map_err(at(&dir))?;
         let path = dir.join(self.result_name());
         let bytes = self.encode(image).map_err(at(&path))?;
         let ext = self.format.extension();
         let history = (self.history > 0).then(|| dir.join("history"));
         if let Some(hist) = &history {
+            no_link(hist).map_err(at(hist))?;
             std::fs::create_dir_all(hist).map_err(at(hist))?;
         }
         // Written once; the history entry is a second name for the same file (a hard link

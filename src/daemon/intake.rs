@@ -47,9 +47,27 @@ struct Tracked {
     role: Role,
     size: u64,
     mtime: SystemTime,
+    /// Which file it is and when its inode last changed: a file renamed over it (rsync,
+    /// sync clients) with the same size and time is another inode; a `chmod` that makes
+    /// it readable changes the change time.
+    inode: Inode,
     since: Instant,
     status: Status,
+    /// A version of it reached a worker: a later version that cannot be used must be told
+    /// to the worker too (it holds the old one's pixels).
+    delivered: bool,
 }
+
+/// A file's device, inode and change time (seconds, nanoseconds).
+type Inode = (u64, u64, i64, i64);
+
+fn inode_of(meta: &std::fs::Metadata) -> Inode {
+    use std::os::unix::fs::MetadataExt;
+    (meta.dev(), meta.ino(), meta.ctime(), meta.ctime_nsec())
+}
+
+/// What a `file_skipped` event says of the next try.
+const RETRIED: &str = "when the file changes (its content, its permissions, or a new file under its name)";
 
 /// The intake task's state.
 pub struct Intake {
@@ -64,8 +82,9 @@ pub struct Intake {
     /// Symbolic links refused and reported (each once, while it is there).
     refused: HashSet<PathBuf>,
     root: Root,
-    /// Masks deleted after a worker took them, still to be told to it: (path, session).
-    removed: Vec<(PathBuf, String)>,
+    /// Files a worker holds a version of that are gone (a mask deleted) or no longer
+    /// usable (a view replaced by what cannot be decoded), still to be told to it.
+    removed: Vec<(PathBuf, String, Role)>,
 }
 
 /// The watched folder's identity (device and inode), to notice it being removed and
@@ -240,9 +259,7 @@ impl Intake {
             // A new session folder: files can land in it before the watcher watches it.
             if let Ok(entries) = std::fs::read_dir(&path) {
                 for e in entries.flatten() {
-                    if e.file_type().is_ok_and(|t| t.is_file() || t.is_symlink()) {
-                        self.observe(e.path());
-                    }
+                    self.observe(e.path());
                 }
             }
             return;
@@ -252,19 +269,29 @@ impl Intake {
         };
         let meta = match std::fs::metadata(&path) {
             Ok(m) if m.is_file() => m,
-            _ => {
+            Ok(m) => {
+                // A FIFO, a socket, a device or a folder under an image's name: reported
+                // once, never opened (a FIFO would block its reader).
+                self.forget(&path);
+                self.refuse_special(path, &candidate.session, special_kind(&m.file_type()));
+                return;
+            }
+            Err(_) => {
                 self.forget(&path);
                 return;
             }
         };
-        let (size, mtime) = (meta.len(), meta.modified().unwrap_or(SystemTime::UNIX_EPOCH));
+        self.refused.remove(&path);
+        let (size, mtime, inode) =
+            (meta.len(), meta.modified().unwrap_or(SystemTime::UNIX_EPOCH), inode_of(&meta));
         match self.files.get_mut(&path) {
-            Some(t) if t.size == size && t.mtime == mtime => {}
+            Some(t) if t.size == size && t.mtime == mtime && t.inode == inode => {}
             Some(t) => {
                 if t.status == Status::Ready {
                     self.backlog.done(&t.session);
                 }
-                (t.size, t.mtime, t.since, t.status) = (size, mtime, Instant::now(), Status::Settling);
+                (t.size, t.mtime, t.inode, t.since, t.status) =
+                    (size, mtime, inode, Instant::now(), Status::Settling);
             }
             None => {
                 tracing::debug!(file = %watch::shown_path(&path), session = %watch::shown(&candidate.session), "noticed");
@@ -275,8 +302,10 @@ impl Intake {
                         role: candidate.role,
                         size,
                         mtime,
+                        inode,
                         since: Instant::now(),
                         status: Status::Settling,
+                        delivered: false,
                     },
                 );
             }
@@ -291,18 +320,18 @@ impl Intake {
             self.backlog.done(&t.session);
         }
         if t.role == Role::Mask && t.status == Status::Queued {
-            self.removed.push((path.to_owned(), t.session));
+            self.removed.push((path.to_owned(), t.session, t.role));
         }
     }
 
-    /// Tells workers about deleted masks while their queues have room.
+    /// Tells workers about deleted masks and unusable new versions of views while their
+    /// queues have room.
     fn report_removed(&mut self) {
         let workers = self.senders.len();
-        self.removed.retain(|(path, session)| {
+        self.removed.retain(|(path, session, role)| {
             let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
             let file = FileId { name, size: 0, mtime: SystemTime::UNIX_EPOCH };
-            let job =
-                Job { session: session.clone(), path: path.clone(), role: Role::Mask, file, image: None };
+            let job = Job { session: session.clone(), path: path.clone(), role: *role, file, image: None };
             // Full: kept for the next tick. Disconnected: nobody to tell.
             matches!(self.senders[worker_for(session, workers)].try_send(job), Err(TrySendError::Full(_)))
         });
@@ -337,6 +366,23 @@ impl Intake {
             serde_json::json!({ "file": name, "path": link, "reason": reason, "symlink": true }),
         );
         self.refused.insert(link);
+    }
+
+    /// Reports a file that is not a regular file: once, while it stays.
+    fn refuse_special(&mut self, path: PathBuf, session: &str, kind: &str) {
+        if self.refused.contains(&path) {
+            return;
+        }
+        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let reason = format!("{kind}, not a regular file: it is not read");
+        self.stats.skipped.fetch_add(1, Ordering::Relaxed);
+        tracing::warn!(file = %watch::shown_path(&path), session = %watch::shown(session), %reason, "file skipped");
+        self.emitter.event(
+            "file_skipped",
+            Some(session),
+            serde_json::json!({ "file": name, "path": path.to_string_lossy(), "reason": reason, "retried": RETRIED }),
+        );
+        self.refused.insert(path);
     }
 
     /// Re-checks settling files; those quiet for long enough become ready.
@@ -434,7 +480,7 @@ impl Intake {
                         continue;
                     }
                     match self.senders[w].try_send(job) {
-                        Ok(()) => {}
+                        Ok(()) => t.delivered = true,
                         Err(TrySendError::Full(_)) => t.status = Status::Ready,
                         Err(TrySendError::Disconnected(_)) => {
                             t.status = Status::Ready;
@@ -452,6 +498,11 @@ impl Intake {
                 Err(DecodeOutcome::Failed(reason)) | Err(DecodeOutcome::Io(reason)) => {
                     (room[w], given_back) = (room[w] + 1, true);
                     t.status = Status::Failed;
+                    if t.delivered && t.role == Role::View {
+                        // Its worker holds the pixels of a version that is gone.
+                        self.removed.push((path.clone(), session.clone(), t.role));
+                        t.delivered = false;
+                    }
                     self.backlog.done(&session);
                     self.stats.skipped.fetch_add(1, Ordering::Relaxed);
                     let (file, session_shown) = (watch::shown_path(&path), watch::shown(&session));
@@ -463,12 +514,33 @@ impl Intake {
                     self.emitter.event(
                         "file_skipped",
                         Some(&session),
-                        serde_json::json!({ "file": path.file_name().map(|n| n.to_string_lossy()), "path": path.to_string_lossy(), "reason": reason }),
+                        serde_json::json!({
+                            "file": path.file_name().map(|n| n.to_string_lossy()),
+                            "path": path.to_string_lossy(),
+                            "reason": reason,
+                            "retried": RETRIED,
+                        }),
                     );
                 }
             }
         }
         given_back
+    }
+}
+
+/// What a file that is not a regular file is, in words.
+fn special_kind(t: &std::fs::FileType) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    if t.is_dir() {
+        "a folder"
+    } else if t.is_fifo() {
+        "a FIFO (named pipe)"
+    } else if t.is_socket() {
+        "a socket"
+    } else if t.is_block_device() || t.is_char_device() {
+        "a device node"
+    } else {
+        "not a file"
     }
 }
 

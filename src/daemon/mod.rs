@@ -284,7 +284,8 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
         Ok(()) => tracing::info!("service stopped"),
         Err(_) => tracing::warn!(grace_ms = grace.as_millis() as u64, "grace period over: stopping mid-step"),
     }
-    emitter.event("service_stopped", None, serde_json::json!({ "clean": finished.is_ok() }));
+    // The last line: a worker still busy past the grace period writes nothing after it.
+    emitter.close(serde_json::json!({ "clean": finished.is_ok() }));
     Ok(())
 }
 

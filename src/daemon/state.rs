@@ -136,7 +136,8 @@ pub fn sessions_dir(state_dir: &Path) -> PathBuf {
 
 /// A session's state file: always directly in the sessions folder, whatever the name
 /// ([`super::paths::session_dir_name`]).
-fn path(state_dir: &Path, session: &str) -> PathBuf {
+/// Where the saved state of `session` is.
+pub fn path(state_dir: &Path, session: &str) -> PathBuf {
     sessions_dir(state_dir).join(format!("{}.json", super::paths::session_dir_name(session)))
 }
 
@@ -212,11 +213,22 @@ pub fn parse(bytes: &[u8]) -> Result<SessionState, StateError> {
     Ok(s)
 }
 
-/// Saves atomically; a failure is logged (the state is an optimisation, not a result) and
+/// Saves atomically, making the state folder again if it was deleted; a failure is logged (the state is an optimisation, not a result) and
 /// reported as `false`, so the caller can try again later.
 pub fn save(state_dir: &Path, session: &str, state: &SessionState) -> bool {
     let p = path(state_dir, session);
-    let r = encode(state).and_then(|bytes| super::emit::atomic_write(&p, &bytes));
+    let write = |bytes: &[u8]| match super::emit::atomic_write(&p, bytes) {
+        // The state folder was deleted under us: made again, not given up on (a restart
+        // would otherwise realign every session).
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            let dir = sessions_dir(state_dir);
+            std::fs::create_dir_all(&dir)?;
+            tracing::warn!(dir = %dir.display(), "the state folder was gone: made again");
+            super::emit::atomic_write(&p, bytes)
+        }
+        r => r,
+    };
+    let r = encode(state).and_then(|bytes| write(&bytes));
     match r {
         Ok(()) => true,
         Err(e) => {

@@ -194,6 +194,7 @@ impl Videos {
             };
             let ctx = Ctx {
                 config: config.clone(),
+                cancel: cancel.clone(),
                 emitter: emitter.clone(),
                 backlog: Arc::new(Backlog::default()),
                 stats: stats.clone(),

@@ -109,9 +109,9 @@ pub fn stem(name: &str) -> &str {
     name.rsplit_once('.').map_or(name, |(s, _)| s)
 }
 
-/// Every file directly in `root` or one level below (the candidates among them are
-/// decided by [`classify`]), symbolic links included: the intake refuses them, so a link
-/// is reported rather than silently missed. A linked folder is entered only when links
+/// Every entry directly in `root` or one level below (the candidates among them are
+/// decided by [`classify`]), symbolic links, special files and folders inside sessions
+/// included: the intake refuses them, so each is reported rather than silently missed. A linked folder is entered only when links
 /// are followed; otherwise the link itself is listed. Unreadable folders are logged and
 /// skipped.
 pub fn scan(root: &Path, follow_symlinks: bool) -> Vec<PathBuf> {
@@ -123,7 +123,9 @@ pub fn scan(root: &Path, follow_symlinks: bool) -> Vec<PathBuf> {
             return out;
         }
     };
-    let listed = |k: std::fs::FileType| k.is_file() || k.is_symlink();
+    // In a session folder everything is listed (a FIFO or a folder under an image's name
+    // is reported, not silently missed); directly in the root, everything but folders
+    // (which are sessions).
     for entry in entries.flatten() {
         let Ok(kind) = entry.file_type() else { continue };
         let is_dir = kind.is_dir()
@@ -132,9 +134,9 @@ pub fn scan(root: &Path, follow_symlinks: bool) -> Vec<PathBuf> {
                 && std::fs::metadata(entry.path()).is_ok_and(|m| m.is_dir()));
         if is_dir {
             if let Ok(inner) = std::fs::read_dir(entry.path()) {
-                out.extend(inner.flatten().filter(|e| e.file_type().is_ok_and(listed)).map(|e| e.path()));
+                out.extend(inner.flatten().map(|e| e.path()));
             }
-        } else if listed(kind) {
+        } else {
             out.push(entry.path());
         }
     }
@@ -142,7 +144,27 @@ pub fn scan(root: &Path, follow_symlinks: bool) -> Vec<PathBuf> {
     out
 }
 
-/// Starts kernel notifications on `root` (recursive); every touched path becomes a hint.
+/// Whether a notification can mean that a file appeared, changed, moved, went or became
+/// readable: everything but reads. Opening and closing a file without writing it says
+/// nothing new, and the service's own reads of the folder (the intake's listing and
+/// decoding, the HTTP thumbnails) raise exactly those: taken as hints, each read led to
+/// another, and an idle service spun a core forever. A change of permissions (`chmod`,
+/// an attribute event) stays a hint: a file that could not be read may now be.
+pub fn changes_content(kind: &notify::EventKind) -> bool {
+    use notify::event::{AccessKind, AccessMode, EventKind};
+    match kind {
+        EventKind::Access(AccessKind::Close(AccessMode::Write)) => true,
+        EventKind::Access(_) => false,
+        EventKind::Any
+        | EventKind::Create(_)
+        | EventKind::Modify(_)
+        | EventKind::Remove(_)
+        | EventKind::Other => true,
+    }
+}
+
+/// Starts kernel notifications on `root` (recursive); every path a change touched becomes
+/// a hint ([`changes_content`]: reads are not changes).
 /// Linked folders are watched through only when links are followed.
 pub fn start_notify(
     root: &Path,
@@ -151,6 +173,7 @@ pub fn start_notify(
     overflow: Arc<AtomicBool>,
 ) -> notify::Result<notify::RecommendedWatcher> {
     let handler = move |res: notify::Result<notify::Event>| match res {
+        Ok(event) if !changes_content(&event.kind) => {}
         Ok(event) => {
             for path in event.paths {
                 match hints.try_send(path) {
@@ -206,6 +229,30 @@ mod tests {
         assert_eq!(classify(root, &odd, &exts()), Some(Candidate { session: "s1".into(), role: Role::View }));
         let odd_dir = root.join(std::ffi::OsStr::from_bytes(b"s\xff")).join("a.png");
         assert_eq!(classify(root, &odd_dir, &exts()), None);
+    }
+
+    #[test]
+    fn reads_are_not_hints_and_writes_moves_removals_and_chmods_are() {
+        use notify::event::*;
+        for quiet in [
+            EventKind::Access(AccessKind::Open(AccessMode::Any)),
+            EventKind::Access(AccessKind::Close(AccessMode::Read)),
+            EventKind::Access(AccessKind::Read),
+            EventKind::Access(AccessKind::Any),
+        ] {
+            assert!(!changes_content(&quiet), "{quiet:?}");
+        }
+        for change in [
+            EventKind::Access(AccessKind::Close(AccessMode::Write)),
+            EventKind::Create(CreateKind::File),
+            EventKind::Modify(ModifyKind::Data(DataChange::Any)),
+            EventKind::Modify(ModifyKind::Metadata(MetadataKind::Permissions)),
+            EventKind::Modify(ModifyKind::Name(RenameMode::To)),
+            EventKind::Remove(RemoveKind::File),
+            EventKind::Any,
+        ] {
+            assert!(changes_content(&change), "{change:?}");
+        }
     }
 
     #[test]

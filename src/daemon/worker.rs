@@ -63,8 +63,8 @@ pub struct Job {
     pub path: PathBuf,
     pub role: Role,
     pub file: FileId,
-    /// 8-bit RGB for keyframes and views, 8-bit grey for masks; `None`: the file was
-    /// deleted (only said of masks).
+    /// 8-bit RGB for keyframes and views, 8-bit grey for masks; `None`: a mask was
+    /// deleted, or a view's file now holds something that cannot be used.
     pub image: Option<DynamicImage>,
 }
 
@@ -86,6 +86,7 @@ pub fn spawn(
         let (tx, rx) = bounded(config.queue.get());
         let ctx = Ctx {
             config: config.clone(),
+            cancel: cancel.clone(),
             emitter: emitter.clone(),
             backlog: backlog.clone(),
             stats: stats.clone(),
@@ -112,6 +113,8 @@ pub fn spawn(
 
 pub(super) struct Ctx {
     pub(super) config: Arc<Config>,
+    /// Cancelled when the service stops: long steps (a fill) give up and write nothing.
+    pub(super) cancel: CancellationToken,
     pub(super) emitter: Arc<Emitter>,
     pub(super) backlog: Arc<Backlog>,
     pub(super) stats: Arc<Stats>,
@@ -276,9 +279,7 @@ impl Worker {
             }
         }
         for slot in self.sessions.values_mut() {
-            if slot.state_dirty {
-                state::save(&self.ctx.config.state_dir, &slot.name, &slot.state);
-            }
+            save_state(&self.ctx, slot);
             if let Some(p) = &slot.pending {
                 tracing::warn!(
                     session = %watch::shown(&slot.name),
@@ -399,7 +400,12 @@ impl Worker {
         let Self { ctx, sessions, .. } = self;
         let slot = Self::slot(ctx, sessions, &session);
         let Some(image) = image else {
-            mask_removed(ctx, slot, &file);
+            match role {
+                Role::Mask => mask_removed(ctx, slot, &file),
+                // A view's file now holds nothing usable: its old pixels go.
+                _ => forget_old_content(ctx, slot, &file.name, ""),
+            }
+            save_state(ctx, slot);
             publish(ctx, slot, None);
             return;
         };
@@ -765,6 +771,7 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
     let _enter = span.enter();
     let id = file.content_id(image);
     let Some(key_id) = slot.session.key_id().map(str::to_owned) else { return };
+    forget_old_content(ctx, slot, &file.name, &id);
     let start = Instant::now();
     let (record, from_state) = match slot.state.alignment(&id, &key_id) {
         Some(r) => (r.clone(), true),
@@ -861,11 +868,31 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
     auto_mask(ctx, slot);
 }
 
-/// Times the fill's stages for the log.
-#[derive(Default)]
+/// The file `name` now holds content `id`: the pixels buffered from what it held before
+/// leave the buffer, whatever becomes of the new content (accepted, rejected, unreadable).
+/// A result must never be made of pixels that no file holds any more.
+fn forget_old_content(ctx: &Ctx, slot: &mut Slot, name: &str, id: &str) {
+    let Some(old) = slot.views.get(name).map(|v| v.id.clone()).filter(|old| old != id) else { return };
+    slot.paths.remove(&old);
+    if slot.session.forget_view(&old) {
+        tracing::info!(file = %watch::shown(name), "the file's content changed: its old pixels leave the buffer");
+        ctx.emitter.event(
+            "view_dropped",
+            Some(&slot.name),
+            json!({ "file": name, "reason": "its file was replaced: the old pixels are no longer used" }),
+        );
+    }
+    if let Some(v) = slot.views.get_mut(name) {
+        v.status = "dropped";
+        v.reason = Some("its file was replaced".into());
+    }
+}
+
+/// Times the fill's stages for the log, and tells the fill when the service stops.
 struct Timings {
     current: Option<(Stage, Instant)>,
     done: Vec<(&'static str, f64)>,
+    cancel: CancellationToken,
 }
 
 impl Timings {
@@ -880,6 +907,10 @@ impl Observer for Timings {
     fn stage(&mut self, stage: Stage) {
         self.close();
         self.current = Some((stage, Instant::now()));
+    }
+
+    fn cancelled(&self) -> bool {
+        self.cancel.is_cancelled()
     }
 }
 
@@ -900,9 +931,20 @@ pub(super) fn fill(ctx: &Ctx, slot: &mut Slot) -> Option<u64> {
         );
         return None;
     }
+    if ctx.cancel.is_cancelled() {
+        return None;
+    }
     let start = Instant::now();
-    let mut timings = Timings::default();
-    let outcome = slot.session.fill(&mut timings)?;
+    let mut timings = Timings { current: None, done: Vec::new(), cancel: ctx.cancel.clone() };
+    let Some(outcome) = slot.session.fill(&mut timings) else {
+        if ctx.cancel.is_cancelled() {
+            tracing::info!(
+                fill_ms = start.elapsed().as_millis() as u64,
+                "stopping: the fill in hand is given up, nothing written"
+            );
+        }
+        return None;
+    };
     timings.close();
     let fill_ms = start.elapsed().as_secs_f64() * 1e3;
     let stages: serde_json::Map<String, serde_json::Value> =
@@ -932,7 +974,7 @@ pub(super) fn fill(ctx: &Ctx, slot: &mut Slot) -> Option<u64> {
 /// Saves the session's state if it changed; a failure keeps it marked changed, to be tried
 /// again (see [`Backoff`]).
 pub(super) fn save_state(ctx: &Ctx, slot: &mut Slot) {
-    if !slot.state_dirty {
+    if !slot.state_dirty || ctx.emitter.is_closed() {
         return;
     }
     if state::save(&ctx.config.state_dir, &slot.name, &slot.state) {

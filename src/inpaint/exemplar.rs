@@ -126,6 +126,19 @@ impl Default for ExemplarParams {
 /// # Panics
 /// If `hole` is not the size of `image` (a bug in the caller).
 pub fn exemplar_fill(image: &mut RgbF32, hole: &Mask, params: &ExemplarParams, seed: u64) -> usize {
+    exemplar_fill_until(image, hole, params, seed, &|| false)
+}
+
+/// [`exemplar_fill`] that gives up as soon as `stop()` says so (it is asked every few
+/// patches): the service's shutdown does not wait for a large hole to close. Pixels left
+/// unfilled then hold whatever they held; the caller throws such an image away.
+pub fn exemplar_fill_until(
+    image: &mut RgbF32,
+    hole: &Mask,
+    params: &ExemplarParams,
+    seed: u64,
+    stop: &dyn Fn() -> bool,
+) -> usize {
     assert_eq!((hole.width(), hole.height()), (image.width(), image.height()), "hole mask size");
     if image.is_empty() {
         return 0;
@@ -135,7 +148,10 @@ pub fn exemplar_fill(image: &mut RgbF32, hole: &Mask, params: &ExemplarParams, s
     for (i, bbox) in groups.iter().enumerate() {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         rng.set_stream(i as u64);
-        filled += fill_group(image, hole, *bbox, params, &mut rng);
+        if stop() {
+            break;
+        }
+        filled += fill_group(image, hole, *bbox, params, &mut rng, stop);
     }
     filled
 }
@@ -759,6 +775,7 @@ fn fill_group(
     bbox: Rect,
     params: &ExemplarParams,
     rng: &mut ChaCha8Rng,
+    stop: &dyn Fn() -> bool,
 ) -> usize {
     let (w, h) = (image.width(), image.height());
     let whole = Rect { x0: 0, y0: 0, x1: w, y1: h };
@@ -817,9 +834,14 @@ fn fill_group(
 
     let mut target = Vec::with_capacity((2 * r + 1) * (2 * r + 1));
     let mut filled = 0;
+    let mut copies = 0usize;
     while let Some(Entry { priority, index }) = g.heap.pop() {
         if g.state[index] != UNKNOWN || g.priority[index] != priority {
             continue; // stale entry
+        }
+        copies += 1;
+        if copies.is_multiple_of(32) && stop() {
+            break;
         }
         let (px, py) = (region.x0 + index % region.width(), region.y0 + index / region.width());
         let Some(source) = g.search(px, py, &sources, params, rng, &mut target) else {

@@ -24,7 +24,7 @@ use blend::{BlendParams, guidance_rhs, solve_membrane};
 use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region, occlusion_costs};
 
 pub use automask::{AutoMaskParams, auto_mask};
-pub use exemplar::{ExemplarParams, exemplar_fill};
+pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_until};
 
 /// Where each pixel of a result came from: [`KEYFRAME`] outside the mask, [`FALLBACK`]
 /// for the single-image fallback, otherwise `1 + i` for `sources[i]`.
@@ -73,6 +73,12 @@ pub trait Observer {
     fn stage(&mut self, _stage: Stage) {}
     /// `done` of `total` units of the current stage are finished.
     fn progress(&mut self, _done: usize, _total: usize) {}
+    /// Whether the work is no longer wanted (the service is stopping). The fill asks
+    /// between stages and inside its long loops and, when told so, returns at once with an
+    /// unfinished image, which the caller (that said so) throws away.
+    fn cancelled(&self) -> bool {
+        false
+    }
 }
 
 /// An observer that ignores everything.
@@ -246,6 +252,9 @@ pub fn fill<P: RgbPixel>(
     }
 
     // Photometric: one gain per view from the rings around all regions.
+    if observer.cancelled() {
+        return Filled { image, provenance, report };
+    }
     observer.stage(Stage::Photometric);
     if params.photometric {
         for v in 0..nv {
@@ -279,12 +288,18 @@ pub fn fill<P: RgbPixel>(
     }
 
     // Fill: regions in parallel, in batches so that progress can be told.
+    if observer.cancelled() {
+        return Filled { image, provenance, report };
+    }
     observer.stage(Stage::Fill);
     let mparams = params.multiview();
     let mut results: Vec<RegionFill> = Vec::with_capacity(parts.len());
     let batch = rayon::current_num_threads().max(1);
     let mut done = 0;
     for (pb, wb) in parts.chunks(batch).zip(warps.chunks(batch)) {
+        if observer.cancelled() {
+            break;
+        }
         let out: Vec<RegionFill> =
             pb.par_iter().zip(wb.par_iter()).map(|(part, ws)| fill_one(key, part, ws, &mparams)).collect();
         done += pb.iter().map(|p| p.holes).sum::<usize>();
@@ -304,6 +319,9 @@ pub fn fill<P: RgbPixel>(
     }
 
     // Fallback: what no view saw, from the image itself (with the views' fill as context).
+    if observer.cancelled() {
+        return Filled { image, provenance, report };
+    }
     observer.stage(Stage::Fallback);
     let mut pending = Mask::new(w, h, 0);
     let mut any_pending = false;
@@ -318,17 +336,31 @@ pub fn fill<P: RgbPixel>(
     }
     if any_pending {
         for (k, part) in parts.iter().enumerate() {
-            report.fallback +=
-                fallback(&mut image, &mut pending, &mut provenance, part.rect, params, seed ^ k as u64);
+            let stop = || observer.cancelled();
+            report.fallback += fallback(
+                &mut image,
+                &mut pending,
+                &mut provenance,
+                part.rect,
+                params,
+                seed ^ k as u64,
+                &stop,
+            );
             observer.progress(k + 1, parts.len());
         }
     }
 
     // Blend: each region's fill into the keyframe, guided by its views' own gradients.
+    if observer.cancelled() {
+        return Filled { image, provenance, report };
+    }
     observer.stage(Stage::Blend);
     if params.blend {
         let mut done = 0;
         for ((pb, wb), rb) in parts.chunks(batch).zip(warps.chunks(batch)).zip(results.chunks(batch)) {
+            if observer.cancelled() {
+                break;
+            }
             let blended: Vec<Vec<[f32; 3]>> = pb
                 .par_iter()
                 .zip(wb.par_iter())
@@ -528,6 +560,7 @@ fn fallback(
     rect: Rect,
     params: &FillParams,
     seed: u64,
+    stop: &dyn Fn() -> bool,
 ) -> usize {
     let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
     for y in rect.y..rect.y + rect.height {
@@ -551,7 +584,7 @@ fn fallback(
     );
     let mut sub = RgbF32::from_fn(crop.width, crop.height, |x, y| image.get(crop.x + x, crop.y + y));
     let hole = Mask::from_fn(crop.width, crop.height, |x, y| pending.get(crop.x + x, crop.y + y));
-    exemplar_fill(&mut sub, &hole, &params.exemplar, seed);
+    exemplar_fill_until(&mut sub, &hole, &params.exemplar, seed, stop);
     let mut count = 0;
     for y in 0..crop.height {
         for x in 0..crop.width {

@@ -162,6 +162,20 @@ impl Service {
         }
     }
 
+    /// Starts `clearview run --config F` as user `uid` (the caller must be root, and the
+    /// folders must be that user's).
+    pub fn start_as(f: &Folders, uid: u32) -> Self {
+        let (child, log) = Self::spawn_with(f, &[], &[], Stdio::null(), Some(uid));
+        Self {
+            child,
+            log,
+            base: String::new(),
+            addr: String::new(),
+            token: String::new(),
+            url: String::new(),
+        }
+    }
+
     /// Starts `clearview run --config F --http LISTEN` and reads the printed URL.
     pub fn start_http(f: &Folders, listen: &str, env: &[(&str, &str)]) -> Self {
         let (mut child, log) = Self::spawn(f, &["--http", listen], env, Stdio::piped());
@@ -185,9 +199,24 @@ impl Service {
     }
 
     fn spawn(f: &Folders, args: &[&str], env: &[(&str, &str)], stdout: Stdio) -> (Child, PathBuf) {
+        Self::spawn_with(f, args, env, stdout, None)
+    }
+
+    fn spawn_with(
+        f: &Folders,
+        args: &[&str],
+        env: &[(&str, &str)],
+        stdout: Stdio,
+        uid: Option<u32>,
+    ) -> (Child, PathBuf) {
+        use std::os::unix::process::CommandExt;
         let run = (1..).find(|n| !f.root.join(format!("service-{n}.log")).exists()).unwrap();
         let log = f.root.join(format!("service-{run}.log"));
-        let child = Command::new(bin())
+        let mut command = Command::new(bin());
+        if let Some(uid) = uid {
+            command.uid(uid).gid(uid);
+        }
+        let child = command
             .args(["run", "--config"])
             .arg(&f.config)
             .args(args)
