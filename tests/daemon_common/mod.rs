@@ -151,21 +151,17 @@ pub struct Service {
 impl Service {
     /// Starts `clearview run --config F`.
     pub fn start(f: &Folders) -> Self {
-        let (child, log) = Self::spawn(f, &[], &[], Stdio::null());
-        Self {
-            child,
-            log,
-            base: String::new(),
-            addr: String::new(),
-            token: String::new(),
-            url: String::new(),
-        }
+        Self::started(f, None)
     }
 
     /// Starts `clearview run --config F` as user `uid` (the caller must be root, and the
     /// folders must be that user's).
     pub fn start_as(f: &Folders, uid: u32) -> Self {
-        let (child, log) = Self::spawn_with(f, &[], &[], Stdio::null(), Some(uid));
+        Self::started(f, Some(uid))
+    }
+
+    fn started(f: &Folders, uid: Option<u32>) -> Self {
+        let (child, log) = Self::spawn_with(f, &[], &[], Stdio::null(), uid);
         Self {
             child,
             log,
