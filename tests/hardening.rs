@@ -304,6 +304,17 @@ fn a_view_replaced_in_place_or_by_rename_is_read_again_and_its_old_pixels_go() {
     });
     std::fs::write(&v3, b"not an image any more").unwrap();
     wait_for(&f, "v3 dropped", 60, |ev| about(ev, "v3.png").iter().any(|e| e["event"] == "view_dropped"));
+
+    // Deleted: the photographer took it back; nothing of it stays in the result.
+    let v4 = dir.join("v4.png");
+    put(&v4, &png(&scene.clear_view(4)));
+    wait_for(&f, "v4 used", 90, |_| filled_from(&f, "v4.png") > 0);
+    std::fs::remove_file(&v4).unwrap();
+    let ev =
+        wait_for(&f, "v4 dropped", 60, |ev| about(ev, "v4.png").iter().any(|e| e["event"] == "view_dropped"));
+    let dropped = about(&ev, "v4.png").into_iter().rfind(|e| e["event"] == "view_dropped").unwrap();
+    assert!(dropped["reason"].as_str().unwrap().contains("deleted"), "{dropped}");
+    wait_for(&f, "a result without v4", 60, |_| filled_from(&f, "v4.png") == 0);
     drop(s);
 }
 

@@ -82,8 +82,8 @@ pub struct Intake {
     /// Symbolic links refused and reported (each once, while it is there).
     refused: HashSet<PathBuf>,
     root: Root,
-    /// Files a worker holds a version of that are gone (a mask deleted) or no longer
-    /// usable (a view replaced by what cannot be decoded), still to be told to it.
+    /// Files a worker holds a version of that are gone (a mask or a view deleted) or no
+    /// longer usable (a view replaced by what cannot be decoded), still to be told to it.
     removed: Vec<(PathBuf, String, Role)>,
 }
 
@@ -312,14 +312,20 @@ impl Intake {
         }
     }
 
-    /// `path` is gone from the folder: it stops being tracked, and a mask a worker took is
-    /// reported to it.
+    /// `path` is gone from the folder: it stops being tracked, and a mask or a view a
+    /// worker took is reported to it.
     fn forget(&mut self, path: &std::path::Path) {
         let Some(t) = self.files.remove(path) else { return };
         if t.status == Status::Ready {
             self.backlog.done(&t.session);
         }
-        if t.role == Role::Mask && t.status == Status::Queued {
+        // A deleted mask is no mask; a deleted view's pixels are no file's any more.
+        let held = match t.role {
+            Role::Mask => t.status == Status::Queued,
+            Role::View => t.delivered,
+            Role::Key => false,
+        };
+        if held {
             self.removed.push((path.to_owned(), t.session, t.role));
         }
     }

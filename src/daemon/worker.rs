@@ -403,7 +403,14 @@ impl Worker {
             match role {
                 Role::Mask => mask_removed(ctx, slot, &file),
                 // A view's file now holds nothing usable: its old pixels go.
-                _ => forget_old_content(ctx, slot, &file.name, ""),
+                _ => {
+                    let why = if path.exists() {
+                        "its file was replaced by something unusable"
+                    } else {
+                        "its file was deleted"
+                    };
+                    forget_old_content(ctx, slot, &file.name, "", why);
+                }
             }
             save_state(ctx, slot);
             publish(ctx, slot, None);
@@ -771,7 +778,7 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
     let _enter = span.enter();
     let id = file.content_id(image);
     let Some(key_id) = slot.session.key_id().map(str::to_owned) else { return };
-    forget_old_content(ctx, slot, &file.name, &id);
+    forget_old_content(ctx, slot, &file.name, &id, "its file was replaced");
     let start = Instant::now();
     let (record, from_state) = match slot.state.alignment(&id, &key_id) {
         Some(r) => (r.clone(), true),
@@ -868,23 +875,24 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
     auto_mask(ctx, slot);
 }
 
-/// The file `name` now holds content `id`: the pixels buffered from what it held before
-/// leave the buffer, whatever becomes of the new content (accepted, rejected, unreadable).
-/// A result must never be made of pixels that no file holds any more.
-fn forget_old_content(ctx: &Ctx, slot: &mut Slot, name: &str, id: &str) {
+/// The file `name` now holds content `id` (or nothing usable, `why` says): the pixels
+/// buffered from what it held before leave the buffer, whatever becomes of the new
+/// content (accepted, rejected, unreadable, deleted). A result must never be made of
+/// pixels that no file holds any more.
+fn forget_old_content(ctx: &Ctx, slot: &mut Slot, name: &str, id: &str, why: &str) {
     let Some(old) = slot.views.get(name).map(|v| v.id.clone()).filter(|old| old != id) else { return };
     slot.paths.remove(&old);
     if slot.session.forget_view(&old) {
-        tracing::info!(file = %watch::shown(name), "the file's content changed: its old pixels leave the buffer");
+        tracing::info!(file = %watch::shown(name), reason = why, "the view's old pixels leave the buffer");
         ctx.emitter.event(
             "view_dropped",
             Some(&slot.name),
-            json!({ "file": name, "reason": "its file was replaced: the old pixels are no longer used" }),
+            json!({ "file": name, "reason": format!("{why}: its old pixels are no longer used") }),
         );
     }
     if let Some(v) = slot.views.get_mut(name) {
         v.status = "dropped";
-        v.reason = Some("its file was replaced".into());
+        v.reason = Some(why.to_owned());
     }
 }
 
