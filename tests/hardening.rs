@@ -428,3 +428,27 @@ fn a_keyframe_chosen_on_the_page_stays_after_a_restart_whatever_the_old_ones_cas
     assert_eq!(v["keyframe"], "key.png", "{v:#}");
     drop(s);
 }
+
+#[test]
+fn an_out_folder_replaced_by_a_link_is_not_written_through() {
+    let f = folders("");
+    let s = Service::start(&f);
+    let mut scene = Scene::new(22);
+    let dir = f.inbox.join("s1");
+    put_key_and_mask(&dir, &scene);
+    put(&dir.join("v1.png"), &png(&scene.view(1, 120.0, 60.0)));
+    wait_for(&f, "a first result", 90, |ev| !of_kind(ev, "result_updated").is_empty());
+    let elsewhere = f.root.join("elsewhere");
+    std::fs::create_dir_all(&elsewhere).unwrap();
+    std::fs::rename(&f.outbox, f.root.join("outbox.moved")).unwrap();
+    std::os::unix::fs::symlink(&elsewhere, &f.outbox).unwrap();
+    put(&dir.join("v2.png"), &png(&scene.clear_view(2)));
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !s.log().contains("symbolic link") {
+        assert!(Instant::now() < deadline, "nothing said of the link\n{}", s.log());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    std::thread::sleep(Duration::from_secs(1));
+    let written: Vec<_> = std::fs::read_dir(&elsewhere).unwrap().flatten().map(|e| e.path()).collect();
+    assert!(written.is_empty(), "written through the link: {written:?}");
+}
