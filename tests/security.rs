@@ -102,8 +102,9 @@ fn symbolic_links_are_refused_and_nothing_outside_the_watched_folder_is_read() {
     // The root session: a linked image.
     symlink(outside.join("good.png"), f.inbox.join("linked.png")).unwrap();
 
-    let ev = wait_for(&f, "s1's result and every link refused", 60, |e| {
+    let ev = wait_for(&f, "s1's result, s4's start and every link refused", 60, |e| {
         !of_kind(e, "result_updated").is_empty()
+            && e.iter().any(|e| e["session"] == "s4" && e["event"] == "session_started")
             && [
                 ("s1", "outside.png"),
                 ("s1", "passwd.jpg"),

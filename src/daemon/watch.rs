@@ -27,7 +27,8 @@ pub const ROOT_SESSION: &str = "_root";
 pub enum Role {
     /// Named `key.<ext>`.
     Key,
-    /// Named `mask.<ext>` or `<stem>.mask.<ext>` (the mask of the image `<stem>`).
+    /// Named `mask.<ext>`, or `<stem>.mask.<ext>`, `<stem>_mask.<ext>`, `<stem>-mask.<ext>`
+    /// (the mask of the image `<stem>`; see [`mask_owner`]). Never aligned as a view.
     Mask,
     /// Anything else: a view (or the keyframe, when the configuration names it or it is
     /// the first to arrive).
@@ -76,12 +77,32 @@ pub fn classify(root: &Path, path: &Path, extensions: &[String]) -> Option<Candi
     }
     let role = if stem == "key" {
         Role::Key
-    } else if stem == "mask" || stem.ends_with(".mask") {
+    } else if mask_owner(stem).is_some() {
         Role::Mask
     } else {
         Role::View
     };
     Some(Candidate { session: session.to_owned(), role })
+}
+
+/// Whose mask a file whose stem is `stem` is: `Some("")` for the session's own `mask`,
+/// `Some(owner)` for `<owner>.mask`, `<owner>_mask` and `<owner>-mask` (the word `mask` in
+/// any case, as people and tools write it), `None` for anything else (an image).
+pub fn mask_owner(stem: &str) -> Option<&str> {
+    if stem.eq_ignore_ascii_case("mask") {
+        return Some("");
+    }
+    let cut = stem.len().checked_sub(4)?;
+    let (owner, word) = (stem.get(..cut)?, stem.get(cut..)?);
+    let owner = owner.strip_suffix(['.', '_', '-'])?;
+    (word.eq_ignore_ascii_case("mask") && !owner.is_empty()).then_some(owner)
+}
+
+/// The names a mask of the image whose stem is `owner` may have, most specific first, for
+/// each extension in `extensions` (lower case, as configured).
+pub fn mask_names(owner: &str, extensions: &[String]) -> Vec<String> {
+    let bases = [format!("{owner}.mask"), format!("{owner}_mask"), format!("{owner}-mask")];
+    bases.iter().flat_map(|b| extensions.iter().map(move |e| format!("{b}.{e}"))).collect()
 }
 
 /// A file name as the log shows it: control characters (a newline…) escaped, so that a
@@ -229,6 +250,34 @@ mod tests {
         assert_eq!(classify(root, &odd, &exts()), Some(Candidate { session: "s1".into(), role: Role::View }));
         let odd_dir = root.join(std::ffi::OsStr::from_bytes(b"s\xff")).join("a.png");
         assert_eq!(classify(root, &odd_dir, &exts()), None);
+    }
+
+    #[test]
+    fn masks_are_named_in_the_ways_people_name_them() {
+        assert_eq!(mask_owner("mask"), Some(""));
+        assert_eq!(mask_owner("MASK"), Some(""));
+        for (stem, owner) in [
+            ("hunt3.mask", "hunt3"),
+            ("hunt3_mask", "hunt3"),
+            ("hunt3-mask", "hunt3"),
+            ("IMG_1.MASK", "IMG_1"),
+            ("a.b_Mask", "a.b"),
+        ] {
+            assert_eq!(mask_owner(stem), Some(owner), "{stem}");
+        }
+        for stem in
+            ["hunt3", "masked", "unmask", "_mask", ".mask", "mask2", "hunt3mask", "hunt3.masks", "aééx", "é"]
+        {
+            assert_eq!(mask_owner(stem), None, "{stem}");
+        }
+        let root = Path::new("/in");
+        for name in ["s/hunt3_mask.png", "s/hunt3-mask.jpg", "s/hunt3.mask.png"] {
+            assert_eq!(classify(root, &root.join(name), &exts()).unwrap().role, Role::Mask, "{name}");
+        }
+        assert_eq!(
+            mask_names("k", &exts()),
+            ["k.mask.jpg", "k.mask.png", "k_mask.jpg", "k_mask.png", "k-mask.jpg", "k-mask.png"]
+        );
     }
 
     #[test]

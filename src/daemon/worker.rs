@@ -141,8 +141,10 @@ pub(super) struct Slot {
     pub(super) session: Session,
     pub(super) state: SessionState,
     pub(super) key_path: Option<PathBuf>,
-    /// 0: named `key`; 1: named by the configuration; 2: first to arrive.
-    pub(super) key_rank: u8,
+    /// Why the keyframe is the keyframe; `None` before there is one.
+    pub(super) key_source: Option<KeySource>,
+    /// A keyframe without a mask was reported waiting (`session_waiting`), once.
+    waiting_said: bool,
     pub(super) mask_source: Option<String>,
     /// The mask (its content id) refused for the current keyframe: reported once, though
     /// it is read both beside the keyframe and as a file of its own.
@@ -202,7 +204,8 @@ impl Slot {
             session: Session::new(ctx.config.session.clone()),
             state,
             key_path: None,
-            key_rank: u8::MAX,
+            key_source: None,
+            waiting_said: false,
             mask_source: None,
             refused_mask: None,
             parked: BTreeMap::new(),
@@ -372,13 +375,14 @@ impl Worker {
                 slot.parked.insert(name, path);
             }
         }
-        let rank = match (&ctx.config.keyframe, watch::stem(&key_name)) {
-            (_, "key") => 0,
-            (KeyframeRule::Named(n), s) if n == s => 1,
-            _ => 2,
+        let source = match (&ctx.config.keyframe, watch::stem(&key_name)) {
+            (_, "key") => KeySource::NamedKey,
+            (KeyframeRule::Named(n), s) if n == s => KeySource::Configured,
+            (_, s) if has_own_mask(ctx, &slot.dir, s) => KeySource::Masked,
+            _ => KeySource::First,
         };
         tracing::info!(views = slot.parked.len(), "waking the session up");
-        take_key(ctx, slot, &file, &key_path, &img, rank);
+        take_key(ctx, slot, &file, &key_path, &img, source);
         fill(ctx, slot);
     }
 
@@ -420,10 +424,10 @@ impl Worker {
             ctx.registry.metrics.views_received.fetch_add(1, Ordering::Relaxed);
         }
         match role {
-            Role::Key => take_key(ctx, slot, &file, &path, &image, 0),
+            Role::Key => take_key(ctx, slot, &file, &path, &image, KeySource::NamedKey),
             Role::Mask => take_mask(ctx, slot, &file, &image),
-            Role::View => match key_rank_for(ctx, slot, &file.name) {
-                Some(rank) => take_key(ctx, slot, &file, &path, &image, rank),
+            Role::View => match key_source_for(ctx, slot, &file.name) {
+                Some(source) => take_key(ctx, slot, &file, &path, &image, source),
                 None if slot.session.key_id().is_none() => {
                     tracing::info!(file = %watch::shown(&file.name), "waiting for the keyframe");
                     ctx.emitter.event(
@@ -463,19 +467,41 @@ impl Worker {
     }
 }
 
-/// The rank at which file `name` would become the keyframe, or `None` if it is a view
-/// (or must wait for the keyframe).
-fn key_rank_for(ctx: &Ctx, slot: &Slot, name: &str) -> Option<u8> {
+/// Why an image is (or would be) a session's keyframe, strongest first: a later image
+/// with a stronger reason takes the keyframe's place, a weaker one never does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub(super) enum KeySource {
+    /// Named `key.<ext>`.
+    NamedKey,
+    /// Named by the configuration (`session.keyframe`).
+    Configured,
+    /// A mask beside it names it (`<stem>.mask.png`, `<stem>_mask.*`, `<stem>-mask.*`).
+    Masked,
+    /// The first image to arrive (`session.keyframe = "first"`).
+    First,
+}
+
+/// Why file `name` would become the keyframe, or `None` if it is a view (or must wait for
+/// the keyframe).
+fn key_source_for(ctx: &Ctx, slot: &Slot, name: &str) -> Option<KeySource> {
     let stem = watch::stem(name);
     let current = slot.key_path.as_ref().and_then(|p| p.file_name()).and_then(|n| n.to_str());
     if current == Some(name) {
         // A new version of the keyframe.
-        return Some(slot.key_rank);
+        return slot.key_source;
     }
+    let beats = |s: KeySource| slot.key_source.is_none_or(|k| s < k);
     match &ctx.config.keyframe {
-        KeyframeRule::Named(n) if n == stem => (slot.key_rank > 1).then_some(1),
+        KeyframeRule::Named(n) if n == stem => beats(KeySource::Configured).then_some(KeySource::Configured),
         KeyframeRule::Named(_) => None,
         KeyframeRule::First => {
+            if has_named_key(ctx, &slot.dir) {
+                return None;
+            }
+            if has_own_mask(ctx, &slot.dir, stem) {
+                // The image the user painted a mask for, whatever arrived first.
+                return beats(KeySource::Masked).then_some(KeySource::Masked);
+            }
             if slot.session.key_id().is_some() {
                 return None;
             }
@@ -485,19 +511,21 @@ fn key_rank_for(ctx: &Ctx, slot: &Slot, name: &str) -> Option<u8> {
             {
                 return None;
             }
-            if has_named_key(ctx, &slot.dir) {
-                return None;
-            }
-            Some(2)
+            Some(KeySource::First)
         }
     }
+}
+
+/// Whether the image of stem `stem` in `dir` has a mask of its own beside it.
+fn has_own_mask(ctx: &Ctx, dir: &Path, stem: &str) -> bool {
+    watch::mask_names(stem, &ctx.config.extensions).iter().any(|n| dir.join(n).is_file())
 }
 
 fn has_named_key(ctx: &Ctx, dir: &Path) -> bool {
     ctx.config.extensions.iter().any(|e| dir.join(format!("key.{e}")).is_file())
 }
 
-fn take_key(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &DynamicImage, rank: u8) {
+fn take_key(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &DynamicImage, source: KeySource) {
     let id = file.content_id(image);
     if slot.session.key_id() == Some(id.as_str()) {
         return;
@@ -518,11 +546,20 @@ fn take_key(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &Dyna
         again.push(old);
     }
     again.extend(std::mem::take(&mut slot.parked).into_values());
+    // Views rejected against the old keyframe may well match the new one.
+    again.extend(
+        slot.views
+            .iter()
+            .filter(|(_, v)| matches!(v.status, "rejected" | "outside_mask"))
+            .map(|(name, _)| slot.dir.join(name))
+            .filter(|p| p.is_file()),
+    );
     again.retain(|p| p != path);
     again.sort();
     again.dedup();
     slot.key_path = Some(path.to_owned());
-    slot.key_rank = rank;
+    slot.key_source = Some(source);
+    slot.waiting_said = false;
     slot.mask_source = None;
     slot.refused_mask = None;
     slot.paths.clear();
@@ -549,48 +586,95 @@ fn take_key(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &Dyna
             Err(e) => skip(ctx, slot, &mask_path, &outcome_reason(&e)),
         }
     }
+    say_waiting(ctx, slot);
     for p in again {
         reprocess(ctx, slot, &p);
     }
     auto_mask(ctx, slot);
 }
 
-/// The mask file for the keyframe `key_name` in `dir`: `<stem>.mask.<ext>`, else `mask.<ext>`.
-fn find_mask(ctx: &Ctx, dir: &Path, key_name: &str) -> Option<PathBuf> {
-    let stem = watch::stem(key_name);
-    for base in [format!("{stem}.mask"), "mask".to_owned()] {
-        for e in &ctx.config.extensions {
-            let p = dir.join(format!("{base}.{e}"));
-            if p.is_file() {
-                return Some(p);
-            }
-        }
+/// A keyframe without a mask (and no automatic mask configured) makes no result: said
+/// once per keyframe (event `session_waiting`, naming the files it waits for).
+fn say_waiting(ctx: &Ctx, slot: &mut Slot) {
+    if slot.waiting_said || slot.session.mask_id().is_some() || !matches!(ctx.config.mask, MaskRule::File) {
+        return;
     }
-    None
+    let Some(key) =
+        slot.key_path.as_ref().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned())
+    else {
+        return;
+    };
+    let names = watch::mask_names(watch::stem(&key), &["png".to_owned()]);
+    let reason = format!(
+        "waiting for a mask of the keyframe {key}: {} or mask.png beside it (white = remove), or paint one on the preview page",
+        names.join(", ")
+    );
+    tracing::info!(keyframe = %watch::shown(&key), "session waiting for a mask");
+    ctx.emitter.event(
+        "session_waiting",
+        Some(&slot.name),
+        json!({ "keyframe": key, "waiting_for": "mask", "expected": names, "reason": reason }),
+    );
+    slot.waiting_said = true;
+}
+
+/// The mask file for the keyframe `key_name` in `dir`: its own (`<stem>.mask.<ext>`,
+/// `<stem>_mask.<ext>`, `<stem>-mask.<ext>`), else the session's `mask.<ext>`.
+fn find_mask(ctx: &Ctx, dir: &Path, key_name: &str) -> Option<PathBuf> {
+    let own = watch::mask_names(watch::stem(key_name), &ctx.config.extensions);
+    let shared = ctx.config.extensions.iter().map(|e| format!("mask.{e}"));
+    own.into_iter().chain(shared).map(|n| dir.join(n)).find(|p| p.is_file())
+}
+
+/// The image of stem `owner` in `dir` (any configured extension, any case), if any.
+fn image_of(ctx: &Ctx, dir: &Path, owner: &str) -> Option<PathBuf> {
+    let entries = std::fs::read_dir(dir).ok()?;
+    entries.flatten().map(|e| e.path()).find(|p| {
+        let name = p.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+        watch::stem(name) == owner
+            && watch::classify(&ctx.config.watch_dir, p, &ctx.config.extensions)
+                .is_some_and(|c| c.role != Role::Mask)
+            && p.is_file()
+    })
 }
 
 fn take_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
+    let owner = watch::mask_owner(watch::stem(&file.name)).unwrap_or_default().to_owned();
+    // A mask names its image: that image is the keyframe unless one was named more
+    // strongly (`key.*`, the configuration), whatever the order the files landed in.
+    let weaker = slot.key_source.is_none_or(|k| k > KeySource::Masked);
+    let current_stem =
+        slot.key_path.as_ref().and_then(|p| p.file_name()).and_then(|n| n.to_str()).map(watch::stem);
+    if !owner.is_empty()
+        && weaker
+        && current_stem != Some(owner.as_str())
+        && matches!(ctx.config.keyframe, KeyframeRule::First)
+        && let Some(image_path) = image_of(ctx, &slot.dir, &owner)
+        && let Ok(f) = FileId::of(&image_path)
+        && let Ok(img) = read_and_decode(&image_path, Role::View, f.size, f.mtime, &limits(ctx), &inbox(ctx))
+    {
+        tracing::info!(mask = %watch::shown(&file.name), key = %watch::shown(&f.name), "the mask names its image: it is the keyframe");
+        // take_key finds and applies this mask.
+        take_key(ctx, slot, &f, &image_path, &img, KeySource::Masked);
+        return;
+    }
     let Some(key_path) = &slot.key_path else {
         tracing::debug!(mask = %file.name, "mask waits for its keyframe");
         return;
     };
     let key_name = key_path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
-    let stem = watch::stem(&file.name);
-    let specific = format!("{}.mask", watch::stem(key_name));
-    if stem != specific && stem != "mask" {
+    let key_stem = watch::stem(key_name);
+    if !owner.is_empty() && owner != key_stem {
         skip(
             ctx,
             slot,
             &slot.dir.join(&file.name),
-            &format!("a mask for another image than the keyframe {key_name}"),
+            &format!("a mask for another image ({owner}) than the keyframe {key_name}"),
         );
         return;
     }
-    if stem == "mask"
-        && find_mask(ctx, &slot.dir, key_name)
-            .is_some_and(|p| watch::stem(&p.to_string_lossy()).ends_with(&specific))
-    {
-        tracing::info!(mask = %file.name, "ignored: the keyframe has its own {specific} file");
+    if owner.is_empty() && has_own_mask(ctx, &slot.dir, key_stem) {
+        tracing::info!(mask = %file.name, "ignored: the keyframe has a mask of its own");
         return;
     }
     apply_mask(ctx, slot, file, image);
@@ -653,8 +737,8 @@ fn mask_removed(ctx: &Ctx, slot: &mut Slot, file: &FileId) {
     let current = slot.mask_source.as_deref() == Some(format!("file:{}", file.name).as_str());
     // A session rebuilt from disk since (put to sleep and woken) no longer has it.
     let was_its = key_stem.as_deref().is_some_and(|k| {
-        let stem = watch::stem(&file.name);
-        slot.session.mask_id().is_none() && (stem == "mask" || stem == format!("{}.mask", watch::stem(k)))
+        let owner = watch::mask_owner(watch::stem(&file.name));
+        slot.session.mask_id().is_none() && (owner == Some("") || owner == Some(watch::stem(k)))
     });
     if !current && !was_its {
         tracing::debug!(mask = %watch::shown(&file.name), "a mask that was not in use was deleted");
@@ -667,6 +751,7 @@ fn mask_removed(ctx: &Ctx, slot: &mut Slot, file: &FileId) {
     let reason = "the mask file was deleted: no new result until a mask arrives; the last result is kept";
     tracing::warn!(file = %watch::shown(&file.name), reason, "mask removed");
     ctx.emitter.event("mask_removed", Some(&slot.name), json!({ "file": file.name, "reason": reason }));
+    slot.waiting_said = false;
     // Another mask beside the keyframe (`mask.<ext>`) takes over.
     if let Some(k) = &key_stem
         && let Some(other) = find_mask(ctx, &slot.dir, k)

@@ -8,9 +8,11 @@
 //!   extension) is first renamed to `<name>.user-N` (N the first free number), which no
 //!   watcher reads; a mask we painted before (byte-identical to the copy kept as
 //!   `painted-mask.png` beside the results) is simply replaced.
-//! - a chosen keyframe is renamed to `key.<ext>`; a `key.<ext>` already there is renamed
-//!   to `former-key-N.<ext>` first, so it stays in the session as a view. Nothing the
-//!   user gave is overwritten or deleted.
+//! - a chosen keyframe is renamed to `key.<ext>`; a `key.<ext>` already there (any case)
+//!   is renamed to `former-key-N.<ext>` first, so it stays in the session as a view, and
+//!   its mask is set aside; the chosen image's own mask (`<stem>.mask.<ext>`,
+//!   `<stem>_mask.<ext>`, `<stem>-mask.<ext>`) goes with it as `key.mask.<ext>`. Nothing
+//!   the user gave is overwritten or deleted.
 
 use std::convert::Infallible;
 use std::io::Read;
@@ -426,9 +428,20 @@ pub async fn choose_keyframe(
                 .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, format!("cannot keep {name}: {e}")))?;
             kept.push(to.file_name().map(|n| n.to_string_lossy().into_owned()));
         }
+        // The chosen image's own mask goes with it (`<stem>.mask.png` → `key.mask.png`).
+        let stem = from.file_stem().and_then(|s| s.to_str()).unwrap_or_default().to_owned();
+        let own_mask = watch::mask_names(&stem, &extensions).into_iter().map(|n| dir.join(n)).find(|p| p.is_file());
         let to = dir.join(format!("key.{ext}"));
         std::fs::rename(&from, &to).map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
-        Ok(json!({ "keyframe": to.file_name().map(|n| n.to_string_lossy()), "was": from.file_name().map(|n| n.to_string_lossy()), "kept": kept, "changed": true }))
+        let mut carried = None;
+        if let Some(mask) = own_mask {
+            let mext = mask.extension().and_then(|e| e.to_str()).unwrap_or("png").to_owned();
+            let target = dir.join(format!("key.mask.{mext}"));
+            if !target.exists() && std::fs::rename(&mask, &target).is_ok() {
+                carried = mask.file_name().map(|n| n.to_string_lossy().into_owned());
+            }
+        }
+        Ok(json!({ "keyframe": to.file_name().map(|n| n.to_string_lossy()), "was": from.file_name().map(|n| n.to_string_lossy()), "kept": kept, "mask_carried": carried, "changed": true }))
     })
     .await
     .map_err(|_| err(StatusCode::INTERNAL_SERVER_ERROR, "keyframe task failed"))??;
