@@ -163,7 +163,9 @@ fn bench(c: &mut Criterion) {
     let outcome = session.fill(&mut ()).unwrap();
     let t_fill = t.elapsed();
     let t = Instant::now();
-    emitter.write_result("probe", 1, outcome.image.as_ref().unwrap(), &mut serde_json::json!({})).unwrap();
+    emitter
+        .write_result("probe", 1, outcome.image.as_ref().unwrap(), None, &mut serde_json::json!({}))
+        .unwrap();
     let t_write = t.elapsed();
     eprintln!(
         "one pass: decode {:.0} ms, align {:.0} ms, crop+admit {:.0} ms, fill {:.0} ms ({} masked, {} from the fallback), encode+write {:.0} ms",
@@ -188,7 +190,7 @@ fn bench(c: &mut Criterion) {
             offer(&mut session, format!("new{n}"), bytes);
             let outcome = session.fill(&mut ()).unwrap();
             let image = outcome.image.as_ref().unwrap_or_else(|| panic!("score fell: {}", outcome.score));
-            emitter.write_result("bench", n, image, &mut serde_json::json!({ "number": n })).unwrap();
+            emitter.write_result("bench", n, image, None, &mut serde_json::json!({ "number": n })).unwrap();
         })
     });
     g.finish();

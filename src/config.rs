@@ -61,7 +61,9 @@ impl Default for RawWatch {
             poll_interval_ms: 2000,
             quiet_period_ms: 2000,
             rescan_interval_s: 300,
-            extensions: ["jpg", "jpeg", "png", "tif", "tiff", "webp"].map(String::from).to_vec(),
+            extensions: ["jpg", "jpeg", "png", "tif", "tiff", "webp", "heic", "heif", "avif"]
+                .map(String::from)
+                .to_vec(),
             max_pixels: 100_000_000,
             follow_symlinks: false,
         }

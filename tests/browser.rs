@@ -107,6 +107,11 @@ impl Browser {
 
     /// Drags the mouse through `points` (viewport pixels) with the button down.
     fn drag(&self, points: &[(f64, f64)]) {
+        self.drag_with("mouse", points);
+    }
+
+    /// Drags a pointer of `kind` ("mouse", "touch") through `points` (viewport pixels).
+    fn drag_with(&self, kind: &str, points: &[(f64, f64)]) {
         let mut actions = vec![
             json!({ "type": "pointerMove", "x": points[0].0 as i64, "y": points[0].1 as i64, "duration": 0 }),
         ];
@@ -116,7 +121,7 @@ impl Browser {
         }
         actions.push(json!({ "type": "pointerUp", "button": 0 }));
         let body = json!({ "actions": [{
-            "type": "pointer", "id": "mouse", "parameters": { "pointerType": "mouse" }, "actions": actions
+            "type": "pointer", "id": kind, "parameters": { "pointerType": kind }, "actions": actions
         }]});
         post(&self.url("/actions"), &body);
     }
@@ -278,6 +283,45 @@ fn paint_a_mask_on_the_page_and_see_the_new_result_arrive() {
     let overflow = b.js("return document.documentElement.scrollWidth <= window.innerWidth + 1", json!([]));
     assert_eq!(overflow, true, "nothing wider than a phone's screen");
     b.screenshot("/tmp/clearview-preview-phone.png");
+
+    // 1:1 zoom: the keyframe at its own size in a viewer that keeps its height, panned by a
+    // mouse drag and a touch drag, kept covering the viewer; off again, fitted again.
+    let geometry = "const v = document.getElementById('viewer').getBoundingClientRect(); \
+        const k = document.getElementById('before').getBoundingClientRect(); \
+        const a = document.getElementById('after').getBoundingClientRect(); \
+        return [k.width, k.left - v.left, k.top - v.top, v.width, v.height, a.left - v.left]";
+    let nums = |v: Value| -> Vec<f64> { v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect() };
+    // A viewer narrower than the keyframe whatever the window's scale: 1:1 is then a zoom in.
+    b.js(
+        "const v = document.getElementById('viewer'); v.style.maxWidth = '240px'; v.scrollIntoView({ block: 'center' })",
+        json!([]),
+    );
+    std::thread::sleep(Duration::from_millis(100));
+    let fitted = nums(b.js(geometry, json!([])));
+    assert!(fitted[0] < W as f64, "the phone shows the keyframe smaller than 1:1: {fitted:?}");
+    b.click("#zoom");
+    let z = nums(b.js(geometry, json!([])));
+    assert!((z[0] - W as f64).abs() < 0.5, "1:1: {z:?}");
+    assert!((z[4] - fitted[4]).abs() < 0.5, "the viewer keeps its height: {z:?} {fitted:?}");
+    assert!((z[1] - z[5]).abs() < 0.5, "the result moves with the keyframe: {z:?}");
+    let vr = nums(b.js(
+        "const r = document.getElementById('viewer').getBoundingClientRect(); return [r.left, r.top]",
+        json!([]),
+    ));
+    let (cx, cy) = (vr[0] + z[3] / 2.0, vr[1] + z[4] / 2.0);
+    // Far to the left and up: the image's right and bottom edges stop at the viewer's.
+    b.drag(&[(cx, cy), (cx - 50.0, cy - 50.0), (cx - 100.0, cy - 100.0)]);
+    let m = nums(b.js(geometry, json!([])));
+    assert!((m[1] - (z[3] - W as f64)).abs() < 1.0, "panned to the right edge: {m:?}");
+    assert!((m[2] - (z[4] - H as f64)).abs() < 1.0, "panned to the bottom edge: {m:?}");
+    // A finger back by 12 px either way.
+    b.drag_with("touch", &[(cx, cy), (cx + 6.0, cy + 6.0), (cx + 12.0, cy + 12.0)]);
+    let t = nums(b.js(geometry, json!([])));
+    assert!((t[1] - m[1] - 12.0).abs() < 1.5 && (t[2] - m[2] - 12.0).abs() < 1.5, "touch pan: {m:?} → {t:?}");
+    b.screenshot("/tmp/clearview-preview-phone-1to1.png");
+    b.click("#zoom");
+    let back = nums(b.js(geometry, json!([])));
+    assert!((back[0] - fitted[0]).abs() < 0.5 && back[1].abs() < 0.5, "fitted again: {back:?}");
     drop(b);
     assert_eq!(s.terminate(), 0);
 }

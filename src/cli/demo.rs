@@ -144,6 +144,11 @@ fn play(dir: &Path) -> Result<(), String> {
         session.join("key.png").display(),
         mask.hole_count()
     );
+    println!(
+        "  (\"error against the truth\": the mean difference, over those pixels, between the result and the \
+         facade as it is behind the tree and the passer-by, on a 0-1 scale per colour channel; 0 is perfect, \
+         0.01 is about 2.5 levels of 255)"
+    );
     let (mut seen, _) = wait_event(&log, 0, Duration::from_secs(20), |e| e["event"] == "result_updated")
         .ok_or("the service did not take the keyframe within 20 s")?;
     let result_path = outbox.join(SESSION).join("result.png");
@@ -212,7 +217,14 @@ fn play(dir: &Path) -> Result<(), String> {
         outbox.join(SESSION).join("history").display(),
         log.display()
     );
-    println!("try it on your own photographs: clearview run --watch DIR --out DIR (see README.md)");
+    println!(
+        "try it on your own photographs (see README.md): a keyframe, a mask the keyframe's size (white = remove, \
+         or `--mask auto`) and other shots of the facade:\n  \
+         clearview fill --keyframe key.jpg --mask key.mask.png --out clear.jpg shot-*.jpg\n  \
+         clearview run --watch DIR --out DIR --http 127.0.0.1:8080\n  \
+         (the service: one sub-folder of DIR per session, with key.jpg, key.mask.png and the shots; \
+         --http serves the preview page at the address it prints)"
+    );
     Ok(())
 }
 

@@ -13,12 +13,14 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
 use super::exit;
-use super::load::{LoadError, load_image};
-use super::save::{output_format, save_image};
+use super::load::{LoadError, load_image, load_photo};
+use super::save::{output_format, result_format, save_image, save_result};
 use crate::align::{AlignParams, Frame, align};
 use crate::geometry::{Homography, Rows};
-use crate::imaging::convert::{crop_rgb8, mask_to_luma8, to_luminance, to_mask, to_rgb, to_rgb8};
+use crate::imaging::convert::{crop_rgb8, mask_to_luma8, to_luminance, to_mask, to_rgb};
 use crate::imaging::decode::DecodeLimits;
+use crate::imaging::encode::{DEFAULT_QUALITY, EncodeOptions, OutputSpace};
+use crate::imaging::meta::{Metadata, Provenance};
 use crate::imaging::{Mask, Rect, Rgb8, RgbF32};
 use crate::inpaint::region::{footprint, into_crop};
 use crate::inpaint::{AutoMaskParams, FillParams, Observer, Source, Stage, auto_mask, fill};
@@ -41,9 +43,17 @@ pub struct FillArgs {
     /// transient objects (people, cars) where the keyframe disagrees with the views.
     #[arg(long)]
     pub mask: String,
-    /// Where to write the result (format from the extension: png, jpg, tif, webp).
+    /// Where to write the result (format from the extension: png, jpg, tif, webp). It keeps
+    /// the keyframe's EXIF, XMP, IPTC and colour profile; PNG and TIFF are 16-bit when the
+    /// keyframe is deeper than 8 bits.
     #[arg(long)]
     pub out: PathBuf,
+    /// JPEG quality of the result, 1 to 100 (WebP results are lossless).
+    #[arg(long, default_value_t = DEFAULT_QUALITY, value_parser = clap::value_parser!(u8).range(1..=100))]
+    pub quality: u8,
+    /// The result's colour space: `keyframe` (the keyframe's own, with its profile) or `srgb`.
+    #[arg(long, default_value = "keyframe")]
+    pub colour_space: OutputSpace,
     /// Also write a JSON report: per view the verdict and what it filled; time per stage.
     #[arg(long)]
     pub report: Option<PathBuf>,
@@ -180,7 +190,7 @@ pub fn run(args: &FillArgs) -> u8 {
 fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     let usage = |m: String| (exit::USAGE, m);
     let failure = |m: String| (exit::FAILURE, m);
-    output_format(&args.out).map_err(|e| usage(e.to_string()))?;
+    result_format(&args.out).map_err(|e| usage(e.to_string()))?;
     if let Some(p) = &args.save_mask {
         output_format(p).map_err(|e| usage(e.to_string()))?;
     }
@@ -231,11 +241,11 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
             });
         }
         match load_key(args, auto, &limits, &params) {
-            Ok((rgb, mask, info)) => {
+            Ok((rgb, mask, info, meta)) => {
                 key_ready.set(Some(info)).ok();
                 progress.begin("align", args.views.len());
                 progress.bar.set_position(done.load(Ordering::Relaxed) as u64);
-                Ok((rgb, mask))
+                Ok((rgb, mask, meta))
             }
             Err(e) => {
                 key_ready.set(None).ok();
@@ -243,7 +253,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
             }
         }
     });
-    let (key_rgb, given_mask) = keyed?;
+    let (key_rgb, given_mask, key_meta) = keyed?;
     // The keyframe's alignment pyramid is not needed any more.
     drop(key_ready);
 
@@ -284,8 +294,20 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     }
 
     progress.begin("write", 1);
-    save_image(&args.out, &DynamicImage::ImageRgb8(to_rgb8(&filled.image)))
+    let provenance = Provenance {
+        report: args.report.as_deref().map(|r| relative_to_result(r, &args.out)),
+        views: reports
+            .iter()
+            .filter(|v| v.filled_pixels > 0)
+            .map(|v| v.path.file_name().unwrap_or(v.path.as_os_str()).to_string_lossy().into_owned())
+            .collect(),
+    };
+    let opts = EncodeOptions { quality: args.quality, space: args.colour_space };
+    let left_out = save_result(&args.out, &filled.image, &opts, &key_meta, &provenance)
         .map_err(|e| failure(e.to_string()))?;
+    for w in left_out {
+        eprintln!("clearview fill: {}: {w}", args.out.display());
+    }
     let timings = progress.finish();
 
     let fr = &filled.report;
@@ -310,6 +332,15 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     Ok(if accepted == 0 { exit::REJECTED } else { exit::OK })
 }
 
+/// How the result's XMP names the report: its file name when both are in one folder.
+fn relative_to_result(report: &Path, out: &Path) -> String {
+    let parent = |p: &Path| p.parent().map(|d| d.canonicalize().unwrap_or_else(|_| d.to_owned()));
+    match report.file_name() {
+        Some(name) if parent(report) == parent(out) => name.to_string_lossy().into_owned(),
+        _ => report.display().to_string(),
+    }
+}
+
 /// What the view workers need of the keyframe.
 struct KeyInfo {
     frame: Frame,
@@ -317,16 +348,18 @@ struct KeyInfo {
     region: Option<Rect>,
 }
 
-/// The keyframe in RGB, the given mask (checked against it) and what the views need of it.
+/// The keyframe in RGB, the given mask (checked against it), what the views need of it and
+/// the metadata its result keeps.
 #[allow(clippy::type_complexity)]
 fn load_key(
     args: &FillArgs,
     auto: bool,
     limits: &DecodeLimits,
     params: &AlignParams,
-) -> Result<(RgbF32, Option<Mask>, KeyInfo), (u8, String)> {
+) -> Result<(RgbF32, Option<Mask>, KeyInfo, Metadata), (u8, String)> {
     let failure = |m: String| (exit::FAILURE, m);
-    let key_img = load_image(&args.keyframe, limits).map_err(|e| failure(e.to_string()))?;
+    let key = load_photo(&args.keyframe, limits).map_err(|e| failure(e.to_string()))?;
+    let key_img = key.image;
     let (kw, kh) = (key_img.width() as usize, key_img.height() as usize);
     let given_mask = if auto {
         None
@@ -351,7 +384,7 @@ fn load_key(
         None => Some(Rect::full(kw, kh)),
     };
     let frame = Frame::new(to_luminance(&key_img), params);
-    Ok((key_rgb, given_mask, KeyInfo { frame, region }))
+    Ok((key_rgb, given_mask, KeyInfo { frame, region }, key.meta))
 }
 
 /// One view's part of the result: its report line, the 8-bit crop of it the fill needs with

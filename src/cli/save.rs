@@ -7,6 +7,9 @@ use image::{DynamicImage, ImageFormat};
 use thiserror::Error;
 
 use crate::daemon::emit::atomic_write;
+use crate::imaging::RgbF32;
+use crate::imaging::encode::{EncodeError, EncodeOptions, Format, encode};
+use crate::imaging::meta::{Metadata, Provenance};
 
 /// A result that could not be written.
 #[derive(Debug, Error)]
@@ -17,6 +20,8 @@ pub enum SaveError {
     Encode { path: PathBuf, source: image::ImageError },
     #[error("{path}: cannot encode: {source}")]
     EncodeJpeg { path: PathBuf, source: jpeg_encoder::EncodingError },
+    #[error("{path}: {source}")]
+    EncodeResult { path: PathBuf, source: EncodeError },
     #[error("{path}: cannot write: {source}")]
     Io { path: PathBuf, source: std::io::Error },
 }
@@ -29,9 +34,33 @@ pub fn output_format(path: &Path) -> Result<ImageFormat, SaveError> {
     }
 }
 
-/// JPEG quality of results: `image`'s default, which clearview used before it had its own
-/// JPEG path.
-pub const JPEG_QUALITY: u8 = 75;
+/// The result format a path's extension names, if clearview writes it.
+pub fn result_format(path: &Path) -> Result<Format, SaveError> {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .and_then(Format::from_extension)
+        .ok_or_else(|| SaveError::UnknownFormat { path: path.to_owned() })
+}
+
+/// Writes a result (working-space RGB) atomically in the format `path` names, in the
+/// keyframe's colour space with its metadata (see [`crate::imaging::encode`]); returns what
+/// had to be left out.
+pub fn save_result(
+    path: &Path,
+    rgb: &RgbF32,
+    opts: &EncodeOptions,
+    meta: &Metadata,
+    provenance: &Provenance,
+) -> Result<Vec<String>, SaveError> {
+    let format = result_format(path)?;
+    let encoded = encode(rgb, format, opts, meta, provenance)
+        .map_err(|source| SaveError::EncodeResult { path: path.to_owned(), source })?;
+    write_atomic(path, &encoded.bytes)?;
+    Ok(encoded.warnings)
+}
+
+/// JPEG quality of masks and other non-result images: the results' default.
+pub const JPEG_QUALITY: u8 = crate::imaging::encode::DEFAULT_QUALITY;
 
 /// Encodes `img` in the format `path`'s extension names and writes it atomically.
 ///

@@ -8,15 +8,13 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Mutex, RwLock};
 use std::time::SystemTime;
 
-use image::ImageEncoder;
-use image::codecs::jpeg::JpegEncoder;
-use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-
 use thiserror::Error;
 
 use super::DaemonError;
 use crate::config::{Config, OutputFormat};
 use crate::imaging::RgbF32;
+use crate::imaging::encode::{DEFAULT_QUALITY, EncodeOptions, Format, OutputSpace, encode};
+use crate::imaging::meta::{Metadata, Provenance};
 
 /// Marks our temporary files: `.<name>.clearview-tmp-<pid>-<n>`.
 const TMP_MARK: &str = ".clearview-tmp-";
@@ -328,12 +326,16 @@ impl Emitter {
     /// Writes result number `number` of `session`: the history copy, then `result.<ext>`,
     /// then `result.json` (to which the image's size and digest are added, see
     /// [`check_result`]), each atomically; prunes the history. Returns the result's path.
-    /// On failure the files already there are left whole and the error names the file.
+    /// The image is written in the keyframe's colour space with its metadata (`key`; none:
+    /// sRGB, and only clearview's own XMP), its XMP naming `result.json` and the views the
+    /// report says filled it. On failure the files already there are left whole and the
+    /// error names the file.
     pub fn write_result(
         &self,
         session: &str,
         number: u64,
         image: &RgbF32,
+        key: Option<&Metadata>,
         report: &mut serde_json::Value,
     ) -> Result<PathBuf, WriteError> {
         let dir = self.session_dir(session);
@@ -346,7 +348,7 @@ impl Emitter {
         no_link(&dir).map_err(at(&dir))?;
         std::fs::create_dir_all(&dir).map_err(at(&dir))?;
         let path = dir.join(self.result_name());
-        let bytes = self.encode(image).map_err(at(&path))?;
+        let bytes = self.encode(image, key, report).map_err(at(&path))?;
         let ext = self.format.extension();
         let history = (self.history > 0).then(|| dir.join("history"));
         if let Some(hist) = &history {
@@ -374,23 +376,30 @@ impl Emitter {
         Ok(path)
     }
 
-    fn encode(&self, image: &RgbF32) -> std::io::Result<Vec<u8>> {
-        let raw = quantise_parallel(image);
-        let mut out = Vec::with_capacity(raw.len() / 2);
-        let (w, h) = (image.width() as u32, image.height() as u32);
-        let r =
-            match self.format {
-                // Fast deflate with the Sub filter: a 12 MP result encodes in a fraction of a
-                // second (adaptive filtering costs more than it saves on photographs).
-                OutputFormat::Png => {
-                    PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Sub)
-                        .write_image(&raw, w, h, image::ExtendedColorType::Rgb8)
-                }
-                OutputFormat::Jpeg { quality } => JpegEncoder::new_with_quality(&mut out, quality)
-                    .write_image(&raw, w, h, image::ExtendedColorType::Rgb8),
-            };
-        r.map_err(std::io::Error::other)?;
-        Ok(out)
+    fn encode(
+        &self,
+        image: &RgbF32,
+        key: Option<&Metadata>,
+        report: &serde_json::Value,
+    ) -> std::io::Result<Vec<u8>> {
+        let (format, quality) = match self.format {
+            OutputFormat::Png => (Format::Png, DEFAULT_QUALITY),
+            OutputFormat::Jpeg { quality } => (Format::Jpeg, quality),
+        };
+        let filled_by =
+            report["views"].as_array().into_iter().flatten().filter(|v| v["filled"].as_u64() > Some(0));
+        let provenance = Provenance {
+            report: Some("result.json".into()),
+            views: filled_by.filter_map(|v| v["file"].as_str().map(str::to_owned)).collect(),
+        };
+        let fallback = Metadata::default();
+        let opts = EncodeOptions { quality, space: OutputSpace::Keyframe };
+        let encoded = encode(image, format, &opts, key.unwrap_or(&fallback), &provenance)
+            .map_err(std::io::Error::other)?;
+        for w in &encoded.warnings {
+            tracing::warn!(warning = %w, "result written without part of the keyframe's metadata");
+        }
+        Ok(encoded.bytes)
     }
 }
 
@@ -416,26 +425,6 @@ fn cut_partial_line(file: &File) -> std::io::Result<u64> {
         file.set_len(end)?;
     }
     Ok(len - end)
-}
-
-/// RGB 0..=1 to interleaved 8-bit, rows in parallel (as `convert::to_rgb8` rounds).
-fn quantise_parallel(image: &RgbF32) -> Vec<u8> {
-    use rayon::prelude::*;
-    let w = image.width();
-    let mut raw = vec![0u8; w * image.height() * 3];
-    if w == 0 {
-        return raw;
-    }
-    raw.par_chunks_mut(w * 3).enumerate().for_each(|(y, row)| {
-        for (o, p) in row.chunks_exact_mut(3).zip(image.row(y)) {
-            for c in 0..3 {
-                // `as u8` saturates (and maps NaN to 0): the clamp comes free; + 0.5 then
-                // truncation rounds half up, like `round` on non-negative values.
-                o[c] = (p[c] * 255.0 + 0.5) as u8;
-            }
-        }
-    });
-    raw
 }
 
 /// Keeps the `keep` highest-numbered `result-NNNN.*` files.
@@ -491,12 +480,6 @@ mod tests {
         }
         let _ = atomic_write(&dir.path().join("a.png"), b"new");
         assert_eq!(std::fs::read(&victim).unwrap(), b"keep");
-    }
-
-    #[test]
-    fn quantising_agrees_with_the_core_conversion() {
-        let img = RgbF32::from_fn(7, 5, |x, y| [x as f32 / 6.0, y as f32 / 4.0, 0.5031]);
-        assert_eq!(quantise_parallel(&img), crate::imaging::convert::to_rgb8(&img).into_raw());
     }
 
     #[test]

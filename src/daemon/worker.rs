@@ -806,6 +806,15 @@ fn auto_mask(ctx: &Ctx, slot: &mut Slot) {
     }
 }
 
+/// The keyframe's metadata (EXIF, XMP, profile) its result carries, read again from its
+/// file (headers only); none when it cannot be read.
+fn key_metadata(ctx: &Ctx, slot: &Slot) -> Option<crate::imaging::meta::Metadata> {
+    use std::io::Read;
+    let mut bytes = Vec::new();
+    inbox(ctx).open(slot.key_path.as_ref()?).ok()?.read_to_end(&mut bytes).ok()?;
+    crate::imaging::decode::read_metadata(&bytes).ok()
+}
+
 fn limits(ctx: &Ctx) -> DecodeLimits {
     DecodeLimits { max_pixels: ctx.config.max_pixels }
 }
@@ -1139,7 +1148,8 @@ fn write(ctx: &Ctx, slot: &mut Slot, mut p: Pending) -> Option<u64> {
     let ext = ctx.emitter.result_name();
     let write_start = Instant::now();
     let image = p.outcome.image.as_ref().expect("a pending result has an image");
-    match ctx.emitter.write_result(&slot.name, number, image, &mut p.report) {
+    let key = key_metadata(ctx, slot);
+    match ctx.emitter.write_result(&slot.name, number, image, key.as_ref(), &mut p.report) {
         Ok(path) => {
             let write_ms = write_start.elapsed().as_secs_f64() * 1e3;
             let Pending { outcome, report, digest, fill_ms, stages, retry, .. } = p;

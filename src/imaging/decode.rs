@@ -1,10 +1,15 @@
 //! Decoding of image bytes with limits and EXIF orientation (pure layer: bytes in, pixels
-//! out; reading the file is the caller's business).
+//! out; reading the file is the caller's business). Pixels come out in the working colour
+//! space (sRGB, see [`super::colour`]), read through the file's embedded profile; the
+//! metadata a result keeps of its keyframe comes out beside them.
 
 use std::io::Cursor;
 
 use image::{DynamicImage, ImageDecoder, ImageReader, Limits};
 use thiserror::Error;
+
+use super::colour::{Space, to_working};
+use super::meta::{Metadata, strip_exif_header};
 
 /// What the decoder may allocate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -25,7 +30,7 @@ impl Default for DecodeLimits {
 pub enum DecodeError {
     #[error("empty file: 0 bytes (an upload that never started?)")]
     Empty,
-    #[error("not an image in a format clearview reads (JPEG, PNG, TIFF, WebP)")]
+    #[error("not an image in a format clearview reads (JPEG, PNG, TIFF, WebP, HEIC/HEIF)")]
     UnknownFormat,
     #[error("{width}x{height} is {pixels} pixels, more than the limit of {limit}")]
     TooLarge { width: u32, height: u32, pixels: u64, limit: u64 },
@@ -35,16 +40,62 @@ pub enum DecodeError {
     CutShort,
     #[error("cannot decode: {}", .0.to_string().trim_end())]
     Corrupt(#[source] image::ImageError),
+    #[error("cannot decode HEIF: {0}")]
+    Heif(String),
+    #[error("a HEIF image in a codec this build of libheif cannot decode: {0}")]
+    HeifCodec(String),
 }
 
-/// Decodes `bytes` into an image, upright (EXIF orientation applied), within `limits`.
+/// A decoded photograph: pixels upright in the working space (sRGB), its metadata, and
+/// what was wrong with it but did not stop it (an unusable colour profile).
+pub struct Photo {
+    pub image: DynamicImage,
+    pub meta: Metadata,
+    pub warnings: Vec<String>,
+}
+
+/// Decodes `bytes` into an image, upright (EXIF orientation applied), within `limits`, in
+/// the working colour space; a warning (an unusable profile, read as sRGB) is logged.
 pub fn decode(bytes: &[u8], limits: &DecodeLimits) -> Result<DynamicImage, DecodeError> {
+    let photo = decode_photo(bytes, limits)?;
+    for w in &photo.warnings {
+        tracing::warn!(warning = %w, "image read with a warning");
+    }
+    Ok(photo.image)
+}
+
+/// [`decode`] with the metadata and the warnings.
+pub fn decode_photo(bytes: &[u8], limits: &DecodeLimits) -> Result<Photo, DecodeError> {
+    let (image, mut meta) = decode_stored(bytes, limits)?;
+    let (space, warning) = Space::from_icc(meta.icc.as_deref());
+    if warning.is_some() {
+        meta.icc = None;
+    }
+    let image = to_working(image, &space);
+    meta.space = space;
+    Ok(Photo { image, meta, warnings: warning.into_iter().collect() })
+}
+
+/// Pixels as stored (upright, in the file's own colour space) and the metadata.
+fn decode_stored(bytes: &[u8], limits: &DecodeLimits) -> Result<(DynamicImage, Metadata), DecodeError> {
     if bytes.is_empty() {
         return Err(DecodeError::Empty);
     }
-    let reader = ImageReader::new(Cursor::new(bytes))
+    if super::heif::is_heif(bytes) {
+        return super::heif::decode(bytes, limits);
+    }
+    let img = decode_image(bytes, limits)?;
+    Ok(img)
+}
+
+/// The formats `image` reads: pixels upright, metadata as the decoder reports it (a
+/// metadata block it cannot read is left out, never fatal).
+fn decode_image(bytes: &[u8], limits: &DecodeLimits) -> Result<(DynamicImage, Metadata), DecodeError> {
+    let mut reader = ImageReader::new(Cursor::new(bytes))
         .with_guessed_format()
         .map_err(|e| DecodeError::Corrupt(image::ImageError::IoError(e)))?;
+    // Our own limits are set below, once the size is known.
+    reader.no_limits();
     if reader.format().is_none() {
         return Err(DecodeError::UnknownFormat);
     }
@@ -53,7 +104,12 @@ pub fn decode(bytes: &[u8], limits: &DecodeLimits) -> Result<DynamicImage, Decod
         // would become a view with a grey band.
         return Err(DecodeError::CutShort);
     }
+    let tiff = reader.format() == Some(image::ImageFormat::Tiff);
     let mut decoder = reader.into_decoder().map_err(DecodeError::Corrupt)?;
+    let mut meta = decoder_metadata(&mut decoder);
+    if tiff {
+        tiff_metadata(bytes, &mut meta);
+    }
     let (width, height) = decoder.dimensions();
     let pixels = u64::from(width) * u64::from(height);
     if pixels > limits.max_pixels {
@@ -71,7 +127,55 @@ pub fn decode(bytes: &[u8], limits: &DecodeLimits) -> Result<DynamicImage, Decod
     if let Some(o) = orientation {
         img.apply_orientation(o);
     }
-    Ok(img)
+    Ok((img, meta))
+}
+
+/// What a decoder reports besides pixels (a block it cannot read is left out).
+fn decoder_metadata(decoder: &mut impl ImageDecoder) -> Metadata {
+    let color = decoder.color_type();
+    Metadata {
+        exif: decoder.exif_metadata().ok().flatten().map(|e| strip_exif_header(&e).to_vec()),
+        xmp: decoder.xmp_metadata().ok().flatten(),
+        iptc: decoder.iptc_metadata().ok().flatten(),
+        icc: decoder.icc_profile().ok().flatten(),
+        space: Space::Srgb,
+        bits: if color.bytes_per_pixel() > color.channel_count() { 16 } else { 8 },
+    }
+}
+
+/// A TIFF's ICC profile and XMP, read with the `tiff` crate: `image`'s TIFF decoder, once
+/// its limits are set (`into_decoder` always sets them), no longer finds them.
+fn tiff_metadata(bytes: &[u8], meta: &mut Metadata) {
+    use tiff::tags::Tag;
+    let Ok(mut d) = tiff::decoder::Decoder::new(Cursor::new(bytes)) else { return };
+    meta.icc = meta.icc.take().or_else(|| d.get_tag_u8_vec(Tag::Unknown(34675)).ok());
+    meta.xmp = meta.xmp.take().or_else(|| d.get_tag_u8_vec(Tag::Unknown(700)).ok());
+}
+
+/// The metadata of an image without decoding its pixels (the service reads its keyframe's
+/// again when it writes a result); the colour space resolved as [`decode_photo`] does.
+pub fn read_metadata(bytes: &[u8]) -> Result<Metadata, DecodeError> {
+    let mut meta = if super::heif::is_heif(bytes) {
+        super::heif::read_metadata(bytes)?
+    } else {
+        let mut reader = ImageReader::new(Cursor::new(bytes))
+            .with_guessed_format()
+            .map_err(|e| DecodeError::Corrupt(image::ImageError::IoError(e)))?;
+        // Nothing is decoded but the headers (see `decode_image`).
+        reader.no_limits();
+        let tiff = reader.format() == Some(image::ImageFormat::Tiff);
+        let mut meta = decoder_metadata(&mut reader.into_decoder().map_err(DecodeError::Corrupt)?);
+        if tiff {
+            tiff_metadata(bytes, &mut meta);
+        }
+        meta
+    };
+    let (space, warning) = Space::from_icc(meta.icc.as_deref());
+    if warning.is_some() {
+        meta.icc = None;
+    }
+    meta.space = space;
+    Ok(meta)
 }
 
 /// Whether a JPEG stream stops before its end-of-image marker: its segments are walked

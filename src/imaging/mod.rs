@@ -5,9 +5,13 @@
 //! and both want cheap row slices and bilinear sampling without per-pixel trait calls.
 //! Conversion from and to `image` lives in [`convert`].
 
+pub mod colour;
 pub mod convert;
 pub mod decode;
+pub mod encode;
 pub mod filter;
+pub mod heif;
+pub mod meta;
 pub mod metrics;
 pub mod photometric;
 pub mod pyramid;

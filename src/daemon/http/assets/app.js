@@ -261,3 +261,81 @@ $('save').addEventListener('click', saveMask);
 slide();
 loadSessions().catch((e) => say(e.message));
 listen();
+
+// ---- 1:1 zoom with panning (mouse and touch) ----
+// Every layer (keyframe, result, provenance, paint canvas) is shown at its natural size and
+// moved by the same offset inside the viewer, whose height is kept; the before/after
+// divider stays where the slider puts it. Self-contained: it only adds listeners.
+const zoom = { on: false, x: 0, y: 0, drag: null };
+
+function zoomApply() {
+  const viewer = $('viewer');
+  const key = $('before');
+  const layers = ['before', 'after', 'prov', 'paint'].map($);
+  if (!zoom.on || !key.naturalWidth) {
+    viewer.classList.remove('zoomed');
+    viewer.style.height = '';
+    for (const el of layers) { el.style.width = ''; el.style.maxWidth = ''; el.style.transform = ''; }
+    $('zoom').setAttribute('aria-pressed', 'false');
+    slide();
+    return;
+  }
+  viewer.classList.add('zoomed');
+  $('zoom').setAttribute('aria-pressed', 'true');
+  const w = key.naturalWidth, h = key.naturalHeight;
+  const vw = viewer.clientWidth, vh = viewer.clientHeight;
+  // Larger than the viewer: kept covering it; smaller: centred.
+  zoom.x = w <= vw ? (vw - w) / 2 : Math.min(0, Math.max(vw - w, zoom.x));
+  zoom.y = h <= vh ? (vh - h) / 2 : Math.min(0, Math.max(vh - h, zoom.y));
+  for (const el of layers) {
+    el.style.width = w + 'px';
+    el.style.maxWidth = 'none';
+    el.style.transform = 'translate(' + zoom.x + 'px, ' + zoom.y + 'px)';
+  }
+  const cut = Math.max(0, (Number($('slider').value) / 100) * vw - zoom.x);
+  $('after').style.clipPath = 'inset(0px 0px 0px ' + cut + 'px)';
+}
+
+// Turns 1:1 on or off; on, the image point under viewer position (px, py) stays put.
+function zoomToggle(px, py) {
+  const viewer = $('viewer');
+  const key = $('before');
+  if (!key.naturalWidth) return;
+  if (!zoom.on) {
+    const r = viewer.getBoundingClientRect();
+    const fx = px === undefined ? r.width / 2 : px, fy = py === undefined ? r.height / 2 : py;
+    const s = key.naturalWidth / key.getBoundingClientRect().width;
+    viewer.style.height = r.height + 'px';
+    zoom.x = fx - fx * s;
+    zoom.y = fy - fy * s;
+  }
+  zoom.on = !zoom.on;
+  zoomApply();
+}
+
+const viewerEl = $('viewer');
+viewerEl.addEventListener('pointerdown', (e) => {
+  if (!zoom.on || painting) return;
+  viewerEl.setPointerCapture(e.pointerId);
+  zoom.drag = { id: e.pointerId, x: e.clientX, y: e.clientY };
+  e.preventDefault();
+});
+viewerEl.addEventListener('pointermove', (e) => {
+  if (!zoom.drag || zoom.drag.id !== e.pointerId) return;
+  zoom.x += e.clientX - zoom.drag.x;
+  zoom.y += e.clientY - zoom.drag.y;
+  zoom.drag.x = e.clientX;
+  zoom.drag.y = e.clientY;
+  zoomApply();
+  e.preventDefault();
+});
+for (const ev of ['pointerup', 'pointercancel']) viewerEl.addEventListener(ev, () => { zoom.drag = null; });
+viewerEl.addEventListener('dblclick', (e) => {
+  if (painting) return;
+  const r = viewerEl.getBoundingClientRect();
+  zoomToggle(e.clientX - r.left, e.clientY - r.top);
+});
+$('zoom').addEventListener('click', () => zoomToggle());
+$('slider').addEventListener('input', () => { if (zoom.on) zoomApply(); });
+window.addEventListener('resize', () => { if (zoom.on) zoomApply(); });
+$('before').addEventListener('load', () => { if (zoom.on) zoomApply(); });

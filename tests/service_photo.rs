@@ -1,0 +1,114 @@
+//! The service's results carry their keyframe's metadata and colour, and HEIC views are
+//! taken from the watched folder: the real binary on a temporary folder.
+
+mod daemon_common;
+
+use clearview::imaging::colour::{adobe_rgb_icc, srgb8_to_adobe8};
+use clearview::imaging::convert::to_rgb8;
+use clearview::imaging::decode::{DecodeLimits, decode_photo};
+use daemon_common::*;
+use exif::{Field, In, Tag, Value};
+
+fn camera_exif() -> Vec<u8> {
+    let f = |tag, value| Field { tag, ifd_num: In::PRIMARY, value };
+    let fields = [
+        f(Tag::Make, Value::Ascii(vec![b"SONY".to_vec()])),
+        f(Tag::Model, Value::Ascii(vec![b"ILCE-7M4".to_vec()])),
+        f(Tag::DateTimeOriginal, Value::Ascii(vec![b"2025:03:01 09:15:00".to_vec()])),
+        f(Tag::GPSLatitude, Value::Rational(vec![(52, 1).into(), (31, 1).into(), (1, 1).into()])),
+    ];
+    let mut w = exif::experimental::Writer::new();
+    for x in &fields {
+        w.push_field(x);
+    }
+    let mut out = std::io::Cursor::new(Vec::new());
+    w.write(&mut out, true).unwrap();
+    out.into_inner()
+}
+
+#[test]
+fn the_result_keeps_an_adobe_rgb_keyframes_exif_and_profile_and_heic_views_are_taken() {
+    let heif_enc = std::process::Command::new("heif-enc").arg("--help").output().is_ok();
+    let f = folders("");
+    let s = Service::start(&f);
+    let mut scene = Scene::new(5);
+    let dir = f.inbox.join("archive");
+    put(&dir.join("key.mask.png"), &mask_png(&scene.mask));
+    // The keyframe: a camera set to Adobe RGB, with its EXIF.
+    let adobe = srgb8_to_adobe8(to_rgb8(&scene.key).as_raw());
+    let mut key = Vec::new();
+    let mut enc = jpeg_encoder::Encoder::new(&mut key, 95);
+    enc.add_app_segment(1, [b"Exif\0\0".as_slice(), &camera_exif()].concat()).unwrap();
+    let icc = adobe_rgb_icc();
+    enc.add_icc_profile(&icc).unwrap();
+    enc.encode(&adobe, W as u16, H as u16, jpeg_encoder::ColorType::Rgb).unwrap();
+    put(&dir.join("key.jpg"), &key);
+    for i in 1..=2u64 {
+        let v = scene.clear_view(i);
+        if heif_enc && i == 2 {
+            let tmp = f.root.join("v2.png");
+            to_rgb8(&v).save(&tmp).unwrap();
+            let heic = f.root.join("v2.heic");
+            let o = std::process::Command::new("heif-enc")
+                .args(["-q", "90", "-o"])
+                .arg(&heic)
+                .arg(&tmp)
+                .output()
+                .unwrap();
+            assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+            put(&dir.join("v2.heic"), &std::fs::read(&heic).unwrap());
+        } else {
+            put(&dir.join(format!("v{i}.png")), &png(&v));
+        }
+    }
+    if !heif_enc {
+        println!("heif-enc not found: the second view is a PNG (apt-get install libheif-examples)");
+    }
+    // Both views in, and a result made after the first of them (not the keyframe's alone).
+    let events = wait_for(&f, "two views accepted and a result from them", 60, |e| {
+        let first_view = e.iter().position(|v| v["event"] == "view_accepted");
+        let last_result = e.iter().rposition(|v| v["event"] == "result_updated");
+        of_kind(e, "view_accepted").len() == 2
+            && matches!((first_view, last_result), (Some(v), Some(r)) if r > v)
+    });
+    assert!(of_kind(&events, "view_rejected").is_empty(), "{events:?}");
+    let out = f.outbox.join("archive");
+    let bytes = std::fs::read(out.join("result.png")).unwrap();
+    let result = decode_photo(&bytes, &DecodeLimits::default()).unwrap();
+    assert_eq!(result.meta.icc.as_deref(), Some(icc.as_slice()), "the keyframe's profile");
+    let e = exif::Reader::new().read_raw(result.meta.exif.clone().expect("EXIF")).unwrap();
+    for (tag, want) in [
+        (Tag::Make, "\"SONY\""),
+        (Tag::Model, "\"ILCE-7M4\""),
+        (Tag::DateTimeOriginal, "2025-03-01 09:15:00"),
+    ] {
+        assert_eq!(e.get_field(tag, In::PRIMARY).unwrap().display_value().to_string(), want);
+    }
+    assert!(e.get_field(Tag::GPSLatitude, In::PRIMARY).is_some());
+    let xmp = String::from_utf8(result.meta.xmp.clone().unwrap()).unwrap();
+    assert!(xmp.contains("<clearview:Report>result.json</clearview:Report>"), "{xmp}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("result.json")).unwrap()).unwrap();
+    for v in report["views"].as_array().unwrap().iter().filter(|v| v["filled"].as_u64() > Some(0)) {
+        let name = v["file"].as_str().unwrap();
+        assert!(xmp.contains(&format!("<rdf:li>{name}</rdf:li>")), "{name} in {xmp}");
+    }
+    // Read through its profile, the result is the scene: the fill and the keyframe's pixels.
+    let err = scene.masked_error(&result.image.to_rgb8());
+    let e_key = scene.masked_error(&to_rgb8(&scene.key));
+    println!("masked error: keyframe {e_key:.4}, result {err:.4}");
+    assert!(err < 0.3 * e_key, "masked error {e_key:.4} -> {err:.4}");
+    let (mut diff, mut n) = (0.0, 0);
+    let img = result.image.to_rgb8();
+    for y in 0..H {
+        for x in 0..W {
+            if !scene.mask.is_hole(x, y) {
+                let (k, p) = (scene.key.get(x, y), img.get_pixel(x as u32, y as u32).0);
+                diff += (0..3).map(|c| (k[c] as f64 - p[c] as f64 / 255.0).abs()).sum::<f64>() / 3.0;
+                n += 1;
+            }
+        }
+    }
+    assert!(diff / (n as f64) < 0.01, "outside the mask off by {:.4}", diff / n as f64);
+    assert_eq!(s.terminate(), 0);
+}
