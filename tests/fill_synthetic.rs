@@ -295,6 +295,9 @@ fn the_observer_sees_every_stage() {
     let s = scene(3);
     let mut log = Log::default();
     fill(&s.key, &s.mask, &s.sources(), &FillParams::default(), 1, &mut log);
-    assert_eq!(log.0, vec![Stage::Warp, Stage::Photometric, Stage::Fill, Stage::Fallback, Stage::Blend]);
+    assert_eq!(
+        log.0,
+        vec![Stage::Warp, Stage::Photometric, Stage::Occlusion, Stage::Fill, Stage::Fallback, Stage::Blend]
+    );
     assert!(log.1 >= 4);
 }

@@ -61,6 +61,7 @@ pub struct Source<'a, P: RgbPixel = [f32; 3]> {
 pub enum Stage {
     Warp,
     Photometric,
+    Occlusion,
     Fill,
     Fallback,
     Blend,
@@ -71,6 +72,7 @@ impl Stage {
         match self {
             Self::Warp => "warp",
             Self::Photometric => "photometric",
+            Self::Occlusion => "occlusion",
             Self::Fill => "fill",
             Self::Fallback => "fallback",
             Self::Blend => "blend",
@@ -321,17 +323,26 @@ pub fn fill<P: RgbPixel>(
         }
     }
 
+    // Occlusion: who sees what, per region, view and pixel.
+    observer.stage(Stage::Occlusion);
+    let maps: Vec<OcclusionMap> = parts
+        .par_iter()
+        .zip(warps.par_iter())
+        .map(|(part, ws)| region_model(key, part, ws, params))
+        .collect();
+
     // Fill: regions in parallel, in batches so that progress can be told.
     observer.stage(Stage::Fill);
     let mparams = params.multiview();
     let mut results: Vec<RegionFill> = Vec::with_capacity(parts.len());
     let batch = rayon::current_num_threads().max(1);
     let mut done = 0;
-    for (pb, wb) in parts.chunks(batch).zip(warps.chunks(batch)) {
+    for ((pb, wb), mb) in parts.chunks(batch).zip(warps.chunks(batch)).zip(maps.chunks(batch)) {
         let out: Vec<RegionFill> = pb
             .par_iter()
             .zip(wb.par_iter())
-            .map(|(part, ws)| fill_one(key, part, ws, &mparams, params))
+            .zip(mb.par_iter())
+            .map(|((part, ws), map)| fill_one(key, part, ws, map, &mparams, params))
             .collect();
         done += pb.iter().map(|p| p.holes).sum::<usize>();
         results.extend(out);
@@ -539,10 +550,38 @@ struct RegionFill {
     confidence: Vec<f32>,
 }
 
+/// The occlusion model over one region (all zeros with the model switched off).
+fn region_model(key: &RgbF32, part: &Part, warps: &[Warped], params: &FillParams) -> OcclusionMap {
+    let r = part.rect;
+    let n = r.area();
+    if !params.occlusion {
+        return OcclusionMap {
+            occluded: vec![vec![0.0; n]; warps.len()],
+            independence: vec![1.0; warps.len()],
+        };
+    }
+    let mut pixels = Vec::with_capacity(n);
+    for y in 0..r.height {
+        pixels.extend_from_slice(&key.row(r.y + y)[r.x..r.x + r.width]);
+    }
+    let refs: Vec<_> = warps.iter().map(|wv| (wv.image.as_slice(), wv.valid.as_slice())).collect();
+    let input = RegionInput {
+        width: r.width,
+        height: r.height,
+        key: &pixels,
+        hole: part.hole.as_slice(),
+        need: part.need.as_slice(),
+        blocked: part.blocked.as_slice(),
+        views: &refs,
+    };
+    occlusion_map(&input, &params.occlusion_model)
+}
+
 fn fill_one(
     key: &RgbF32,
     part: &Part,
     warps: &[Warped],
+    map: &OcclusionMap,
     params: &MultiviewParams,
     fill_params: &FillParams,
 ) -> RegionFill {
@@ -565,20 +604,6 @@ fn fill_one(
     let mut pick = vec![Pick::NONE; n];
     let refs: Vec<_> = warps.iter().map(|wv| (wv.image.as_slice(), wv.valid.as_slice())).collect();
     let model = &fill_params.occlusion_model;
-    let map = if fill_params.occlusion {
-        let input = RegionInput {
-            width: r.width,
-            height: r.height,
-            key: &pixels,
-            hole: part.hole.as_slice(),
-            need: part.need.as_slice(),
-            blocked: part.blocked.as_slice(),
-            views: &refs,
-        };
-        occlusion_map(&input, model)
-    } else {
-        OcclusionMap { occluded: vec![vec![0.0; n]; warps.len()], independence: vec![1.0; warps.len()] }
-    };
     // A view's pixel the model thinks is an occluder is not there to copy, unless no view
     // does better there and the model is not sure (then it is copied, and flagged).
     let least: Vec<f32> = (0..n)
@@ -620,7 +645,7 @@ fn fill_one(
             }
             let p = pick[i];
             let at = (i as isize + p.dy as isize * r.width as isize + p.dx as isize) as usize;
-            occlusion::confidence(&map, &refs, p.view as usize, at, i, r.width, pixels[i])
+            occlusion::confidence(map, &refs, p.view as usize, at, i, r.width, pixels[i])
         })
         .collect();
     RegionFill { pixels, state, pick, confidence }
