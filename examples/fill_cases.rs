@@ -4,7 +4,8 @@
 //! `cargo run --release --example fill_cases -- OUT_DIR [SHARED_DATA_DIR]`
 //! `cargo run --release --example fill_cases -- --large OUT_DIR` (the 12 MP command case)
 //!
-//! Synthetic cases are rendered; the Oxford cases (graf, wall, leuven) paste occluders
+//! Synthetic cases are rendered (also the occlusion model's shared-occluder and non-planar
+//! families, `synth::occlusion_case`); the Oxford cases (graf, wall, leuven) paste occluders
 //! into the real img1, whose clean original is then the truth.
 
 use std::path::{Path, PathBuf};
@@ -12,7 +13,7 @@ use std::path::{Path, PathBuf};
 use clearview::geometry::Homography;
 use clearview::imaging::convert::{mask_to_luma8, to_rgb, to_rgb8};
 use clearview::imaging::{Mask, RgbF32};
-use clearview::synth::{self, Occluder};
+use clearview::synth::{self, CaseFamily, Occluder};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -149,6 +150,13 @@ fn main() {
     let data = args.get(1).cloned().unwrap_or_else(|| PathBuf::from("../shared/data"));
     for seed in [1, 2, 3] {
         synthetic(out, seed, 5);
+    }
+    // The occlusion model's families: a tree every view shows too, and a facade with a pier.
+    for family in [CaseFamily::Shared, CaseFamily::NonPlanar] {
+        for seed in [1, 2] {
+            let c = synth::occlusion_case(family, 640, 480, 4, seed);
+            save_case(&out.join(format!("{}-{seed}", family.name())), &c.key, &c.mask, &c.truth, &c.views);
+        }
     }
     if data.join("oxford").is_dir() {
         // graf img1 has a real car roof along the bottom: the occluders stand on the wall.

@@ -13,18 +13,23 @@
 //! # When a view triggers a new fill (the improvement rule)
 //! An accepted view *improves* the result when, among the masked pixels it sees, at least
 //! [`SessionParams::min_new_pixels`] are either
-//! - filled by the single-image fallback in the current result (nobody saw them), or
+//! - filled by the single-image fallback in the current result (nobody saw them),
+//! - doubtful in the current result (confidence below [`CONFIDENT`]: the views there
+//!   disagree, or may show an occluder), or
 //! - seen by fewer than [`SessionParams::witnesses`] buffered views (the fill's consensus
 //!   against views occluded there is weak).
 //!
 //! A view that improves nothing is still buffered (it joins the next fill as a witness)
-//! but does not cost a fill of its own.
+//! but does not cost a fill of its own. Every buffered view takes part in every fill.
 //!
-//! # Score
-//! A result's score is the share of the mask filled from real views
-//! ([`FillReport::from_views`]). A new fill whose score is lower than the best result's
-//! (since the keyframe or mask last changed) is not emitted: a result is never replaced by
-//! a worse one.
+//! # Score: expected quality, not coverage
+//! A result's score is its expected quality: the mean, over the mask, of the occlusion
+//! model's confidence that each pixel shows the building ([`FillReport::expected_quality`];
+//! invented pixels count little, doubtful ones by how doubtful they are). A new fill is
+//! published only when its score is at least the best result's (since the keyframe or mask
+//! last changed): a view that adds only disagreement lowers the confidences and its fill
+//! is kept back, while a view that shows what was doubtful or invented raises them. The
+//! share filled from views is reported, never used to decide.
 
 use nalgebra::Point2;
 use serde::{Deserialize, Serialize};
@@ -35,7 +40,10 @@ use crate::geometry::Homography;
 use crate::imaging::convert::luminance;
 use crate::imaging::{GrayF32, Mask, Rect, RgbF32};
 use crate::inpaint::region::{footprint, into_crop};
-use crate::inpaint::{self, AutoMaskParams, FALLBACK, FillParams, FillReport, Observer, Provenance, Source};
+use crate::inpaint::{
+    self, AutoMaskParams, CONFIDENT, Confidence, FALLBACK, FillParams, FillReport, Observer, Provenance,
+    Source,
+};
 
 /// An 8-bit RGB image: what the buffer keeps of a view (the fill samples it as it is).
 pub use crate::imaging::Rgb8;
@@ -45,6 +53,11 @@ pub use crate::imaging::Rgb8;
 /// same file again, or a shot from the same spot with the occluder where it was. It adds
 /// nothing and would paint the occluder back in, so it is rejected.
 pub const SAME_AS_KEY: f64 = 0.02;
+
+/// Goes into [`Session::inputs_digest`]: a result saved under another score rule (the share
+/// from views, before the occlusion model) is not taken as this rule's score after an
+/// upgrade; the session fills once more and publishes.
+const SCORE_RULE: &[u8] = b"expected-quality-1";
 
 /// Parameters of a session.
 #[derive(Debug, Clone, PartialEq)]
@@ -181,6 +194,9 @@ pub enum Admission {
         fallback_px: usize,
         /// Masked pixels it sees that fewer than `witnesses` buffered views see.
         weak_px: usize,
+        /// Masked pixels it sees that the current result is not sure of (the fallback's
+        /// included).
+        doubtful_px: usize,
         /// Ids dropped from the buffer to make room.
         dropped: Vec<String>,
     },
@@ -198,6 +214,8 @@ pub struct FillOutcome {
     pub score: f64,
     /// The best score before this fill.
     pub previous: Option<f64>,
+    /// Keyframe-sized confidence of this fill (see [`crate::inpaint::Filled::confidence`]).
+    pub confidence: Option<Confidence>,
     /// Digest of the inputs ([`Session::inputs_digest`]).
     pub digest: u64,
 }
@@ -225,6 +243,8 @@ pub struct Session {
     buffer: Vec<Buffered>,
     /// Provenance of the current result over the mask's region.
     provenance: Option<Provenance>,
+    /// Confidence of the current result over the mask's region.
+    confidence: Option<Confidence>,
     best: Option<f64>,
     dirty: bool,
     admitted_since_fill: usize,
@@ -239,6 +259,7 @@ impl Session {
             mask: None,
             buffer: Vec::new(),
             provenance: None,
+            confidence: None,
             best: None,
             dirty: false,
             admitted_since_fill: 0,
@@ -303,6 +324,7 @@ impl Session {
         self.key = Some(Key { id, rgb, frame });
         self.mask = None;
         self.provenance = None;
+        self.confidence = None;
         self.best = None;
         self.dirty = false;
         self.admitted_since_fill = 0;
@@ -326,6 +348,7 @@ impl Session {
         let region = mask.hole_bounds().map(|r| r.grown(self.params.margin_px, kw, kh));
         self.mask = Some(MaskInfo { id, mask, region });
         self.provenance = None;
+        self.confidence = None;
         self.best = None;
         self.dirty = true;
         self.admitted_since_fill = 0;
@@ -405,7 +428,7 @@ impl Session {
         }
         self.buffer.retain(|b| b.id != id);
         let mut crop = None;
-        let (mut fallback_px, mut weak_px) = (0, 0);
+        let (mut fallback_px, mut weak_px, mut doubtful_px) = (0, 0, 0);
         let mut improves = true;
         if let Some(mask) = &self.mask {
             let Some(region) = mask.region else {
@@ -422,11 +445,11 @@ impl Session {
                 return Ok(Admission::OutsideMask);
             };
             let seen;
-            (seen, fallback_px, weak_px) = self.gain(&homography, record.view_size);
+            (seen, fallback_px, weak_px, doubtful_px) = self.gain(&homography, record.view_size);
             if seen == 0 {
                 return Ok(Admission::OutsideMask);
             }
-            improves = fallback_px.max(weak_px) >= self.params.min_new_pixels;
+            improves = fallback_px.max(weak_px).max(doubtful_px) >= self.params.min_new_pixels;
             if let Some(p) = pixels {
                 crop = Some(Crop { image: p.crop(rect), homography: into_crop(&homography, &rect) });
             }
@@ -439,7 +462,7 @@ impl Session {
             self.dirty = true;
             self.admitted_since_fill += 1;
         }
-        Ok(Admission::Accepted { improves, fallback_px, weak_px, dropped })
+        Ok(Admission::Accepted { improves, fallback_px, weak_px, doubtful_px, dropped })
     }
 
     /// Forgets buffered view `id` (its file now holds other pixels, or none): its pixels
@@ -463,6 +486,7 @@ impl Session {
     pub fn clear_mask(&mut self) {
         self.mask = None;
         self.provenance = None;
+        self.confidence = None;
         self.best = None;
         self.dirty = false;
         self.admitted_since_fill = 0;
@@ -545,10 +569,11 @@ impl Session {
 
     /// Masked pixels a view with keyframe → view map `h` sees: (all of them, those the
     /// fallback filled in the current result, those fewer than `witnesses` buffered views
-    /// see). Large masks are sampled every other pixel and the counts scaled.
-    fn gain(&self, h: &Homography, view_size: (usize, usize)) -> (usize, usize, usize) {
-        let (Some(mask), Some(_)) = (&self.mask, &self.key) else { return (0, 0, 0) };
-        let Some(region) = mask.region else { return (0, 0, 0) };
+    /// see, those the current result is not sure of). Large masks are sampled every other
+    /// pixel and the counts scaled.
+    fn gain(&self, h: &Homography, view_size: (usize, usize)) -> (usize, usize, usize, usize) {
+        let (Some(mask), Some(_)) = (&self.mask, &self.key) else { return (0, 0, 0, 0) };
+        let Some(region) = mask.region else { return (0, 0, 0, 0) };
         let step = if mask.mask.hole_count() > 250_000 { 2 } else { 1 };
         let others: Vec<(&Homography, (usize, usize))> = self
             .buffer
@@ -556,7 +581,7 @@ impl Session {
             .filter(|b| b.crop.is_some())
             .map(|b| (&b.homography, b.record.view_size))
             .collect();
-        let (mut seen, mut fallback, mut weak) = (0, 0, 0);
+        let (mut seen, mut fallback, mut weak, mut doubtful) = (0, 0, 0, 0);
         for y in (region.y..region.y1()).step_by(step) {
             for x in (region.x..region.x1()).step_by(step) {
                 if !mask.mask.is_hole(x, y) || !sees(h, view_size, x, y) {
@@ -570,6 +595,11 @@ impl Session {
                 if from_fallback {
                     fallback += 1;
                 }
+                let sure =
+                    self.confidence.as_ref().is_some_and(|c| c.get(x - region.x, y - region.y) >= CONFIDENT);
+                if !sure {
+                    doubtful += 1;
+                }
                 let witnesses =
                     others.iter().filter(|(g, s)| sees(g, *s, x, y)).take(self.params.witnesses).count();
                 if witnesses < self.params.witnesses {
@@ -578,7 +608,7 @@ impl Session {
             }
         }
         let s = step * step;
-        (seen * s, fallback * s, weak * s)
+        (seen * s, fallback * s, weak * s, doubtful * s)
     }
 
     /// Digest of what a fill would be made of: keyframe, mask, the buffered views with
@@ -597,6 +627,7 @@ impl Session {
             h.write(&[0]);
         }
         h.write(&self.params.seed.to_le_bytes());
+        h.write(SCORE_RULE);
         h.finish()
     }
 
@@ -620,10 +651,18 @@ impl Session {
         self.admitted_since_fill = 0;
         let Some(region) = mask.region else {
             // Nothing to fill: the keyframe is the result.
-            let report = FillReport { masked: 0, sources: Vec::new(), fallback: 0 };
+            let report = FillReport::default();
             self.best = Some(1.0);
             let image = previous.is_none().then(|| key.rgb.clone());
-            return Some(FillOutcome { image, report, views: Vec::new(), score: 1.0, previous, digest });
+            return Some(FillOutcome {
+                image,
+                report,
+                views: Vec::new(),
+                score: 1.0,
+                previous,
+                digest,
+                confidence: None,
+            });
         };
         let key_region = key.rgb.crop(region);
         let mask_region = mask.mask.crop(region);
@@ -649,18 +688,29 @@ impl Session {
             self.buffer[i].contribution = Some(s.filled);
         }
         let views = used.iter().map(|&i| self.buffer[i].id.clone()).collect();
-        let score = filled.report.from_views();
+        let score = filled.report.expected_quality();
         let better = previous.is_none_or(|b| score >= b - 1e-9);
+        let mut confidence = Confidence::new(key.rgb.width(), key.rgb.height(), 0);
+        confidence.paste(&filled.confidence, region);
         let image = if better {
             self.best = Some(score);
             self.provenance = Some(filled.provenance);
+            self.confidence = Some(filled.confidence);
             let mut full = key.rgb.clone();
             full.paste(&filled.image, region);
             Some(full)
         } else {
             None
         };
-        Some(FillOutcome { image, report: filled.report, views, score, previous, digest })
+        Some(FillOutcome {
+            image,
+            report: filled.report,
+            views,
+            score,
+            previous,
+            digest,
+            confidence: Some(confidence),
+        })
     }
 
     /// The automatic mask from whole views and their keyframe → view homographies.
@@ -844,9 +894,19 @@ mod tests {
         }
         let region = s.mask.as_ref().unwrap().region.unwrap();
         s.provenance = Some(Provenance::new(region.width, region.height, 1));
+        s.confidence = Some(Confidence::new(region.width, region.height, 255));
         s.dirty = false;
         let a = s.admit("c".into(), record(&h), Some(&view)).unwrap();
-        assert_eq!(a, Admission::Accepted { improves: false, fallback_px: 0, weak_px: 0, dropped: vec![] });
+        assert_eq!(
+            a,
+            Admission::Accepted {
+                improves: false,
+                fallback_px: 0,
+                weak_px: 0,
+                doubtful_px: 0,
+                dropped: vec![]
+            }
+        );
         assert!(!s.needs_fill());
         // The fallback made part of the result: a view seeing it improves things.
         let mut p = Provenance::new(region.width, region.height, 1);
@@ -858,7 +918,7 @@ mod tests {
         s.provenance = Some(p);
         let a = s.admit("d".into(), record(&h), Some(&view)).unwrap();
         match a {
-            Admission::Accepted { improves: true, fallback_px, weak_px: 0, .. } => {
+            Admission::Accepted { improves: true, fallback_px, weak_px: 0, doubtful_px: 0, .. } => {
                 assert!((40..=60).contains(&fallback_px), "{fallback_px}")
             }
             other => panic!("{other:?}"),

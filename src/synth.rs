@@ -263,6 +263,209 @@ pub fn paint_occluder(
     count
 }
 
+/// The families of [`occlusion_case`]: what stands in front of the facade, and where.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CaseFamily {
+    /// A flat facade; the keyframe and every view have occluders of their own, at places of
+    /// their own (some over the keyframe's).
+    Planar,
+    /// As `Planar`, but the keyframe's tree stands a little off the wall: every view shows it
+    /// too, displaced by parallax, so part of the mask is never seen by any view.
+    Shared,
+    /// A facade with a pier standing out of the wall (a second plane): under the wall's
+    /// homography its content shifts by a few pixels in every view.
+    NonPlanar,
+}
+
+impl CaseFamily {
+    pub const ALL: [Self; 3] = [Self::Planar, Self::Shared, Self::NonPlanar];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Planar => "planar",
+            Self::Shared => "shared",
+            Self::NonPlanar => "nonplanar",
+        }
+    }
+}
+
+/// A generated case whose every occluder is known: the keyframe, the mask a person would
+/// paint (the keyframe's occluders, dilated), the occluder-free truth, and the views with
+/// their true keyframe → view homographies and where, in keyframe coordinates, each view
+/// shows something other than the wall.
+#[derive(Debug, Clone)]
+pub struct OcclusionCase {
+    pub key: RgbF32,
+    pub mask: Mask,
+    /// The keyframe's occluders exactly (undilated).
+    pub key_occluders: Mask,
+    pub truth: RgbF32,
+    pub views: Vec<RgbF32>,
+    pub homographies: Vec<Homography>,
+    /// Per view, keyframe-sized: 255 where the view shows an occluder at that keyframe pixel.
+    pub view_occluders: Vec<Mask>,
+}
+
+/// Dilates a mask by a `(2r + 1)²` square (as a person paints around an object).
+pub fn dilate_mask(m: &Mask, r: usize) -> Mask {
+    let (w, h) = (m.width(), m.height());
+    let ri = r as isize;
+    let rows = Mask::from_fn(w, h, |x, y| {
+        let x0 = x.saturating_sub(r);
+        let x1 = (x + r + 1).min(w);
+        if m.row(y)[x0..x1].iter().any(|&v| v > 127) { 255 } else { 0 }
+    });
+    Mask::from_fn(w, h, |x, y| {
+        let hit = (-ri..=ri).any(|d| rows.get_checked(x as isize, y as isize + d).is_some_and(|v| v > 127));
+        if hit { 255 } else { 0 }
+    })
+}
+
+/// A `width × height` case of `family` with `n` views, fully determined by `seed`. Rendered
+/// at twice the size and box-averaged, so that the images are band-limited as a camera's
+/// are (a sharp mortar line resampled by a warp is otherwise wrong by more than any fill's
+/// fault).
+pub fn occlusion_case(family: CaseFamily, width: usize, height: usize, n: usize, seed: u64) -> OcclusionCase {
+    let fine = occlusion_case_at(family, 2 * width, 2 * height, n, seed);
+    let s2 = Homography::from_rows([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5], [0.0, 0.0, 1.0]]).expect("regular");
+    let s2_inv = s2.inverse().expect("regular");
+    let key_occluders = half_mask(&fine.key_occluders);
+    OcclusionCase {
+        key: half(&fine.key),
+        mask: dilate_mask(&key_occluders, 2),
+        key_occluders,
+        truth: half(&fine.truth),
+        views: fine.views.iter().map(half).collect(),
+        homographies: fine.homographies.iter().map(|h| s2_inv.after(h).after(&s2)).collect(),
+        view_occluders: fine.view_occluders.iter().map(half_mask).collect(),
+    }
+}
+
+/// Box average of 2×2 blocks.
+pub fn half(img: &RgbF32) -> RgbF32 {
+    RgbF32::from_fn(img.width() / 2, img.height() / 2, |x, y| {
+        let (a, b, c, d) = (
+            img.get(2 * x, 2 * y),
+            img.get(2 * x + 1, 2 * y),
+            img.get(2 * x, 2 * y + 1),
+            img.get(2 * x + 1, 2 * y + 1),
+        );
+        std::array::from_fn(|k| 0.25 * (a[k] + b[k] + c[k] + d[k]))
+    })
+}
+
+/// A mask halved: a pixel is marked when any of its 2×2 block is.
+fn half_mask(m: &Mask) -> Mask {
+    Mask::from_fn(m.width() / 2, m.height() / 2, |x, y| {
+        let any =
+            [(0, 0), (1, 0), (0, 1), (1, 1)].iter().any(|&(dx, dy)| m.get(2 * x + dx, 2 * y + dy) > 127);
+        if any { 255 } else { 0 }
+    })
+}
+
+fn occlusion_case_at(family: CaseFamily, width: usize, height: usize, n: usize, seed: u64) -> OcclusionCase {
+    let (w, h) = (width, height);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x0cc1_u64.wrapping_mul(family as u64 + 1));
+    let scene = facade(w * 3 / 2, h * 3 / 2, seed);
+    let centre = Homography::translation(w as f64 / 4.0, h as f64 / 4.0);
+    // The pier: a band of scene columns standing out of the wall (NonPlanar only).
+    let pier = (family == CaseFamily::NonPlanar).then(|| {
+        let x0 = rng.random_range(0.35..0.5f64) * w as f64 + w as f64 / 4.0;
+        (x0, x0 + 0.18 * w as f64)
+    });
+    // Renders the scene as seen through key → view `hv`; the pier's content moves by
+    // `parallax` (keyframe pixels) relative to the wall.
+    let render = |hv: &Homography, parallax: (f64, f64)| -> RgbF32 {
+        let to_scene = centre.after(&hv.inverse().expect("regular"));
+        RgbF32::from_fn(w, h, |x, y| {
+            let Some(p) = to_scene.apply(Point2::new(x as f64, y as f64)) else { return [0.5; 3] };
+            let (mut sx, mut sy) = (p.x, p.y);
+            if let Some((x0, x1)) = pier {
+                // Where the pier's face is seen, the wall's point is off by the parallax.
+                let (px, py) = (sx - parallax.0, sy - parallax.1);
+                if px >= x0 && px < x1 {
+                    (sx, sy) = (px, py);
+                }
+            }
+            bilinear_rgb(&scene, sx as f32, sy as f32).unwrap_or([0.5; 3])
+        })
+    };
+    let truth = render(&Homography::identity(), (0.0, 0.0));
+    let mut key = truth.clone();
+    let mut key_occ = Mask::new(w, h, 0);
+    let s = w.min(h) as f32;
+    let tree =
+        (rng.random_range(0.3..0.6f32) * w as f32, 0.55 * h as f32, rng.random_range(0.45..0.6f32) * s);
+    let tree_seed = seed.wrapping_mul(31) + 7;
+    paint_occluder(&mut key, Some(&mut key_occ), Occluder::Tree, tree.0, tree.1, tree.2, tree_seed);
+    let other = [Occluder::Car, Occluder::Person][(seed % 2) as usize];
+    let ox = if tree.0 > 0.5 * w as f32 { 0.2 } else { 0.78 } * w as f32;
+    paint_occluder(&mut key, Some(&mut key_occ), other, ox, 0.72 * h as f32, 0.3 * s, seed + 11);
+    add_noise(&mut key, 0.006, seed * 7 + 1);
+    let mask = dilate_mask(&key_occ, 4);
+
+    let mut views = Vec::with_capacity(n);
+    let mut homographies = Vec::with_capacity(n);
+    let mut view_occluders = Vec::with_capacity(n);
+    for i in 0..n {
+        let hv = random_homography(&mut rng, w, h, 0.08, 0.2, (0.9, 1.1));
+        let parallax = match family {
+            CaseFamily::NonPlanar => (rng.random_range(-8.0..8.0), rng.random_range(-4.0..4.0)),
+            _ => (0.0, 0.0),
+        };
+        let mut v = render(&hv, parallax);
+        // Occluders painted in keyframe coordinates and carried into the view, so that
+        // their place on the keyframe is known exactly.
+        let mut occ_key = RgbF32::new(w, h, [0.0; 3]);
+        let mut occ_mask = Mask::new(w, h, 0);
+        if family == CaseFamily::Shared {
+            // The keyframe's tree, off the wall: shifted by parallax in each view.
+            let shift = tree.2 * rng.random_range(0.15..0.35) * if i % 2 == 0 { 1.0 } else { -1.0 };
+            paint_occluder(
+                &mut occ_key,
+                Some(&mut occ_mask),
+                Occluder::Tree,
+                tree.0 + shift,
+                tree.1 + rng.random_range(-0.03..0.03) * s,
+                tree.2,
+                tree_seed,
+            );
+        }
+        let kind = [Occluder::Person, Occluder::Tree, Occluder::Car][(i + seed as usize) % 3];
+        let (cx, cy) =
+            (rng.random_range(0.15..0.85f32) * w as f32, rng.random_range(0.45..0.7f32) * h as f32);
+        paint_occluder(
+            &mut occ_key,
+            Some(&mut occ_mask),
+            kind,
+            cx,
+            cy,
+            rng.random_range(0.3..0.5f32) * s,
+            seed * 100 + i as u64,
+        );
+        // Into the view: view pixel q shows keyframe point H⁻¹ q.
+        let back = hv.inverse().expect("regular");
+        for y in 0..h {
+            for x in 0..w {
+                let Some(p) = back.apply(Point2::new(x as f64, y as f64)) else { continue };
+                let (kx, ky) = (p.x.round(), p.y.round());
+                if kx >= 0.0 && ky >= 0.0 && (kx as usize) < w && (ky as usize) < h {
+                    let (kx, ky) = (kx as usize, ky as usize);
+                    if occ_mask.get(kx, ky) > 127 {
+                        v.set(x, y, occ_key.get(kx, ky));
+                    }
+                }
+            }
+        }
+        expose(&mut v, rng.random_range(0.85..1.15), rng.random_range(-0.03..0.03));
+        add_noise(&mut v, 0.006, seed * 1000 + i as u64);
+        views.push(v);
+        homographies.push(hv);
+        view_occluders.push(occ_mask);
+    }
+    OcclusionCase { key, mask, key_occluders: key_occ, truth, views, homographies, view_occluders }
+}
+
 /// A random homography of the kind a hand-held camera produces between two shots of a
 /// facade: rotation up to `max_rot` radians, out-of-plane tilt up to `max_tilt` radians,
 /// scale in `scale`, a shift of up to 10 % of the frame; about the image centre.

@@ -123,7 +123,8 @@ fn a_session_improves_as_views_arrive_and_bad_files_are_skipped() {
     // A result is never replaced by a worse one, and the masked region's error against the
     // truth falls from the keyframe-only result (everything invented) as views arrive.
     let scores: Vec<f64> =
-        of_kind(&ev, "result_updated").iter().map(|e| e["from_views"].as_f64().unwrap()).collect();
+        of_kind(&ev, "result_updated").iter().map(|e| e["score"].as_f64().unwrap()).collect();
+
     assert!(
         scores.windows(2).all(|w| w[1] >= w[0] - 1e-9),
         "a result was replaced by a worse one: {scores:?}"
@@ -138,6 +139,22 @@ fn a_session_improves_as_views_arrive_and_bad_files_are_skipped() {
         eprintln!("{e}");
     }
     assert_eq!(service.terminate(), 0);
+    // The score is the expected quality (mean confidence), written beside the result as
+    // confidence.png: keyframe-sized, 0 outside the mask (read once the service has stopped,
+    // so that both files are of the last result).
+    let report: Value =
+        serde_json::from_slice(&std::fs::read(f.outbox.join("facade/result.json")).unwrap()).unwrap();
+    let confident = report["confident"].as_f64().unwrap();
+    assert!((confident + report["doubtful"].as_f64().unwrap() - 1.0).abs() < 1e-6);
+    assert!(confident > 0.5, "only {confident} of the mask confident");
+    let conf = image::open(f.outbox.join("facade/confidence.png")).unwrap().to_luma8();
+    assert_eq!((conf.width() as usize, conf.height() as usize), (W, H));
+    assert_eq!(conf.get_pixel(5, 5).0[0], 0, "confidence outside the mask");
+    let sure = (0..H)
+        .flat_map(|y| (0..W).map(move |x| (x, y)))
+        .filter(|&(x, y)| scene.mask.is_hole(x, y) && conf.get_pixel(x as u32, y as u32).0[0] >= 128)
+        .count();
+    assert_eq!(sure as u64, report["confident_px"].as_u64().unwrap());
     no_temporaries(&f.outbox);
     no_temporaries(&f.state);
 }

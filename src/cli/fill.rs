@@ -60,6 +60,11 @@ pub struct FillArgs {
     /// With `--mask auto`, write the mask that was found.
     #[arg(long)]
     pub save_mask: Option<PathBuf>,
+    /// Also write the confidence map: 8-bit, the keyframe's size, 0 outside the mask, inside
+    /// how sure the fill is that the pixel shows the building (>= 128: sure; below: the
+    /// fallback invented it, or the views disagree or may show an occluder there).
+    #[arg(long)]
+    pub confidence: Option<PathBuf>,
     /// Refuse images with more pixels than this (decompression bombs).
     #[arg(long, default_value_t = DecodeLimits::default().max_pixels)]
     pub max_pixels: u64,
@@ -114,6 +119,14 @@ struct Report<'a> {
     from_views_pixels: usize,
     fallback_pixels: usize,
     share_from_views: f64,
+    /// Masked pixels the fill is sure of (confidence >= 128), and their share.
+    confident_pixels: usize,
+    share_confident: f64,
+    /// Share of the mask invented by the fallback or filled without confidence: what to
+    /// look at.
+    share_doubtful: f64,
+    /// Mean confidence over the mask (0..=1).
+    expected_quality: f64,
     views: Vec<ViewReport>,
     /// Wall time per stage, in order.
     timings_ms: Vec<(&'static str, f64)>,
@@ -191,7 +204,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     let usage = |m: String| (exit::USAGE, m);
     let failure = |m: String| (exit::FAILURE, m);
     result_format(&args.out).map_err(|e| usage(e.to_string()))?;
-    if let Some(p) = &args.save_mask {
+    for p in [&args.save_mask, &args.confidence].into_iter().flatten() {
         output_format(p).map_err(|e| usage(e.to_string()))?;
     }
     let auto = args.mask == "auto";
@@ -200,7 +213,10 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     if !auto {
         inputs.push(Path::new(&args.mask));
     }
-    for written in [Some(&args.out), args.report.as_ref(), args.save_mask.as_ref()].into_iter().flatten() {
+    for written in [Some(&args.out), args.report.as_ref(), args.save_mask.as_ref(), args.confidence.as_ref()]
+        .into_iter()
+        .flatten()
+    {
         if inputs.iter().any(|i| same_file(i, written)) {
             return Err(usage(format!(
                 "{}: is one of the inputs; refusing to overwrite it",
@@ -308,6 +324,10 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     for w in left_out {
         eprintln!("clearview fill: {}: {w}", args.out.display());
     }
+    if let Some(p) = &args.confidence {
+        save_image(p, &DynamicImage::ImageLuma8(mask_to_luma8(&filled.confidence)))
+            .map_err(|e| failure(e.to_string()))?;
+    }
     let timings = progress.finish();
 
     let fr = &filled.report;
@@ -320,6 +340,10 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         from_views_pixels: from_views,
         fallback_pixels: fr.fallback,
         share_from_views: fr.from_views(),
+        confident_pixels: fr.confident,
+        share_confident: fr.confident_share(),
+        share_doubtful: fr.doubtful_share(),
+        expected_quality: fr.expected_quality(),
         views: reports,
         timings_ms: timings,
     };
@@ -457,10 +481,14 @@ fn align_view(
 }
 
 fn print_summary(r: &Report<'_>) {
+    // "From views" says where pixels came from, not that they are right: the confident
+    // share comes first, and a doubtful share is always told.
     println!(
-        "{}: {} masked pixels, {:.1} % from views, {} from the single-image fallback",
+        "{}: {} masked pixels, {:.1} % confident, {:.1} % doubtful or invented ({:.1} % taken from views, {} from the single-image fallback)",
         r.out.display(),
         r.masked_pixels,
+        100.0 * r.share_confident,
+        100.0 * r.share_doubtful,
         100.0 * r.share_from_views,
         r.fallback_pixels
     );

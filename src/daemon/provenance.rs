@@ -1,11 +1,12 @@
 //! The provenance map as a picture (shell layer): which view filled each masked pixel of
-//! a result, colour-coded into a transparent PNG with a legend, for the preview page.
+//! a result, colour-coded into a transparent PNG with a legend, for the preview page; pixels
+//! a view filled but the occlusion model is not sure of are shown apart, as doubtful.
 
 use image::ImageEncoder;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 
 use super::registry::LegendEntry;
-use crate::inpaint::{FALLBACK, KEYFRAME, Provenance};
+use crate::inpaint::{CONFIDENT, Confidence, FALLBACK, KEYFRAME, Provenance};
 
 /// Colours of sources 0, 1, ... (cycled), chosen apart from each other and from the
 /// fallback's magenta.
@@ -25,11 +26,18 @@ const PALETTE: [[u8; 3]; 10] = [
 /// The fallback's colour: pixels no view saw, invented from the keyframe alone.
 pub const FALLBACK_COLOUR: [u8; 3] = [0xff, 0x00, 0xff];
 
+/// The value shown for a pixel a view filled but the result is not sure of (it may show an
+/// occluder, or the views disagree there): not a provenance value, a verdict over one.
+pub const DOUBTFUL: u16 = FALLBACK - 1;
+/// Its colour.
+pub const DOUBTFUL_COLOUR: [u8; 3] = [0xd6, 0x27, 0x28];
+
 /// The colour of provenance value `v` (`None`: transparent, the keyframe's own pixel).
 pub fn colour(v: u16) -> Option<[u8; 3]> {
     match v {
         KEYFRAME => None,
         FALLBACK => Some(FALLBACK_COLOUR),
+        DOUBTFUL => Some(DOUBTFUL_COLOUR),
         i => Some(PALETTE[usize::from(i - 1) % PALETTE.len()]),
     }
 }
@@ -39,13 +47,21 @@ fn hex(c: [u8; 3]) -> String {
 }
 
 /// An RGBA PNG of `map` (keyframe pixels transparent, the others opaque in their source's
+/// colour, those a view filled with a `confidence` below [`CONFIDENT`] in the doubtful
 /// colour) and the legend of the values present, `names[i]` naming source `i`.
-pub fn render(map: &Provenance, names: &[String]) -> std::io::Result<(Vec<u8>, Vec<LegendEntry>)> {
+pub fn render(
+    map: &Provenance,
+    confidence: Option<&Confidence>,
+    names: &[String],
+) -> std::io::Result<(Vec<u8>, Vec<LegendEntry>)> {
     let (w, h) = (map.width(), map.height());
     let mut rgba = Vec::with_capacity(w * h * 4);
     let mut counts: std::collections::BTreeMap<u16, usize> = std::collections::BTreeMap::new();
     for y in 0..h {
-        for &v in map.row(y) {
+        for (x, &v) in map.row(y).iter().enumerate() {
+            let doubtful =
+                v != KEYFRAME && v != FALLBACK && confidence.is_some_and(|c| c.get(x, y) < CONFIDENT);
+            let v = if doubtful { DOUBTFUL } else { v };
             *counts.entry(v).or_default() += 1;
             match colour(v) {
                 None => rgba.extend_from_slice(&[0, 0, 0, 0]),
@@ -63,6 +79,7 @@ pub fn render(map: &Provenance, names: &[String]) -> std::io::Result<(Vec<u8>, V
             source: match value {
                 KEYFRAME => "keyframe".into(),
                 FALLBACK => "fallback".into(),
+                DOUBTFUL => "doubtful".into(),
                 i => names.get(usize::from(i - 1)).cloned().unwrap_or_else(|| format!("source {}", i - 1)),
             },
             value,
@@ -80,7 +97,7 @@ mod tests {
     #[test]
     fn colours_and_legend_follow_the_values() {
         let map = Provenance::from_vec(3, 2, vec![KEYFRAME, 1, 2, FALLBACK, 1, KEYFRAME]);
-        let (png, legend) = render(&map, &["a.jpg".into(), "b.jpg".into()]).unwrap();
+        let (png, legend) = render(&map, None, &["a.jpg".into(), "b.jpg".into()]).unwrap();
         let img = image::load_from_memory(&png).unwrap().to_rgba8();
         assert_eq!(img.get_pixel(0, 0).0[3], 0, "keyframe pixels are transparent");
         assert_eq!(img.get_pixel(1, 0).0, [0x1f, 0x77, 0xb4, 255]);
@@ -89,5 +106,13 @@ mod tests {
         let by: Vec<(&str, usize)> = legend.iter().map(|l| (l.source.as_str(), l.pixels)).collect();
         assert_eq!(by, [("keyframe", 2), ("a.jpg", 2), ("b.jpg", 1), ("fallback", 1)]);
         assert_eq!(legend[3].colour, "#ff00ff");
+        // With a confidence map, a view's pixel the fill is not sure of is doubtful.
+        let conf = Confidence::from_vec(3, 2, vec![0, 200, 40, 10, 255, 0]);
+        let (png, legend) = render(&map, Some(&conf), &["a.jpg".into(), "b.jpg".into()]).unwrap();
+        let img = image::load_from_memory(&png).unwrap().to_rgba8();
+        assert_eq!(img.get_pixel(2, 0).0, [0xd6, 0x27, 0x28, 255], "b.jpg's doubtful pixel");
+        assert_eq!(img.get_pixel(0, 1).0, [0xff, 0x00, 0xff, 255], "the fallback stays the fallback");
+        let by: Vec<(&str, usize)> = legend.iter().map(|l| (l.source.as_str(), l.pixels)).collect();
+        assert_eq!(by, [("keyframe", 2), ("a.jpg", 2), ("doubtful", 1), ("fallback", 1)]);
     }
 }

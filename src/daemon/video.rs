@@ -924,13 +924,14 @@ impl Runner {
                 fields.insert("buffered".into(), false.into());
                 self.ctx.emitter.event("view_accepted", Some(&slot.name), fields.into());
             }
-            Admission::Accepted { improves: i, fallback_px, weak_px, dropped } => {
+            Admission::Accepted { improves: i, fallback_px, weak_px, doubtful_px, dropped } => {
                 improves = *i;
                 tracing::debug!(frame = name, improves, "frame accepted");
                 fields.insert("buffered".into(), true.into());
                 fields.insert("improves".into(), (*i).into());
                 fields.insert("fallback_px".into(), (*fallback_px).into());
                 fields.insert("weakly_witnessed_px".into(), (*weak_px).into());
+                fields.insert("doubtful_px".into(), (*doubtful_px).into());
                 self.ctx.emitter.event("view_accepted", Some(&slot.name), fields.into());
                 for d in dropped {
                     if let Some(v) = slot.views.values_mut().find(|v| &v.id == d) {

@@ -932,7 +932,7 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
             fields.insert("reason".into(), "sees none of the mask".into());
             ctx.emitter.event("view_accepted", Some(&slot.name), fields.into());
         }
-        Admission::Accepted { improves, fallback_px, weak_px, dropped } => {
+        Admission::Accepted { improves, fallback_px, weak_px, doubtful_px, dropped } => {
             tracing::info!(inliers = record.inliers, from_state, improves, "view accepted");
             ctx.registry.metrics.views_accepted.fetch_add(1, Ordering::Relaxed);
             slot.pending_since.get_or_insert(start);
@@ -940,6 +940,7 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
             fields.insert("improves".into(), (*improves).into());
             fields.insert("fallback_px".into(), (*fallback_px).into());
             fields.insert("weakly_witnessed_px".into(), (*weak_px).into());
+            fields.insert("doubtful_px".into(), (*doubtful_px).into());
             ctx.emitter.event("view_accepted", Some(&slot.name), fields.into());
             for d in dropped {
                 ctx.registry.metrics.views_dropped.fetch_add(1, Ordering::Relaxed);
@@ -1164,7 +1165,8 @@ fn write(ctx: &Ctx, slot: &mut Slot, mut p: Pending) -> Option<u64> {
             after_result(ctx, slot, &outcome, number, report);
             tracing::info!(
                 number,
-                from_views = score,
+                score,
+                confident = r.confident_share(),
                 fallback = fallback_share,
                 fill_ms = fill_ms.round(),
                 tries = retry.failures() + 1,
@@ -1179,8 +1181,11 @@ fn write(ctx: &Ctx, slot: &mut Slot, mut p: Pending) -> Option<u64> {
                     "result": ext,
                     "views": views,
                     "masked": masked,
-                    "from_views": score,
+                    "from_views": r.from_views(),
                     "from_fallback": fallback_share,
+                    "confident": r.confident_share(),
+                    "doubtful": r.doubtful_share(),
+                    "score": score,
                     "previous_score": previous,
                     "fill_ms": fill_ms.round(),
                     "write_ms": write_ms.round(),
@@ -1266,11 +1271,15 @@ fn result_json(
         "keyframe": key_name,
         "mask": slot.mask_source,
         "masked": r.masked,
-        "from_views": outcome.score,
+        "from_views": r.from_views(),
         "from_fallback": fallback_share,
         "fallback_px": r.fallback,
+        "confident": r.confident_share(),
+        "confident_px": r.confident,
+        "doubtful": r.doubtful_share(),
+        "confidence": "confidence.png",
         "score": outcome.score,
-        "score_rule": "share of the masked pixels filled from real views; a result is never replaced by one that scores lower",
+        "score_rule": "expected quality: the mean over the mask of the confidence that each pixel shows the building (confidence.png); a result is replaced only by one expected to be at least as good",
         "views": views,
     })
 }
@@ -1303,6 +1312,20 @@ fn write_mask(ctx: &Ctx, slot: &Slot) {
     }
 }
 
+/// The result's confidence map as `confidence.png` beside it (8-bit, the keyframe's size,
+/// 0 outside the mask, >= 128 where the fill is sure the pixel shows the building).
+fn write_confidence(ctx: &Ctx, slot: &Slot, conf: &crate::inpaint::Confidence) {
+    let path = ctx.emitter.session_dir(&slot.name).join("confidence.png");
+    let mut png = std::io::Cursor::new(Vec::new());
+    let r = crate::imaging::convert::mask_to_luma8(conf)
+        .write_to(&mut png, image::ImageFormat::Png)
+        .map_err(std::io::Error::other)
+        .and_then(|()| super::emit::atomic_write(&path, png.get_ref()));
+    if let Err(e) = r {
+        tracing::warn!(error = %e, "cannot write confidence.png");
+    }
+}
+
 /// After result `number` is written: its provenance map and legend, the bookkeeping of
 /// the status API, and the update latency.
 fn after_result(
@@ -1317,12 +1340,15 @@ fn after_result(
     slot.legend.clear();
     if let Some(map) = slot.session.provenance() {
         let path = ctx.emitter.session_dir(&slot.name).join("provenance.png");
-        match super::provenance::render(&map, &names)
+        match super::provenance::render(&map, outcome.confidence.as_ref(), &names)
             .and_then(|(png, legend)| super::emit::atomic_write(&path, &png).map(|()| legend))
         {
             Ok(legend) => slot.legend = legend,
             Err(e) => tracing::warn!(error = %e, "cannot write provenance.png"),
         }
+    }
+    if let Some(conf) = &outcome.confidence {
+        write_confidence(ctx, slot, conf);
     }
     slot.filled_by =
         outcome.views.iter().cloned().zip(outcome.report.sources.iter().map(|s| s.filled)).collect();

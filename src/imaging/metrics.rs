@@ -26,6 +26,69 @@ pub fn masked_psnr(img: &RgbF32, truth: &RgbF32, mask: &Mask) -> f64 {
     }
 }
 
+/// A pixel is grossly wrong when some channel is off by more than this many 8-bit levels.
+pub const GROSS_LEVELS: f32 = 30.0;
+
+/// How honest a result's confidence map is about its errors, over the masked pixels.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Honesty {
+    pub masked: usize,
+    /// Masked pixels marked confident (confidence >= 128).
+    pub confident: usize,
+    /// Masked pixels with a gross error ([`GROSS_LEVELS`]).
+    pub gross: usize,
+    /// Confident pixels with a gross error.
+    pub confident_gross: usize,
+}
+
+impl Honesty {
+    /// Share of the mask marked confident.
+    pub fn confident_share(&self) -> f64 {
+        ratio(self.confident, self.masked)
+    }
+    /// Share of the confident pixels that are grossly wrong (the issue asks <= 8 %).
+    pub fn confident_error_rate(&self) -> f64 {
+        ratio(self.confident_gross, self.confident)
+    }
+    /// Share of the grossly wrong pixels marked not confident (the issue asks >= 60 %);
+    /// 1 when nothing is grossly wrong.
+    pub fn flagged_recall(&self) -> f64 {
+        if self.gross == 0 { 1.0 } else { ratio(self.gross - self.confident_gross, self.gross) }
+    }
+    /// Sums the counts of several cases.
+    pub fn add(&mut self, o: &Honesty) {
+        self.masked += o.masked;
+        self.confident += o.confident;
+        self.gross += o.gross;
+        self.confident_gross += o.confident_gross;
+    }
+}
+
+fn ratio(a: usize, b: usize) -> f64 {
+    if b == 0 { 0.0 } else { a as f64 / b as f64 }
+}
+
+/// The honesty figures of `img` against `truth` with its `confidence` map (>= 128 sure),
+/// over the pixels `mask` marks. Values are 0..=1; an error counts on 8-bit levels.
+pub fn honesty(img: &RgbF32, truth: &RgbF32, mask: &Mask, confidence: &Mask) -> Honesty {
+    let mut h = Honesty::default();
+    for (((a, b), &m), &c) in
+        img.as_slice().iter().zip(truth.as_slice()).zip(mask.as_slice()).zip(confidence.as_slice())
+    {
+        if m <= 127 {
+            continue;
+        }
+        h.masked += 1;
+        let sure = c >= 128;
+        let to8 = |v: f32| (v * 255.0).round().clamp(0.0, 255.0);
+        let gross = (0..3).any(|k| (to8(a[k]) - to8(b[k])).abs() > GROSS_LEVELS);
+        h.confident += usize::from(sure);
+        h.gross += usize::from(gross);
+        h.confident_gross += usize::from(sure && gross);
+    }
+    h
+}
+
 /// Mean SSIM of the luminance over 7×7 windows centred on the masked pixels (uniform
 /// window, the usual constants for a 0..=1 range); windows that would leave the image
 /// are skipped. `NaN` when no window counts.

@@ -211,7 +211,7 @@ fn filter_1d(m: &Plane<bool>, r: usize, grow: bool, vertical: bool) -> Plane<boo
 }
 
 /// Dilation by a `(2r + 1)²` square.
-pub(crate) fn dilate(m: &Plane<bool>, r: usize) -> Plane<bool> {
+pub fn dilate(m: &Plane<bool>, r: usize) -> Plane<bool> {
     if r == 0 {
         return m.clone();
     }
@@ -219,7 +219,7 @@ pub(crate) fn dilate(m: &Plane<bool>, r: usize) -> Plane<bool> {
 }
 
 /// Erosion by a `(2r + 1)²` square (pixels beyond the border do not count against).
-pub(crate) fn erode(m: &Plane<bool>, r: usize) -> Plane<bool> {
+pub fn erode(m: &Plane<bool>, r: usize) -> Plane<bool> {
     if r == 0 {
         return m.clone();
     }

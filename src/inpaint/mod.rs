@@ -10,6 +10,7 @@ pub mod automask;
 pub mod blend;
 pub mod exemplar;
 pub mod multiview;
+pub mod occlusion;
 pub mod priority;
 pub mod region;
 
@@ -21,7 +22,8 @@ use crate::imaging::warp::{Interpolation, Rect, Warped, warp};
 use crate::imaging::{Mask, Plane, RgbF32, RgbPixel};
 use automask::dilate;
 use blend::{BlendParams, guidance_rhs, solve_membrane};
-use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region, occlusion_costs};
+use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region};
+use occlusion::{OcclusionMap, OcclusionParams, RegionInput, occlusion_map};
 
 pub use automask::{AutoMaskParams, auto_mask};
 pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_until};
@@ -33,6 +35,15 @@ pub type Provenance = Plane<u16>;
 pub const KEYFRAME: u16 = 0;
 /// A masked pixel no view could fill: the single-image fallback made it.
 pub const FALLBACK: u16 = u16::MAX;
+
+/// Per-pixel confidence of a result (see [`Filled::confidence`]): 0 outside the mask,
+/// 0..=255 inside, at least [`CONFIDENT`] where the fill is sure the pixel shows the
+/// building.
+pub type Confidence = Plane<u8>;
+/// The confidence from which a filled pixel counts as sure.
+pub const CONFIDENT: u8 = 128;
+/// The confidence of a pixel the single-image fallback invented.
+const INVENTED: f32 = 0.2;
 
 /// One aligned view, as the fill sees it. Its pixels are [`RgbF32`] by default, or 8-bit
 /// ([`crate::imaging::Rgb8`], a quarter of the memory; the result is the same as with their
@@ -50,6 +61,7 @@ pub struct Source<'a, P: RgbPixel = [f32; 3]> {
 pub enum Stage {
     Warp,
     Photometric,
+    Occlusion,
     Fill,
     Fallback,
     Blend,
@@ -60,6 +72,7 @@ impl Stage {
         match self {
             Self::Warp => "warp",
             Self::Photometric => "photometric",
+            Self::Occlusion => "occlusion",
             Self::Fill => "fill",
             Self::Fallback => "fallback",
             Self::Blend => "blend",
@@ -105,6 +118,11 @@ pub struct FillReport {
     pub sources: Vec<SourceReport>,
     /// Masked pixels the single-image fallback filled.
     pub fallback: usize,
+    /// Masked pixels whose confidence is at least [`CONFIDENT`].
+    pub confident: usize,
+    /// Sum of the masked pixels' confidences (0..=1 each): with `masked`, the result's
+    /// expected share of pixels that show the building.
+    pub confidence_sum: f64,
 }
 
 impl FillReport {
@@ -114,6 +132,24 @@ impl FillReport {
             return 1.0;
         }
         self.sources.iter().map(|s| s.filled).sum::<usize>() as f64 / self.masked as f64
+    }
+
+    /// Share of the mask the fill is sure of (confidence at least [`CONFIDENT`]; 1 for an
+    /// empty mask).
+    pub fn confident_share(&self) -> f64 {
+        if self.masked == 0 { 1.0 } else { self.confident as f64 / self.masked as f64 }
+    }
+
+    /// Share of the mask that was invented (fallback) or filled from views without
+    /// confidence: what a person should look at.
+    pub fn doubtful_share(&self) -> f64 {
+        1.0 - self.confident_share()
+    }
+
+    /// Mean confidence over the mask (1 for an empty mask): the result's expected quality,
+    /// what a new result must beat to be published.
+    pub fn expected_quality(&self) -> f64 {
+        if self.masked == 0 { 1.0 } else { self.confidence_sum / self.masked as f64 }
     }
 }
 
@@ -129,12 +165,15 @@ pub struct FillParams {
     /// Candidate patches are searched up to this many pixels around the homography's
     /// prediction (misregistration, parallax); 0 trusts the homography exactly.
     pub search_radius: usize,
-    /// Occlusion reasoning: a candidate that disagrees with the other views' consensus
-    /// (it sees its own tree there) is penalised by `occlusion_weight`.
+    /// Occlusion reasoning ([`occlusion`]): a candidate the model thinks shows an occluder
+    /// is penalised by `occlusion_weight`, and a pixel it is fairly sure of is not copied at
+    /// all. Off, every view is taken at its word (and the confidence believes it too).
     pub occlusion: bool,
-    /// Penalty per unit of squared RGB disagreement with the consensus (see
-    /// [`multiview::MultiviewParams::occlusion_weight`]).
+    /// Cost of a candidate per unit of occlusion probability, in the SSD's units (squared
+    /// RGB per pixel, see [`multiview::MultiviewParams::occlusion_weight`]).
     pub occlusion_weight: f32,
+    /// The model of who sees what.
+    pub occlusion_model: OcclusionParams,
     /// Per-view gain and offset fitted on a ring of keyframe pixels around the hole.
     pub photometric: bool,
     /// The ring starts this many pixels away from the hole (skips the occluder's halo)...
@@ -162,7 +201,8 @@ impl Default for FillParams {
             copy_radius: 8,
             search_radius: 2,
             occlusion: true,
-            occlusion_weight: 1.0,
+            occlusion_weight: 0.1,
+            occlusion_model: OcclusionParams::default(),
             photometric: true,
             ring_gap: 2,
             ring_width: 6,
@@ -194,11 +234,15 @@ impl FillParams {
     }
 }
 
-/// A filled keyframe: the image, where each pixel came from, and the figures.
+/// A filled keyframe: the image, where each pixel came from, how sure the fill is of it,
+/// and the figures.
 #[derive(Debug, Clone)]
 pub struct Filled {
     pub image: RgbF32,
     pub provenance: Provenance,
+    /// Keyframe-sized: 0 outside the mask; inside, how sure the fill is that the pixel
+    /// shows the building (255 · probability; see [`CONFIDENT`]).
+    pub confidence: Confidence,
     pub report: FillReport,
 }
 
@@ -226,12 +270,13 @@ pub fn fill<P: RgbPixel>(
     let mut report = FillReport {
         masked,
         sources: vec![SourceReport { gain: [1.0; 3], ..SourceReport::default() }; nv],
-        fallback: 0,
+        ..FillReport::default()
     };
     let mut image = key.clone();
     let mut provenance = Provenance::new(w, h, KEYFRAME);
+    let mut confidence = Confidence::new(w, h, 0);
     if masked == 0 {
-        return Filled { image, provenance, report };
+        return Filled { image, provenance, confidence, report };
     }
     let parts = regions(mask, params.margin(), params.ring_gap, params.ring_width);
 
@@ -253,7 +298,7 @@ pub fn fill<P: RgbPixel>(
 
     // Photometric: one gain per view from the rings around all regions.
     if observer.cancelled() {
-        return Filled { image, provenance, report };
+        return Filled { image, provenance, confidence, report };
     }
     observer.stage(Stage::Photometric);
     if params.photometric {
@@ -287,21 +332,36 @@ pub fn fill<P: RgbPixel>(
         }
     }
 
+    // Occlusion: who sees what, per region, view and pixel.
+    if observer.cancelled() {
+        return Filled { image, provenance, confidence, report };
+    }
+    observer.stage(Stage::Occlusion);
+    let maps: Vec<OcclusionMap> = parts
+        .par_iter()
+        .zip(warps.par_iter())
+        .map(|(part, ws)| region_model(key, part, ws, params))
+        .collect();
+
     // Fill: regions in parallel, in batches so that progress can be told.
     if observer.cancelled() {
-        return Filled { image, provenance, report };
+        return Filled { image, provenance, confidence, report };
     }
     observer.stage(Stage::Fill);
     let mparams = params.multiview();
     let mut results: Vec<RegionFill> = Vec::with_capacity(parts.len());
     let batch = rayon::current_num_threads().max(1);
     let mut done = 0;
-    for (pb, wb) in parts.chunks(batch).zip(warps.chunks(batch)) {
+    for ((pb, wb), mb) in parts.chunks(batch).zip(warps.chunks(batch)).zip(maps.chunks(batch)) {
         if observer.cancelled() {
             break;
         }
-        let out: Vec<RegionFill> =
-            pb.par_iter().zip(wb.par_iter()).map(|(part, ws)| fill_one(key, part, ws, &mparams)).collect();
+        let out: Vec<RegionFill> = pb
+            .par_iter()
+            .zip(wb.par_iter())
+            .zip(mb.par_iter())
+            .map(|((part, ws), map)| fill_one(key, part, ws, map, &mparams, params))
+            .collect();
         done += pb.iter().map(|p| p.holes).sum::<usize>();
         results.extend(out);
         observer.progress(done, masked);
@@ -313,6 +373,7 @@ pub fn fill<P: RgbPixel>(
                 let (x, y) = (part.rect.x + i % rw, part.rect.y + i / rw);
                 image.set(x, y, res.pixels[i]);
                 provenance.set(x, y, 1 + pk.view);
+                confidence.set(x, y, to_byte(res.confidence[i]));
                 report.sources[pk.view as usize].filled += 1;
             }
         }
@@ -320,7 +381,7 @@ pub fn fill<P: RgbPixel>(
 
     // Fallback: what no view saw, from the image itself (with the views' fill as context).
     if observer.cancelled() {
-        return Filled { image, provenance, report };
+        return Filled { image, provenance, confidence, report };
     }
     observer.stage(Stage::Fallback);
     let mut pending = Mask::new(w, h, 0);
@@ -349,10 +410,23 @@ pub fn fill<P: RgbPixel>(
             observer.progress(k + 1, parts.len());
         }
     }
+    for y in 0..h {
+        for (x, &p) in provenance.row(y).iter().enumerate() {
+            if p == FALLBACK {
+                confidence.set(x, y, to_byte(INVENTED));
+            }
+        }
+    }
+    for (&m, &c) in mask.as_slice().iter().zip(confidence.as_slice()) {
+        if m > 127 {
+            report.confident += usize::from(c >= CONFIDENT);
+            report.confidence_sum += f64::from(c) / 255.0;
+        }
+    }
 
     // Blend: each region's fill into the keyframe, guided by its views' own gradients.
     if observer.cancelled() {
-        return Filled { image, provenance, report };
+        return Filled { image, provenance, confidence, report };
     }
     observer.stage(Stage::Blend);
     if params.blend {
@@ -391,7 +465,11 @@ pub fn fill<P: RgbPixel>(
             }
         }
     }
-    Filled { image, provenance, report }
+    Filled { image, provenance, confidence, report }
+}
+
+fn to_byte(c: f32) -> u8 {
+    (c.clamp(0.0, 1.0) * 255.0).round() as u8
 }
 
 /// One connected part of the hole with the margin around it that the fill reads.
@@ -503,9 +581,45 @@ struct RegionFill {
     pixels: Vec<[f32; 3]>,
     state: Vec<u8>,
     pick: Vec<Pick>,
+    /// How sure the fill is of each filled pixel (0..=1).
+    confidence: Vec<f32>,
 }
 
-fn fill_one(key: &RgbF32, part: &Part, warps: &[Warped], params: &MultiviewParams) -> RegionFill {
+/// The occlusion model over one region (all zeros with the model switched off).
+fn region_model(key: &RgbF32, part: &Part, warps: &[Warped], params: &FillParams) -> OcclusionMap {
+    let r = part.rect;
+    let n = r.area();
+    if !params.occlusion {
+        return OcclusionMap {
+            occluded: vec![vec![0.0; n]; warps.len()],
+            independence: vec![1.0; warps.len()],
+        };
+    }
+    let mut pixels = Vec::with_capacity(n);
+    for y in 0..r.height {
+        pixels.extend_from_slice(&key.row(r.y + y)[r.x..r.x + r.width]);
+    }
+    let refs: Vec<_> = warps.iter().map(|wv| (wv.image.as_slice(), wv.valid.as_slice())).collect();
+    let input = RegionInput {
+        width: r.width,
+        height: r.height,
+        key: &pixels,
+        hole: part.hole.as_slice(),
+        need: part.need.as_slice(),
+        blocked: part.blocked.as_slice(),
+        views: &refs,
+    };
+    occlusion_map(&input, &params.occlusion_model)
+}
+
+fn fill_one(
+    key: &RgbF32,
+    part: &Part,
+    warps: &[Warped],
+    map: &OcclusionMap,
+    params: &MultiviewParams,
+    fill_params: &FillParams,
+) -> RegionFill {
     let r = part.rect;
     let n = r.area();
     let mut pixels = Vec::with_capacity(n);
@@ -523,21 +637,53 @@ fn fill_one(key: &RgbF32, part: &Part, warps: &[Warped], params: &MultiviewParam
         }
     }
     let mut pick = vec![Pick::NONE; n];
-    let occ: Vec<Vec<f32>> = if params.occlusion_weight > 0.0 {
-        let refs: Vec<_> = warps.iter().map(|wv| (wv.image.as_slice(), wv.valid.as_slice())).collect();
-        occlusion_costs(&refs, part.need.as_slice(), r.width, OCCLUSION_TRUNCATE)
-    } else {
-        vec![vec![0.0; n]; warps.len()]
-    };
+    let refs: Vec<_> = warps.iter().map(|wv| (wv.image.as_slice(), wv.valid.as_slice())).collect();
+    let model = &fill_params.occlusion_model;
+    // A view's pixel the model thinks is an occluder is not there to copy, unless no view
+    // does better there and the model is not sure (then it is copied, and flagged).
+    let least: Vec<f32> = (0..n)
+        .map(|i| {
+            warps
+                .iter()
+                .zip(&map.occluded)
+                .filter(|(wv, _)| wv.valid.as_slice()[i])
+                .map(|(_, o)| o[i])
+                .fold(f32::INFINITY, f32::min)
+        })
+        .collect();
+    let seen: Vec<Vec<bool>> = warps
+        .iter()
+        .zip(&map.occluded)
+        .map(|(wv, o)| {
+            (0..n)
+                .map(|i| {
+                    let p = o[i];
+                    wv.valid.as_slice()[i] && (p <= model.cut || (p <= model.sure && p <= least[i]))
+                })
+                .collect()
+        })
+        .collect();
     let views: Vec<ViewData<'_>> = warps
         .iter()
-        .zip(&occ)
-        .map(|(wv, o)| ViewData { image: wv.image.as_slice(), valid: wv.valid.as_slice(), occlusion: o })
+        .zip(&map.occluded)
+        .zip(&seen)
+        .map(|((wv, o), s)| ViewData { image: wv.image.as_slice(), valid: s, occlusion: o })
         .collect();
     let mut region =
         Region { width: r.width, height: r.height, pixels: &mut pixels, state: &mut state, pick: &mut pick };
     fill_region(&mut region, &views, params);
-    RegionFill { pixels, state, pick }
+    let confidence: Vec<f32> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            if state[i] != multiview::FILLED {
+                return 0.0;
+            }
+            let p = pick[i];
+            let at = (i as isize + p.dy as isize * r.width as isize + p.dx as isize) as usize;
+            occlusion::confidence(map, &refs, p.view as usize, at, i, r.width, pixels[i])
+        })
+        .collect();
+    RegionFill { pixels, state, pick, confidence }
 }
 
 /// The gain fit sees at most about this many ring pixels per view (evenly spread).
@@ -547,9 +693,6 @@ const GAIN_SAMPLES: usize = 12_000;
 const BORDER_MEDIAN: usize = 5;
 /// The largest step between two views' colours that blending removes at a seam inside.
 const SEAM_STEP: f32 = 0.03;
-
-/// Squared RGB disagreement with the consensus beyond which a view is simply "occluded".
-const OCCLUSION_TRUNCATE: f32 = 0.1;
 
 /// The single-image fallback for the pending pixels of `rect`, on a crop with context;
 /// returns how many it filled.

@@ -222,7 +222,7 @@ pub async fn legend(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<
     Ok(Json(json!({
         "result": number,
         "legend": x.legend,
-        "meaning": "value 0: the keyframe's own pixel (transparent); 1 + i: filled from view i; 65535: the fallback (no view saw it)",
+        "meaning": "value 0: the keyframe's own pixel (transparent); 1 + i: filled from view i; 65534: filled from a view but doubtful (confidence below 128: it may show an occluder, or the views disagree); 65535: the fallback (no view saw it)",
     }))
     .into_response())
 }

@@ -1,0 +1,587 @@
+//! Who sees what: per view and per keyframe pixel of a region, the probability that the view
+//! shows something standing in front of the building there, and from it how sure the fill
+//! can be of each pixel it fills (pure layer).
+//!
+//! Four kinds of evidence, each measured on the region's warped, compensated views and
+//! combined as log-odds (none is enough alone):
+//! - **consensus**: the share of the *other* views that agree with this one at the pixel,
+//!   each view weighted by how independent it is (two shots from the same spot agree on
+//!   their tree as much as on the wall, so near-duplicates share one vote);
+//! - **resemblance to the keyframe's masked content**: inside the mask the keyframe shows
+//!   the occluder; a view that shows the same colours there, where those colours belong to
+//!   the occluder and not to the building around it, shows the same occluder;
+//! - **the view's own occluders, followed into the mask**: outside the mask the keyframe
+//!   shows the building, so where the view disagrees with it there the view has something in
+//!   front; such an object is connected, so it is grown into the mask through the view's
+//!   pixels that look like it rather than like the building;
+//! - **the building's own colours**: the keyframe's unmasked surroundings say what the
+//!   building looks like; a view's pixel unlike all of it is suspect (what carries one or
+//!   two views, where a consensus cannot be had).
+//!
+//! The fill uses the probabilities twice: as a cost when it chooses a view, and as a cut
+//! (a view's pixel that is probably an occluder is never copied: the pixel goes to another
+//! view or to the single-image fallback). [`confidence`] then says, per filled pixel, how
+//! sure the result is that it shows the building.
+
+use rayon::prelude::*;
+
+/// Parameters of the model. The defaults were set on the generated cases of
+/// `examples/honesty.rs` (planar, shared-occluder, non-planar families) and checked on the
+/// real photographs; see BENCHMARKS.md.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OcclusionParams {
+    /// Views are compared box-averaged over `(2·r + 1)²` (misregistration, noise).
+    pub blur_radius: usize,
+    /// RGB distance (Euclidean, 0..=√3) under which two views agree.
+    pub agree: f32,
+    /// A view differs from the keyframe outside the mask by more than this: it shows
+    /// something in front of the building there (a seed of its own occluder).
+    pub seed_distance: f32,
+    /// A view agreeing with the keyframe's pixel within this many pixels of it is not
+    /// disagreeing there (the fill's local search absorbs that much misregistration).
+    pub shift_tolerance: usize,
+    /// Seeds count only in connected groups of at least this many pixels (an object, not
+    /// the misregistration of an edge).
+    pub min_object: usize,
+    /// Log-odds weights of the evidence.
+    pub w_consensus: f32,
+    pub w_resemblance: f32,
+    pub w_own: f32,
+    pub w_foreign: f32,
+    /// Log-odds before any evidence (negative: a view shows the building unless told).
+    pub prior: f32,
+    /// A view's pixel with an occlusion probability above this is not copied while another
+    /// view's pixel there is below it...
+    pub cut: f32,
+    /// ...and not at all above this one: where every view is doubtful, the least doubtful
+    /// is copied (and flagged) rather than invented, unless the model is this sure it shows
+    /// an occluder.
+    pub sure: f32,
+}
+
+impl Default for OcclusionParams {
+    fn default() -> Self {
+        Self {
+            blur_radius: 2,
+            agree: 0.1,
+            seed_distance: 0.2,
+            shift_tolerance: 2,
+            min_object: 24,
+            w_consensus: 4.0,
+            w_resemblance: 4.0,
+            w_own: 4.0,
+            w_foreign: 1.5,
+            prior: -0.75,
+            cut: 0.85,
+            sure: 0.95,
+        }
+    }
+}
+
+/// Colour histogram bins per channel (8 levels: 512 bins, coarse enough to generalise).
+const LEVELS: usize = 8;
+
+#[inline]
+fn bin(p: [f32; 3]) -> usize {
+    let q = |v: f32| ((v.clamp(0.0, 0.9999) * LEVELS as f32) as usize).min(LEVELS - 1);
+    (q(p[0]) * LEVELS + q(p[1])) * LEVELS + q(p[2])
+}
+
+#[inline]
+fn dist(a: [f32; 3], b: [f32; 3]) -> f32 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+#[inline]
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// A normalised colour histogram with its neighbouring bins blurred in (so that a colour
+/// just across a bin edge is not "never seen").
+#[derive(Debug, Clone)]
+struct Histogram {
+    p: Vec<f32>,
+}
+
+impl Histogram {
+    fn new(colours: impl Iterator<Item = [f32; 3]>) -> Self {
+        let mut raw = vec![0.0f32; LEVELS * LEVELS * LEVELS];
+        let mut n = 0.0;
+        for c in colours {
+            raw[bin(c)] += 1.0;
+            n += 1.0;
+        }
+        let l = LEVELS as isize;
+        let mut p = vec![0.0f32; raw.len()];
+        for r in 0..l {
+            for g in 0..l {
+                for b in 0..l {
+                    let mut s = 0.0;
+                    for (dr, dg, db) in
+                        [(0, 0, 0), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)]
+                    {
+                        let (rr, gg, bb) = (r + dr, g + dg, b + db);
+                        if (0..l).contains(&rr) && (0..l).contains(&gg) && (0..l).contains(&bb) {
+                            let wgt = if (dr, dg, db) == (0, 0, 0) { 1.0 } else { 0.25 };
+                            s += wgt * raw[((rr * l + gg) * l + bb) as usize];
+                        }
+                    }
+                    p[((r * l + g) * l + b) as usize] = s;
+                }
+            }
+        }
+        let total: f32 = p.iter().sum();
+        if n > 0.0 && total > 0.0 {
+            p.iter_mut().for_each(|v| *v /= total);
+        }
+        Self { p }
+    }
+
+    fn prob(&self, c: [f32; 3]) -> f32 {
+        self.p[bin(c)]
+    }
+}
+
+/// One region's inputs: the keyframe's pixels and the region's masks (all `width × height`),
+/// the views warped and compensated over it.
+#[derive(Debug, Clone, Copy)]
+pub struct RegionInput<'a> {
+    pub width: usize,
+    pub height: usize,
+    pub key: &'a [[f32; 3]],
+    /// Pixels to fill.
+    pub hole: &'a [bool],
+    /// Pixels the views were warped over (the hole and its margin).
+    pub need: &'a [bool],
+    /// Other regions' hole pixels (neither building nor ours).
+    pub blocked: &'a [bool],
+    pub views: &'a [(&'a [[f32; 3]], &'a [bool])],
+}
+
+/// The model over one region.
+#[derive(Debug, Clone)]
+pub struct OcclusionMap {
+    /// Per view, region-sized: probability that the view shows an occluder at the pixel
+    /// (0 where it does not cover it).
+    pub occluded: Vec<Vec<f32>>,
+    /// Per view, its weight as an independent witness (1 for a view unlike all others).
+    pub independence: Vec<f32>,
+}
+
+/// Box average over `(2r + 1)²` of the pixels `valid` marks (separable, O(1) per pixel).
+fn box_blur(img: &[[f32; 3]], valid: &[bool], w: usize, h: usize, r: usize) -> Vec<[f32; 3]> {
+    if r == 0 || w == 0 {
+        return img.to_vec();
+    }
+    let mut rows = vec![[0.0f32; 4]; w * h];
+    rows.par_chunks_mut(w).enumerate().for_each(|(y, out)| {
+        let mut acc = [0.0f32; 4];
+        let add = |acc: &mut [f32; 4], i: usize, s: f32| {
+            if valid[i] {
+                for c in 0..3 {
+                    acc[c] += s * img[i][c];
+                }
+                acc[3] += s;
+            }
+        };
+        for x in 0..r.min(w) {
+            add(&mut acc, y * w + x, 1.0);
+        }
+        for (x, o) in out.iter_mut().enumerate() {
+            if x + r < w {
+                add(&mut acc, y * w + x + r, 1.0);
+            }
+            if x > r {
+                add(&mut acc, y * w + x - r - 1, -1.0);
+            }
+            *o = acc;
+        }
+    });
+    let mut out = vec![[0.0f32; 3]; w * h];
+    // Columns: a running sum per column, rows in order.
+    let mut acc = vec![[0.0f32; 4]; w];
+    for y in 0..r.min(h) {
+        for x in 0..w {
+            for c in 0..4 {
+                acc[x][c] += rows[y * w + x][c];
+            }
+        }
+    }
+    for y in 0..h {
+        if y + r < h {
+            for x in 0..w {
+                for c in 0..4 {
+                    acc[x][c] += rows[(y + r) * w + x][c];
+                }
+            }
+        }
+        if y > r {
+            for x in 0..w {
+                for c in 0..4 {
+                    acc[x][c] -= rows[(y - r - 1) * w + x][c];
+                }
+            }
+        }
+        for x in 0..w {
+            let a = acc[x];
+            out[y * w + x] =
+                if a[3] > 0.5 { [a[0] / a[3], a[1] / a[3], a[2] / a[3]] } else { img[y * w + x] };
+        }
+    }
+    out
+}
+
+/// The weight of each view as an independent witness: views that agree with each other
+/// everywhere, their occluders included, came from (nearly) the same spot and share a vote.
+fn independence(blurred: &[Vec<[f32; 3]>], valid: &[&[bool]], need: &[bool], agree: f32) -> Vec<f32> {
+    let nv = blurred.len();
+    let mut twin = vec![vec![0.0f32; nv]; nv];
+    for a in 0..nv {
+        for b in a + 1..nv {
+            let (mut both, mut differ) = (0usize, 0usize);
+            for i in (0..need.len()).step_by(3) {
+                if need[i] && valid[a][i] && valid[b][i] {
+                    both += 1;
+                    if dist(blurred[a][i], blurred[b][i]) > 0.5 * agree {
+                        differ += 1;
+                    }
+                }
+            }
+            // Independent shots of a wall differ by noise, resampling and parallax at the
+            // edges; shots from one spot differ by almost nothing.
+            let frac = if both > 0 { differ as f32 / both as f32 } else { 1.0 };
+            let t = (1.0 - frac / 0.03).clamp(0.0, 1.0);
+            twin[a][b] = t;
+            twin[b][a] = t;
+        }
+    }
+    (0..nv).map(|a| 1.0 / (1.0 + twin[a].iter().sum::<f32>())).collect()
+}
+
+/// 4-connected components of `seed` with at least `min` pixels.
+fn objects(seed: &[bool], w: usize, h: usize, min: usize) -> Vec<bool> {
+    let mut out = vec![false; seed.len()];
+    let mut seen = vec![false; seed.len()];
+    let mut stack = Vec::new();
+    let mut members = Vec::new();
+    for s in 0..seed.len() {
+        if !seed[s] || seen[s] {
+            continue;
+        }
+        seen[s] = true;
+        stack.push(s);
+        members.clear();
+        while let Some(i) = stack.pop() {
+            members.push(i);
+            let (x, y) = (i % w, i / w);
+            let mut visit = |j: usize| {
+                if seed[j] && !seen[j] {
+                    seen[j] = true;
+                    stack.push(j);
+                }
+            };
+            if x > 0 {
+                visit(i - 1);
+            }
+            if x + 1 < w {
+                visit(i + 1);
+            }
+            if y > 0 {
+                visit(i - w);
+            }
+            if y + 1 < h {
+                visit(i + w);
+            }
+        }
+        if members.len() >= min {
+            for &i in &members {
+                out[i] = true;
+            }
+        }
+    }
+    out
+}
+
+/// Grows `from` through the pixels `allowed` marks (4-connected).
+fn grow(from: &[bool], allowed: &[bool], w: usize, h: usize) -> Vec<bool> {
+    let mut out = from.to_vec();
+    let mut stack: Vec<usize> = (0..from.len()).filter(|&i| from[i]).collect();
+    while let Some(i) = stack.pop() {
+        let (x, y) = (i % w, i / w);
+        let mut visit = |j: usize| {
+            if allowed[j] && !out[j] {
+                out[j] = true;
+                stack.push(j);
+            }
+        };
+        if x > 0 {
+            visit(i - 1);
+        }
+        if x + 1 < w {
+            visit(i + 1);
+        }
+        if y > 0 {
+            visit(i - w);
+        }
+        if y + 1 < h {
+            visit(i + w);
+        }
+    }
+    out
+}
+
+/// The model over one region (see the module docs).
+pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> OcclusionMap {
+    let (w, h) = (input.width, input.height);
+    let n = w * h;
+    let nv = input.views.len();
+    let r = params.blur_radius;
+    let all = vec![true; n];
+    let key_b = box_blur(input.key, &all, w, h, r);
+    let valid: Vec<&[bool]> = input.views.iter().map(|v| v.1).collect();
+    let views_b: Vec<Vec<[f32; 3]>> =
+        input.views.par_iter().map(|(img, ok)| box_blur(img, ok, w, h, r)).collect();
+    let ind = independence(&views_b, &valid, input.need, params.agree);
+    // Per pixel, each view's support among the others (weighted share agreeing with it),
+    // and the best support any view has there: a view is an outlier only where others
+    // agree among themselves; where nobody agrees with anybody (an edge off, parallax) the
+    // consensus says nothing.
+    let support: Vec<Vec<f32>> = (0..nv)
+        .into_par_iter()
+        .map(|v| {
+            (0..n)
+                .map(|i| {
+                    if !valid[v][i] || !input.need[i] {
+                        return 0.0;
+                    }
+                    let (mut wsum, mut agree) = (0.0f32, 0.0f32);
+                    for u in 0..nv {
+                        if u != v && valid[u][i] {
+                            wsum += ind[u];
+                            if dist(views_b[u][i], views_b[v][i]) < params.agree {
+                                agree += ind[u];
+                            }
+                        }
+                    }
+                    if wsum > 0.0 { agree / wsum } else { 0.0 }
+                })
+                .collect()
+        })
+        .collect();
+    let witnesses: Vec<f32> =
+        (0..n).map(|i| (0..nv).filter(|&u| valid[u][i]).map(|u| ind[u]).sum::<f32>()).collect();
+    let best: Vec<f32> = (0..n).map(|i| (0..nv).map(|v| support[v][i]).fold(0.0, f32::max)).collect();
+
+    // The building: the keyframe around the hole. The occluder: the keyframe inside it.
+    let around: Vec<bool> = (0..n).map(|i| input.need[i] && !input.hole[i] && !input.blocked[i]).collect();
+    let building = Histogram::new((0..n).filter(|&i| around[i]).map(|i| input.key[i]));
+    let inner = super::automask::erode(&crate::imaging::Plane::from_vec(w, h, input.hole.to_vec()), 2);
+    let occluder = Histogram::new((0..n).filter(|&i| inner.as_slice()[i]).map(|i| input.key[i]));
+    // How much a colour belongs to the keyframe's occluder rather than to its building.
+    let occluder_like = |c: [f32; 3]| -> f32 {
+        let (o, b) = (occluder.prob(c), building.prob(c));
+        (o / (o + b + 1e-4)).clamp(0.0, 1.0) * (o / (o + 1e-3)).min(1.0)
+    };
+    // How foreign a colour is to the building around the hole (0 common .. 1 never seen).
+    let foreign = |c: [f32; 3]| -> f32 { 1.0 - (building.prob(c) / 2e-3).min(1.0) };
+
+    let occluded: Vec<Vec<f32>> = (0..nv)
+        .into_par_iter()
+        .map(|v| {
+            let (img_b, ok) = (&views_b[v], valid[v]);
+            // The view's own occluders: where it disagrees with the keyframe's building...
+            // (at every shift the fill's local search could take: a view a pixel or two
+            // off is misregistered there, not occluded)
+            let s = params.shift_tolerance as isize;
+            let seeds: Vec<bool> = (0..n)
+                .map(|i| {
+                    if !(around[i] && ok[i]) {
+                        return false;
+                    }
+                    let (x, y) = ((i % w) as isize, (i / w) as isize);
+                    !(-s..=s).any(|dy| {
+                        (-s..=s).any(|dx| {
+                            let (xx, yy) = (x + dx, y + dy);
+                            if xx < 0 || yy < 0 || xx >= w as isize || yy >= h as isize {
+                                return false;
+                            }
+                            let j = yy as usize * w + xx as usize;
+                            ok[j] && dist(img_b[j], key_b[i]) <= params.seed_distance
+                        })
+                    })
+                })
+                .collect();
+            // Thin lines of disagreement are edges a little off (parallax, registration): an
+            // object survives an erosion.
+            let core = super::automask::erode(&crate::imaging::Plane::from_vec(w, h, seeds), 1);
+            let seeds = objects(core.as_slice(), w, h, params.min_object);
+            let own = if seeds.iter().any(|&s| s) {
+                // ...followed into the hole through pixels that look like the object.
+                let object = Histogram::new((0..n).filter(|&i| seeds[i]).map(|i| input.views[v].0[i]));
+                let allowed: Vec<bool> = (0..n)
+                    .map(|i| {
+                        input.hole[i] && ok[i] && {
+                            let c = input.views[v].0[i];
+                            object.prob(c) > 2.0 * building.prob(c) + 1e-4
+                        }
+                    })
+                    .collect();
+                grow(&seeds, &allowed, w, h)
+            } else {
+                vec![false; n]
+            };
+            (0..n)
+                .map(|i| {
+                    if !ok[i] || !input.need[i] {
+                        return 0.0;
+                    }
+                    let c = img_b[i];
+                    let mut l = params.prior;
+                    // Consensus of the other views, by independence. One other view cannot
+                    // say which of the two is occluded; the consensus carries weight from
+                    // two other witnesses, fully from three.
+                    let others = witnesses[i] - ind[v];
+                    let trust = ((others - 0.5) / 2.5).clamp(0.0, 1.0);
+                    l += params.w_consensus * trust * (best[i] - support[v][i] - 0.5 * best[i]) * 2.0;
+                    if input.hole[i] {
+                        // The keyframe's own occluder, seen again.
+                        // At the same place, or anywhere: colours the keyframe's occluder has
+                        // and its building has not (a tree shifted by parallax is still green).
+                        let same = (1.0 - dist(c, key_b[i]) / params.agree).clamp(0.0, 1.0);
+                        let kind = (2.0 * occluder_like(c) - 1.0).max(0.0);
+                        l += params.w_resemblance * (same * occluder_like(key_b[i])).max(kind);
+                    }
+                    if own[i] {
+                        l += params.w_own;
+                    }
+                    l += params.w_foreign * (foreign(c) - 0.5);
+                    sigmoid(l)
+                })
+                .collect()
+        })
+        .collect();
+    OcclusionMap { occluded, independence: ind }
+}
+
+/// How sure the fill is that a filled pixel shows the building, and right (0..=1): the
+/// picked view's occlusion probability at the pixel it was copied from, times the support of
+/// the other views that see the building there, each at its own registration, at the pixel
+/// itself (their spread is what misregistration and parallax do to an edge). With no such
+/// witness, the picked view's own local contrast stands in: an edge half a pixel off is as
+/// wrong as half its step.
+///
+/// `value` is the filled colour (after compensation, before blending); `at` the pixel of the
+/// picked view it came from (the prediction shifted by the local search); `width` the
+/// region's.
+#[allow(clippy::too_many_arguments)]
+pub fn confidence(
+    map: &OcclusionMap,
+    views: &[(&[[f32; 3]], &[bool])],
+    picked: usize,
+    at: usize,
+    i: usize,
+    width: usize,
+    value: [f32; 3],
+) -> f32 {
+    let own = 1.0 - map.occluded[picked][at];
+    let (mut wsum, mut agree) = (0.0f32, 0.0f32);
+    for (u, (img, ok)) in views.iter().enumerate() {
+        if u == picked || !ok[i] {
+            continue;
+        }
+        // A witness counts as far as it is itself not occluded there.
+        let wgt = map.independence[u] * (1.0 - map.occluded[u][i]);
+        wsum += wgt;
+        agree += wgt * closeness(max_channel(img[i], value));
+    }
+    // The picked view's own contrast: an edge is wrong by a fraction of its step for every
+    // fraction of a pixel the views are off (resampling, registration), however well the
+    // witnesses agree (they are all resampled alike).
+    let (img, ok) = views[picked];
+    let mut step = 0.0f32;
+    for j in [at.wrapping_sub(1), at + 1, at.wrapping_sub(width), at + width] {
+        if j < img.len() && ok[j] {
+            step = step.max(max_channel(img[j], img[at]));
+        }
+    }
+    let edge = closeness(EDGE_SHARE * step);
+    // Without witnesses, the view alone (as sure as that can be).
+    let support = (agree + SOLE_WITNESS * (WITNESSES - wsum).max(0.0)) / wsum.max(WITNESSES);
+    own * support.clamp(0.0, 1.0) * edge
+}
+
+/// Witness weight from which the witnesses alone decide.
+const WITNESSES: f32 = 0.5;
+/// The share of an edge's step taken as its expected error.
+const EDGE_SHARE: f32 = 0.25;
+
+/// The largest per-channel difference.
+#[inline]
+fn max_channel(a: [f32; 3], b: [f32; 3]) -> f32 {
+    (a[0] - b[0]).abs().max((a[1] - b[1]).abs()).max((a[2] - b[2]).abs())
+}
+
+/// 1 for a difference within [`CLOSE`], falling to 0 at [`FAR`] (8-bit levels / 255).
+#[inline]
+fn closeness(d: f32) -> f32 {
+    ((FAR - d) / (FAR - CLOSE)).clamp(0.0, 1.0)
+}
+
+/// Witnesses within this many levels agree...
+const CLOSE: f32 = 12.0 / 255.0;
+/// ...and from this many on disagree (a gross error is 30).
+const FAR: f32 = 36.0 / 255.0;
+
+/// The support a pixel seen by one view only gets at best.
+const SOLE_WITNESS: f32 = 0.8;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn region(w: usize, h: usize, hole: impl Fn(usize, usize) -> bool) -> (Vec<bool>, Vec<bool>, Vec<bool>) {
+        let hole: Vec<bool> = (0..w * h).map(|i| hole(i % w, i / w)).collect();
+        (hole, vec![true; w * h], vec![false; w * h])
+    }
+
+    #[test]
+    fn blur_averages_only_valid_pixels() {
+        let img = vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 1.0]];
+        let valid = vec![true, false, true, true];
+        let b = box_blur(&img, &valid, 2, 2, 1);
+        for p in &b {
+            assert!((p[0] - 2.0 / 3.0).abs() < 1e-6 && (p[1] - 1.0 / 3.0).abs() < 1e-6, "{p:?}");
+        }
+    }
+
+    #[test]
+    fn a_view_showing_the_keyframes_occluder_is_occluded_and_a_clean_one_is_not() {
+        // A grey-brown wall with stripes; the keyframe has a green square in the middle.
+        let (w, h) = (40, 40);
+        let wall =
+            |x: usize, _y: usize| if (x / 3).is_multiple_of(2) { [0.6, 0.45, 0.35] } else { [0.5, 0.4, 0.3] };
+        let in_sq = |x: usize, y: usize| (14..26).contains(&x) && (14..26).contains(&y);
+        let key: Vec<[f32; 3]> = (0..w * h)
+            .map(|i| if in_sq(i % w, i / w) { [0.1, 0.6, 0.1] } else { wall(i % w, i / w) })
+            .collect();
+        let (hole, need, blocked) = region(w, h, |x, y| (12..28).contains(&x) && (12..28).contains(&y));
+        let clean: Vec<[f32; 3]> = (0..w * h).map(|i| wall(i % w, i / w)).collect();
+        let same = key.clone();
+        let ok = vec![true; w * h];
+        let views = [(clean.as_slice(), ok.as_slice()), (same.as_slice(), ok.as_slice())];
+        let input = RegionInput {
+            width: w,
+            height: h,
+            key: &key,
+            hole: &hole,
+            need: &need,
+            blocked: &blocked,
+            views: &views,
+        };
+        let m = occlusion_map(&input, &OcclusionParams::default());
+        let c = 20 * w + 20;
+        assert!(m.occluded[0][c] < 0.3, "clean view {}", m.occluded[0][c]);
+        assert!(m.occluded[1][c] > 0.7, "the view with the keyframe's occluder {}", m.occluded[1][c]);
+    }
+}

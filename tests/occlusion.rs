@@ -1,0 +1,96 @@
+//! The occlusion model on generated cases whose every occluder is known
+//! (`synth::occlusion_case`): the fill with the model beats the fill that takes every view
+//! at its word, and its confidence map is honest about its gross errors. Each assertion is
+//! checked against the model bypassed too, so that these tests fail without it.
+//!
+//! The full figures (more seeds, larger images, per family): `cargo run --release --example
+//! honesty` (BENCHMARKS.md).
+
+use clearview::imaging::metrics::{Honesty, honesty, masked_psnr};
+use clearview::inpaint::{CONFIDENT, FillParams, Filled, Source, fill};
+use clearview::synth::{CaseFamily, OcclusionCase, occlusion_case};
+
+fn run(c: &OcclusionCase, params: &FillParams) -> Filled {
+    let sources: Vec<Source<'_>> = c
+        .views
+        .iter()
+        .zip(&c.homographies)
+        .map(|(image, &homography)| Source { image, homography })
+        .collect();
+    fill(&c.key, &c.mask, &sources, params, 1, &mut ())
+}
+
+fn figures(c: &OcclusionCase, params: &FillParams) -> (f64, Honesty) {
+    let f = run(c, params);
+    (masked_psnr(&f.image, &c.truth, &c.mask), honesty(&f.image, &c.truth, &c.mask, &f.confidence))
+}
+
+fn bypassed() -> FillParams {
+    FillParams { occlusion: false, ..FillParams::default() }
+}
+
+#[test]
+fn views_with_occluders_of_their_own_are_not_copied() {
+    // Planar: every view has a tree, person or car of its own, some over the keyframe's.
+    let (mut on, mut off) = (0.0, 0.0);
+    for seed in [1, 3] {
+        let c = occlusion_case(CaseFamily::Planar, 320, 240, 4, seed);
+        let (p_on, h) = figures(&c, &FillParams::default());
+        let (p_off, _) = figures(&c, &bypassed());
+        eprintln!("planar seed {seed}: model {p_on:.2} dB, bypassed {p_off:.2} dB, {h:?}");
+        on += p_on;
+        off += p_off;
+        assert!(h.confident_error_rate() <= 0.08, "seed {seed}: {h:?}");
+        assert!(h.confident_share() >= 0.5, "seed {seed}: {h:?}");
+    }
+    assert!(on / 2.0 > off / 2.0 + 2.0, "model {:.2} dB, bypassed {:.2} dB (means)", on / 2.0, off / 2.0);
+}
+
+#[test]
+fn a_shared_occluder_is_flagged_not_called_confident() {
+    // The keyframe's tree stands off the wall: every view shows it too, shifted. What no
+    // view sees must not be passed off as sure. Bypassed, the model's confidence believes
+    // every view, and the tree copied back is called confident.
+    let c = occlusion_case(CaseFamily::Shared, 320, 240, 4, 2);
+    let (p_on, h_on) = figures(&c, &FillParams::default());
+    let (p_off, h_off) = figures(&c, &bypassed());
+    eprintln!("shared: model {p_on:.2} dB {h_on:?}; bypassed {p_off:.2} dB {h_off:?}");
+    assert!(h_on.confident_error_rate() < 0.6 * h_off.confident_error_rate(), "{h_on:?} vs {h_off:?}");
+    assert!(p_on > p_off + 1.0, "model {p_on:.2} dB, bypassed {p_off:.2} dB");
+    // Where a view's true occluder was copied, the result says so.
+    let f = run(&c, &FillParams::default());
+    let (mut copied, mut flagged) = (0, 0);
+    for (v, occ) in c.view_occluders.iter().enumerate() {
+        for i in 0..occ.len() {
+            let p = f.provenance.as_slice()[i];
+            if c.mask.as_slice()[i] > 127 && occ.as_slice()[i] > 127 && usize::from(p) == v + 1 {
+                copied += 1;
+                flagged += usize::from(f.confidence.as_slice()[i] < CONFIDENT);
+            }
+        }
+    }
+    eprintln!("occluder pixels copied: {copied}, flagged {flagged}");
+    assert!(flagged as f64 >= 0.6 * copied as f64, "{flagged} of {copied} copied occluder pixels flagged");
+}
+
+#[test]
+fn confidence_is_zero_outside_the_mask_and_the_report_adds_up() {
+    let c = occlusion_case(CaseFamily::NonPlanar, 240, 180, 3, 4);
+    let f = run(&c, &FillParams::default());
+    let r = &f.report;
+    for (&m, &v) in c.mask.as_slice().iter().zip(f.confidence.as_slice()) {
+        if m <= 127 {
+            assert_eq!(v, 0);
+        }
+    }
+    let confident = f.confidence.as_slice().iter().filter(|&&v| v >= CONFIDENT).count();
+    assert_eq!(confident, r.confident);
+    assert!((r.confident_share() + r.doubtful_share() - 1.0).abs() < 1e-12);
+    assert!(r.expected_quality() > 0.0 && r.expected_quality() <= 1.0);
+    // Every pixel the fallback invented is doubtful.
+    for (i, &p) in f.provenance.as_slice().iter().enumerate() {
+        if p == clearview::inpaint::FALLBACK {
+            assert!(f.confidence.as_slice()[i] < CONFIDENT);
+        }
+    }
+}
