@@ -21,9 +21,9 @@
 //!   match ambiguously, and jumping there from the detection octave starved the matching
 //!   (hunt3→hunt4: 170 inliers at native size, 57 and a rejection at 12 MP). Now a sharper
 //!   or larger image never does worse than the octave that suits it.
-//! - **More corners** (1500 on the finest detection level): pasted trees and cars are
-//!   richer in corners than a wall, and took most of a 500-corner budget; the descriptor
-//!   stage then found too few true matches (Oxford bark 1→5/1→6 with occluders).
+//! - (Not taken: more corners. 1000–1500 instead of 500 aligned more of the Oxford pairs
+//!   with pasted occluders, which take much of the corner budget, but moved wall 1→4 and
+//!   leuven 1→5 just past `tests/oxford_align.rs`'s 1 px; see BENCHMARKS.md.)
 //! - **Oriented, scale-normalised patches** for the putative matches (`features::descriptor`,
 //!   unchanged): SSD of patches sampled at the corner's pyramid scale and in its dominant
 //!   gradient orientation, so zoom and roll compare like with like.
@@ -79,7 +79,7 @@ impl Default for AlignParams {
             detect_max_pixels: 800_000,
             pyramid_levels: 8,
             harris: HarrisParams { border: 12, ..HarrisParams::default() },
-            corners: 1500,
+            corners: 500,
             descriptor: DescriptorParams::default(),
             matching: MatchParams::default(),
             coarse: RobustParams {
