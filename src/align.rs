@@ -112,12 +112,11 @@ pub struct Acceptance {
     /// the view). Matches of the same scene agree on one homography; matches forced onto
     /// another scene by a wrong model scatter over the search window and few agree.
     pub min_consistency: f64,
-    /// Inliers as a share of the keyframe points checked inside the view's footprint, for
-    /// a view that sees only part of the keyframe (less than [`PARTLY_SEEN`]): a weak
-    /// floor (occluders, sky and parallax leave many points unmatched).
+    /// Inliers as a share of the keyframe points checked inside the view's footprint. Not
+    /// lower: on a repetitive facade a wrong model matches a consistent few (two of
+    /// `tests/align_synthetic.rs`'s hard scenes, 85 of 85 matches agreeing, 20 % of those
+    /// checked, 196 px off), and roofs1→roofs2 at 12 MP was accepted 40 px off at 15 %.
     pub min_inlier_share: f64,
-    /// The same for a view that sees most of the keyframe.
-    pub min_inlier_share_in_full_view: f64,
     /// Area of the inliers' convex hull as a share of the keyframe.
     pub min_coverage: f64,
     /// Largest zoom between keyframe and view (either way), measured as the square root
@@ -130,8 +129,7 @@ impl Default for Acceptance {
         Self {
             min_inliers: 20,
             min_consistency: 0.35,
-            min_inlier_share: 0.1,
-            min_inlier_share_in_full_view: 0.25,
+            min_inlier_share: 0.2,
             min_coverage: 0.02,
             max_zoom: 8.0,
         }
@@ -545,12 +543,8 @@ fn verdict(acc: &Acceptance, h: &Homography, hull: &[Point2<f64>], e: &Evidence)
     if consistency < acc.min_consistency {
         return Some(Rejection::AnotherScene { inliers: e.inliers, matches: e.matches });
     }
-    // A view that sees most of the keyframe but matches little of it is suspect (a
-    // repetitive facade aliased by a wrong model matches a consistent few); one that sees
-    // a part of it is expected to leave the rest unmatched.
-    let share = if e.seen < PARTLY_SEEN { acc.min_inlier_share } else { acc.min_inlier_share_in_full_view };
-    if e.inliers < acc.min_inliers || (e.inliers as f64) < share * e.checked as f64 {
-        let needed = acc.min_inliers.max((share * e.checked as f64).ceil() as usize);
+    if e.inliers < acc.min_inliers || (e.inliers as f64) < acc.min_inlier_share * e.checked as f64 {
+        let needed = acc.min_inliers.max((acc.min_inlier_share * e.checked as f64).ceil() as usize);
         return Some(if e.seen < PARTLY_SEEN {
             Rejection::PartlySeen { inliers: e.inliers, needed, seen: e.seen }
         } else {
