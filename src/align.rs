@@ -16,7 +16,7 @@
 //!
 //! - **A pyramid level chosen per view.** Guided matching walks down one octave at a time
 //!   (an error of one sample at an octave is two at the next, inside the search window)
-//!   and stops at the finest octave whose estimate keeps its support ([`KEEP_FINER`]). A
+//!   and stops at the finest octave whose estimate keeps its support (`KEEP_FINER`). A
 //!   12 MP frame is rarely sharp at the pixel: its full-resolution patches are smooth and
 //!   match ambiguously, and jumping there from the detection octave starved the matching
 //!   (hunt3→hunt4: 170 inliers at native size, 57 and a rejection at 12 MP). Now a sharper
