@@ -7,9 +7,33 @@
 //! 3. a coarse homography by MSAC (tolerates the > 50 % outliers of hard pairs);
 //! 4. the paper's steps 2–3 proper: SSD (as normalised correlation) within a small region
 //!    around each predicted position, then LMedS with bucketing and a least-squares
-//!    refinement; first at the detection resolution, then at full resolution;
-//! 5. a verdict: enough inliers, a sane inlier share, inliers spread over a real part of
-//!    the frame, a well-conditioned map. Rejecting is always better than guessing.
+//!    refinement, octave by octave from the detection resolution towards full resolution;
+//! 5. a verdict: enough inliers, matches that agree on one geometry, inliers spread over a
+//!    real part of the frame, a well-conditioned map. Rejecting is always better than
+//!    guessing.
+//!
+//! # What was added to the paper's Harris + SSD + LMedS, and why (issue 13)
+//!
+//! - **A pyramid level chosen per view.** Guided matching walks down one octave at a time
+//!   (an error of one sample at an octave is two at the next, inside the search window)
+//!   and stops at the finest octave whose estimate keeps its support (`KEEP_FINER`). A
+//!   12 MP frame is rarely sharp at the pixel: its full-resolution patches are smooth and
+//!   match ambiguously, and jumping there from the detection octave starved the matching
+//!   (hunt3→hunt4: 170 inliers at native size, 57 and a rejection at 12 MP). Now a sharper
+//!   or larger image never does worse than the octave that suits it.
+//! - (Not taken: more corners. 1000–1500 instead of 500 aligned more of the Oxford pairs
+//!   with pasted occluders, which take much of the corner budget, but moved wall 1→4 and
+//!   leuven 1→5 just past `tests/oxford_align.rs`'s 1 px; see BENCHMARKS.md.)
+//! - **Oriented, scale-normalised patches** for the putative matches (`features::descriptor`,
+//!   unchanged): SSD of patches sampled at the corner's pyramid scale and in its dominant
+//!   gradient orientation, so zoom and roll compare like with like.
+//! - **A verdict that says what it saw** ([`Acceptance`]): a keyframe point outside the
+//!   view's footprint is never counted; the matched points must agree on one geometry
+//!   (another scene scatters), and each reason says "another scene", "the same scene,
+//!   partly seen" or "too few details", in a photographer's words. The floor on the share
+//!   of checked points that match stays at 20 %: lower floors accepted wrong models (a
+//!   repetitive facade aliased by a wrong model; roofs1→roofs2 at 12 MP 40 px off), so a
+//!   heavily occluded or partly seen view can still be refused (BENCHMARKS.md).
 
 use nalgebra::Point2;
 use rand::SeedableRng;
@@ -76,11 +100,22 @@ impl Default for AlignParams {
 }
 
 /// What a view must show to be accepted.
+///
+/// Judged on what the view can see: keyframe points outside the view's footprint are
+/// never counted. What separates another scene from the same scene partly seen is
+/// whether the points that did match agree on one geometry
+/// ([`Acceptance::min_consistency`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Acceptance {
     pub min_inliers: usize,
-    /// Inliers as a share of the keyframe points checked by guided matching (those that
-    /// land inside the view).
+    /// Inliers as a share of the guided matches (points that found a confident match in
+    /// the view). Matches of the same scene agree on one homography; matches forced onto
+    /// another scene by a wrong model scatter over the search window and few agree.
+    pub min_consistency: f64,
+    /// Inliers as a share of the keyframe points checked inside the view's footprint. Not
+    /// lower: on a repetitive facade a wrong model matches a consistent few (two of
+    /// `tests/align_synthetic.rs`'s hard scenes, 85 of 85 matches agreeing, 20 % of those
+    /// checked, 196 px off), and roofs1→roofs2 at 12 MP was accepted 40 px off at 15 %.
     pub min_inlier_share: f64,
     /// Area of the inliers' convex hull as a share of the keyframe.
     pub min_coverage: f64,
@@ -91,41 +126,103 @@ pub struct Acceptance {
 
 impl Default for Acceptance {
     fn default() -> Self {
-        Self { min_inliers: 20, min_inlier_share: 0.2, min_coverage: 0.04, max_zoom: 8.0 }
+        Self {
+            min_inliers: 20,
+            min_consistency: 0.35,
+            min_inlier_share: 0.2,
+            min_coverage: 0.02,
+            max_zoom: 8.0,
+        }
     }
+}
+
+/// A view that sees less than this share of the keyframe sees it "partly".
+pub const PARTLY_SEEN: f64 = 0.6;
+
+/// What the final stage of an alignment found, for the verdict and its reasons.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Evidence {
+    inliers: usize,
+    matches: usize,
+    /// Keyframe points searched for inside the view's footprint.
+    checked: usize,
+    coverage: f64,
+    /// Share of the keyframe the view sees through the estimate.
+    seen: f64,
 }
 
 /// Why a view was not accepted, in words a photographer can act on.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Rejection {
-    TooFewMatches { matches: usize },
+    TooFewMatches {
+        matches: usize,
+    },
     NoModel(NoModel),
-    TooFewInliers { inliers: usize, matches: usize },
-    LowInlierShare { inliers: usize, checked: usize },
-    PoorSpread { coverage: f64 },
-    IllConditioned { zoom: f64 },
+    /// The descriptor matches do not agree on one viewpoint (before guided matching).
+    TooFewInliers {
+        inliers: usize,
+        matches: usize,
+    },
+    /// The points that matched do not agree on one geometry: another scene.
+    AnotherScene {
+        inliers: usize,
+        matches: usize,
+    },
+    /// The same scene, but too little of it was matched in the part the view sees.
+    PartlySeen {
+        inliers: usize,
+        needed: usize,
+        seen: f64,
+    },
+    /// Most of the keyframe is in view, yet too few details match: blur, darkness,
+    /// glare or an extreme angle.
+    TooFewDetails {
+        inliers: usize,
+        needed: usize,
+        checked: usize,
+    },
+    PoorSpread {
+        coverage: f64,
+    },
+    IllConditioned {
+        zoom: f64,
+    },
     FoldsOver,
 }
 
 impl fmt::Display for Rejection {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            Self::TooFewMatches { matches } => {
-                write!(
-                    f,
-                    "only {matches} putative matches: the view shares too little texture with the keyframe"
-                )
-            }
-            Self::NoModel(e) => write!(f, "no homography fits the matches: {e}"),
-            Self::TooFewInliers { inliers, matches } => write!(f, "{inliers} inliers of {matches} matches"),
-            Self::LowInlierShare { inliers, checked } => write!(
+            Self::TooFewMatches { matches } => write!(
                 f,
-                "only {inliers} of {checked} checked points agree ({:.0} %): probably not the same scene",
-                100.0 * *inliers as f64 / (*checked).max(1) as f64
+                "another scene, or too little of this one: only {matches} details look alike in the keyframe and the view"
             ),
-            Self::PoorSpread { coverage } => {
-                write!(f, "inliers cover {:.0} % of the frame", 100.0 * coverage)
-            }
+            Self::NoModel(e) => write!(f, "no single viewpoint explains the details the two share: {e}"),
+            Self::TooFewInliers { inliers, matches } => write!(
+                f,
+                "probably another scene: of {matches} details that look alike, only {inliers} agree on one viewpoint"
+            ),
+            Self::AnotherScene { inliers, matches } => write!(
+                f,
+                "probably another scene: of {matches} points matched, only {inliers} agree on one viewpoint ({:.0} %)",
+                100.0 * *inliers as f64 / (*matches).max(1) as f64
+            ),
+            Self::PartlySeen { inliers, needed, seen } => write!(
+                f,
+                "the same scene, partly seen: the view shows {:.0} % of the keyframe and only {inliers} points there \
+                 could be matched ({needed} needed); a view with more of the keyframe in frame would help",
+                100.0 * seen
+            ),
+            Self::TooFewDetails { inliers, needed, checked } => write!(
+                f,
+                "too few details match ({inliers} of {checked} points looked for, {needed} needed): the view may be \
+                 blurred, too dark, or taken from too steep an angle"
+            ),
+            Self::PoorSpread { coverage } => write!(
+                f,
+                "the matching details cluster in {:.0} % of the frame: too little to place the whole view",
+                100.0 * coverage
+            ),
             Self::IllConditioned { zoom } => {
                 write!(f, "the homography zooms by {zoom:.1}x: too extreme to be a view of the same facade")
             }
@@ -157,6 +254,8 @@ pub struct Alignment {
     pub coverage: f64,
     /// Whether the estimate started from a given prior homography.
     pub from_prior: bool,
+    /// The pyramid octave of the final estimate (0 = full resolution).
+    pub octave: usize,
 }
 
 impl Alignment {
@@ -175,6 +274,7 @@ impl Alignment {
             median_residual_px: f64::NAN,
             coverage: 0.0,
             from_prior: false,
+            octave: 0,
         }
     }
 }
@@ -350,20 +450,41 @@ pub fn align_from_matches(
     refine(key, view, params, coarse.homography, putative.len())
 }
 
+/// One stage of the coarse-to-fine refinement: the estimate at one octave.
+struct Stage {
+    octave: usize,
+    h: Homography,
+    found: Vec<Correspondence>,
+    inliers: Vec<usize>,
+    checked: usize,
+}
+
+/// A finer octave's estimate replaces the coarser one only if it keeps at least this
+/// share of its inliers. On a soft image (a 12 MP frame is rarely sharp at the pixel
+/// level) the full-resolution patches are smooth and match ambiguously; there the
+/// coarser octave's estimate is the better one, and alignment must not get worse as the
+/// resolution rises.
+const KEEP_FINER: f64 = 0.7;
+
 /// Guided matching and re-estimation from an initial `h`, coarse to fine, then the
 /// verdict.
-fn refine(key: &Frame, view: &Frame, params: &AlignParams, mut h: Homography, putative: usize) -> Alignment {
+///
+/// The octave schedule walks from the detection octave down to full resolution one
+/// octave at a time (an error of one sample at one octave is two at the next, well
+/// inside the search window), and stops at the finest octave whose estimate is still
+/// supported (see [`KEEP_FINER`]): the pyramid level is chosen per view.
+fn refine(key: &Frame, view: &Frame, params: &AlignParams, h: Homography, putative: usize) -> Alignment {
     let points = key.guided_points(params.guided_points);
-    // Octave schedule: the detection octave first, then full resolution; at full
-    // resolution of a small image, a second pass with the better model and a tighter
-    // search.
-    let mut stages = vec![(key.detect_octave, params.guided.search)];
-    if key.detect_octave > 0 {
-        stages.push((0, 3));
-    } else {
+    let mut stages: Vec<(usize, usize)> = vec![(key.detect_octave, params.guided.search)];
+    for octave in (0..key.detect_octave).rev() {
+        stages.push((octave, params.guided.search.min(3)));
+    }
+    if key.detect_octave == 0 {
+        // A small image: a second pass with the better model and a tighter search.
         stages.push((0, 2));
     }
-    let mut last = None;
+    let mut best: Option<Stage> = None;
+    let mut h = h;
     for (i, &(octave, search)) in stages.iter().enumerate() {
         let gp = GuidedParams { search, ..params.guided.clone() };
         let found = guided_match(&key.octaves, &view.octaves, &points, &h, octave, &gp);
@@ -373,27 +494,36 @@ fn refine(key: &Frame, view: &Frame, params: &AlignParams, mut h: Homography, pu
         let rng = ChaCha8Rng::seed_from_u64(params.seed.wrapping_add(1 + i as u64));
         let est = match Consensus::new(fine, rng).estimate(&found) {
             Ok(e) => e,
-            Err(e) => {
-                let mut out = Alignment::rejected(Rejection::NoModel(e), putative);
-                out.homography = Some(h);
-                return out;
-            }
+            Err(e) => match best {
+                Some(_) => break,
+                None => {
+                    let mut out = Alignment::rejected(Rejection::NoModel(e), putative);
+                    out.homography = Some(h);
+                    return out;
+                }
+            },
         };
+        if let Some(prev) = &best
+            && (est.inliers.len() as f64) < KEEP_FINER * prev.inliers.len() as f64
+        {
+            break;
+        }
         h = est.homography;
         // Every stage searches all points again: where the previous model was off by more
         // than the search window, the better one now finds them.
-        last = Some((est, found, checked));
+        best = Some(Stage { octave, h, found, inliers: est.inliers, checked });
     }
-    let (est, found, checked) = last.expect("at least one stage");
-    let inlier_keys: Vec<Point2<f64>> = est.inliers.iter().map(|&k| found[k].key).collect();
-    let mut residuals: Vec<f64> = est.inliers.iter().map(|&k| found[k].residual(&h)).collect();
+    let Stage { octave, h, found, inliers: inlier_idx, checked } = best.expect("at least one stage");
+    let inlier_keys: Vec<Point2<f64>> = inlier_idx.iter().map(|&k| found[k].key).collect();
+    let mut residuals: Vec<f64> = inlier_idx.iter().map(|&k| found[k].residual(&h)).collect();
     residuals.sort_by(f64::total_cmp);
     let median_residual_px = residuals.get(residuals.len() / 2).copied().unwrap_or(f64::NAN);
     let hull = convex_hull(&inlier_keys);
     let coverage = polygon_area(&hull) / ((key.width - 1) * (key.height - 1)).max(1) as f64;
-    let inliers = est.inliers.len();
+    let inliers = inlier_idx.len();
     let matches = found.len();
-    let rejection = verdict(&params.acceptance, &h, &hull, inliers, matches, checked, coverage);
+    let evidence = Evidence { inliers, matches, checked, coverage, seen: seen_share(&h, key, view) };
+    let rejection = verdict(&params.acceptance, &h, &hull, &evidence);
     Alignment {
         homography: Some(h),
         rejection,
@@ -404,26 +534,25 @@ fn refine(key: &Frame, view: &Frame, params: &AlignParams, mut h: Homography, pu
         median_residual_px,
         coverage,
         from_prior: false,
+        octave,
     }
 }
 
-fn verdict(
-    acc: &Acceptance,
-    h: &Homography,
-    hull: &[Point2<f64>],
-    inliers: usize,
-    matches: usize,
-    checked: usize,
-    coverage: f64,
-) -> Option<Rejection> {
-    if inliers < acc.min_inliers {
-        return Some(Rejection::TooFewInliers { inliers, matches });
+fn verdict(acc: &Acceptance, h: &Homography, hull: &[Point2<f64>], e: &Evidence) -> Option<Rejection> {
+    let consistency = e.inliers as f64 / e.matches.max(1) as f64;
+    if consistency < acc.min_consistency {
+        return Some(Rejection::AnotherScene { inliers: e.inliers, matches: e.matches });
     }
-    if (inliers as f64) < acc.min_inlier_share * checked as f64 {
-        return Some(Rejection::LowInlierShare { inliers, checked });
+    if e.inliers < acc.min_inliers || (e.inliers as f64) < acc.min_inlier_share * e.checked as f64 {
+        let needed = acc.min_inliers.max((acc.min_inlier_share * e.checked as f64).ceil() as usize);
+        return Some(if e.seen < PARTLY_SEEN {
+            Rejection::PartlySeen { inliers: e.inliers, needed, seen: e.seen }
+        } else {
+            Rejection::TooFewDetails { inliers: e.inliers, needed, checked: e.checked }
+        });
     }
-    if coverage < acc.min_coverage {
-        return Some(Rejection::PoorSpread { coverage });
+    if e.coverage < acc.min_coverage {
+        return Some(Rejection::PoorSpread { coverage: e.coverage });
     }
     if hull.iter().any(|&p| h.w(p) <= 0.0 || h.area_scale(p) <= 0.0) {
         return Some(Rejection::FoldsOver);
@@ -437,6 +566,26 @@ fn verdict(
         }
     }
     None
+}
+
+/// Share of the keyframe whose image through `h` lands inside the view (a 32 × 32 grid).
+fn seen_share(h: &Homography, key: &Frame, view: &Frame) -> f64 {
+    const N: usize = 32;
+    let (vw, vh) = ((view.width - 1) as f64, (view.height - 1) as f64);
+    let mut inside = 0;
+    for j in 0..N {
+        for i in 0..N {
+            let p = Point2::new(
+                (i as f64 + 0.5) * key.width as f64 / N as f64,
+                (j as f64 + 0.5) * key.height as f64 / N as f64,
+            );
+            let q = if h.w(p) > 0.0 { h.apply(p) } else { None };
+            if q.is_some_and(|q| q.x >= 0.0 && q.y >= 0.0 && q.x <= vw && q.y <= vh) {
+                inside += 1;
+            }
+        }
+    }
+    inside as f64 / (N * N) as f64
 }
 
 fn lands_inside(h: &Homography, p: Point2<f64>, view: &Frame) -> bool {

@@ -53,6 +53,9 @@ struct Report<'a> {
     checked: usize,
     median_residual_px: Option<f64>,
     coverage: f64,
+    /// The pyramid octave the final estimate was made at (0 = full resolution; a soft
+    /// high-resolution image stops at a coarser one).
+    octave: usize,
     key_size: [usize; 2],
     view_size: [usize; 2],
     /// Alignment time, decoding excluded.
@@ -96,6 +99,7 @@ pub fn run(args: &AlignArgs) -> u8 {
         checked: result.checked,
         median_residual_px: result.median_residual_px.is_finite().then_some(result.median_residual_px),
         coverage: result.coverage,
+        octave: result.octave,
         key_size: [key_frame.width(), key_frame.height()],
         view_size: [view_frame.width(), view_frame.height()],
         time_ms,

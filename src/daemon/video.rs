@@ -370,6 +370,152 @@ fn parse_probe(json: &str) -> Option<Probe> {
     (width > 0 && height > 0).then_some(Probe { width, height, fps })
 }
 
+/// Which frame becomes the keyframe, judged with a look at the frames around it (pure
+/// policy, tested without a stream).
+///
+/// The frame the user names (`keyframe_frame` N, or the first frame at or after
+/// `keyframe_at_s`) is the keyframe, exactly: the mask was painted on it. It is judged
+/// sharp against its neighbours (up to `window` frames before and after it): blurred when
+/// its Laplacian variance is below `min_sharpness` times theirs at best. A blurred named
+/// frame is refused with a reason, never replaced by another. Without a name, the
+/// keyframe is the first frame unless it is blurred, then the next sharp one.
+#[derive(Debug, Clone)]
+struct KeyPick {
+    rule: VideoKeyframe,
+    min_sharpness: f32,
+    window: usize,
+    /// Sharpness of the last `window` frames read.
+    recent: VecDeque<f32>,
+    pending: Option<PendingKey>,
+    done: bool,
+}
+
+/// A candidate keyframe waiting for its neighbours after it.
+#[derive(Debug, Clone)]
+struct PendingKey {
+    index: u64,
+    t: f64,
+    rgb: Vec<u8>,
+    sharpness: f32,
+    /// The sharpest neighbour so far.
+    best_neighbour: f32,
+    after: usize,
+}
+
+/// What the chooser made of a frame.
+#[derive(Debug, Clone, PartialEq)]
+enum KeyStep {
+    /// Nothing decided (the frame is an ordinary one).
+    Wait,
+    /// The frame at `index` is the keyframe.
+    Key { index: u64, t: f64, rgb: Vec<u8> },
+    /// The named frame is blurred: the session cannot start.
+    Refused { reason: String },
+}
+
+impl KeyPick {
+    fn new(rule: VideoKeyframe, min_sharpness: f32, window: usize) -> Self {
+        Self { rule, min_sharpness, window, recent: VecDeque::new(), pending: None, done: false }
+    }
+
+    /// Whether the keyframe is decided (accepted; a refusal ends the stream).
+    fn decided(&self) -> bool {
+        self.done
+    }
+
+    /// Whether a frame is waiting to be judged as the keyframe.
+    fn pending(&self) -> bool {
+        self.pending.is_some()
+    }
+
+    fn is_candidate(&self, index: u64, t: f64) -> bool {
+        !self.done
+            && self.pending.is_none()
+            && match self.rule {
+                VideoKeyframe::First => true,
+                VideoKeyframe::AtFrame(n) => index == n,
+                VideoKeyframe::AtSeconds(at) => t + 1e-9 >= at,
+            }
+    }
+
+    /// Offers the frame at `index` (its pixels and sharpness).
+    fn offer(&mut self, index: u64, t: f64, rgb: &[u8], sharpness: f32) -> KeyStep {
+        if self.done {
+            return KeyStep::Wait;
+        }
+        let mut step = KeyStep::Wait;
+        if let Some(p) = &mut self.pending {
+            p.best_neighbour = p.best_neighbour.max(sharpness);
+            p.after += 1;
+            if p.after >= self.window {
+                step = self.judge();
+            }
+        } else if self.is_candidate(index, t) {
+            let best_before = self.recent.iter().copied().fold(0.0f32, f32::max);
+            self.pending = Some(PendingKey {
+                index,
+                t,
+                rgb: rgb.to_vec(),
+                sharpness,
+                best_neighbour: best_before,
+                after: 0,
+            });
+            if self.window == 0 {
+                step = self.judge();
+            }
+        }
+        if self.recent.len() == self.window.max(1) {
+            self.recent.pop_front();
+        }
+        self.recent.push_back(sharpness);
+        step
+    }
+
+    /// The stream ended: judge a waiting candidate on the neighbours it had.
+    fn finish(&mut self) -> KeyStep {
+        if self.pending.is_some() { self.judge() } else { KeyStep::Wait }
+    }
+
+    fn judge(&mut self) -> KeyStep {
+        let p = self.pending.take().expect("a pending keyframe");
+        let share = if p.best_neighbour > 0.0 { p.sharpness / p.best_neighbour } else { 1.0 };
+        if share >= self.min_sharpness {
+            self.done = true;
+            return KeyStep::Key { index: p.index, t: p.t, rgb: p.rgb };
+        }
+        let named = match self.rule {
+            VideoKeyframe::First => None,
+            VideoKeyframe::AtFrame(n) => Some(format!("frame {n} (keyframe_frame)")),
+            VideoKeyframe::AtSeconds(at) => {
+                Some(format!("frame {} at {:.3} s (keyframe_at_s = {at})", p.index, p.t))
+            }
+        };
+        match named {
+            Some(which) => {
+                self.done = true;
+                KeyStep::Refused {
+                    reason: format!(
+                        "{which} is blurred ({:.0} % of the sharpness of the frames around it, {:.0} % needed): \
+                         name a sharp frame and paint the mask on that one",
+                        100.0 * share,
+                        100.0 * self.min_sharpness
+                    ),
+                }
+            }
+            // The first frame was blurred: the next frame is the next candidate.
+            None => KeyStep::Wait,
+        }
+    }
+}
+
+/// Why the decoder stops feeding frames.
+enum Stop {
+    /// The session thread is gone.
+    Gone,
+    /// The named keyframe was refused: the session cannot start.
+    Refused(String),
+}
+
 /// The decoder thread of one source.
 struct Decoder {
     src: VideoSource,
@@ -379,6 +525,12 @@ struct Decoder {
     cancel: CancellationToken,
     emitter: Arc<Emitter>,
 }
+
+/// Kept frames from before the keyframe that wait for it (the latest ones).
+const PRE_KEY_FRAMES: usize = 8;
+
+/// The keyframe as chosen, beside the results.
+pub const KEYFRAME_FILE: &str = "keyframe.png";
 
 /// Frames buffered without calling for a fill after which a video refills anyway.
 const REFILL_AFTER: usize = 4;
@@ -395,7 +547,8 @@ impl Decoder {
         let mut size: Option<(usize, usize, f64)> = None;
         let mut selector = FrameSelector::new(self.src.select.clone());
         let mut index = 0u64;
-        let mut key_sent = false;
+        let select = &self.src.select;
+        let mut pick = KeyPick::new(self.src.keyframe, select.min_sharpness, select.warmup_frames);
         let started = Instant::now();
         let mut last_progress = Instant::now();
         let mut connections = 0u64;
@@ -463,9 +616,12 @@ impl Decoder {
             while pipe.read_exact(&mut buf).is_ok() {
                 got += 1;
                 let t = if self.src.live { started.elapsed().as_secs_f64() } else { index as f64 / fps };
-                match self.offer(&mut selector, &mut buf, index, t, (w, h), &mut key_sent) {
+                match self.offer(&mut selector, &mut pick, &mut buf, index, t, (w, h)) {
                     Ok(()) => {}
-                    Err(()) => {
+                    Err(stop) => {
+                        if let Stop::Refused(reason) = stop {
+                            self.refuse_key(reason, &mut end_reason);
+                        }
                         gone = true;
                         break;
                     }
@@ -474,6 +630,17 @@ impl Decoder {
                 if last_progress.elapsed() >= PROGRESS_EVERY {
                     last_progress = Instant::now();
                     self.progress("video_progress");
+                }
+            }
+            // The stream ended with the keyframe still waiting for neighbours after it.
+            if !gone && pick.pending() {
+                match pick.finish() {
+                    KeyStep::Key { index, t, rgb } => gone |= self.send_key(index, t, (w, h), rgb).is_err(),
+                    KeyStep::Refused { reason } => {
+                        self.refuse_key(reason, &mut end_reason);
+                        gone = true;
+                    }
+                    KeyStep::Wait => {}
                 }
             }
             drop(pipe);
@@ -562,29 +729,63 @@ impl Decoder {
         Ok(Reaped { child, pid: Some(self.pid.clone()) })
     }
 
-    /// Judges one frame and queues it when kept. `Err` when the session thread is gone.
+    /// The keyframe was refused: says so (event and log) and ends the session with it.
+    fn refuse_key(&self, reason: String, end_reason: &mut Option<String>) {
+        tracing::error!(%reason, "keyframe refused");
+        self.emitter.event(
+            "keyframe_refused",
+            Some(&self.src.session),
+            json!({ "input": self.src.input, "reason": reason }),
+        );
+        *end_reason = Some(reason);
+    }
+
+    /// Queues the keyframe, waiting for room.
+    fn send_key(&self, index: u64, t: f64, (w, h): (usize, usize), rgb: Vec<u8>) -> Result<(), Stop> {
+        self.stats.kept.fetch_add(1, Ordering::Relaxed);
+        let msg = Msg::Frame { index, t, key: true, width: w, height: h, rgb, arrived: Instant::now() };
+        self.send_waiting(msg)
+    }
+
+    fn send_waiting(&self, mut msg: Msg) -> Result<(), Stop> {
+        loop {
+            match self.out.send_timeout(msg, Duration::from_millis(100)) {
+                Ok(()) => return Ok(()),
+                Err(SendTimeoutError::Timeout(m)) if !self.cancel.is_cancelled() => msg = m,
+                Err(_) => return Err(Stop::Gone),
+            }
+        }
+    }
+
+    /// Judges one frame and queues it when kept: the keyframe once it is judged sharp
+    /// against the frames around it ([`KeyPick`]), any other frame (before the keyframe
+    /// too) when the selector keeps it.
     fn offer(
         &self,
         selector: &mut FrameSelector,
+        pick: &mut KeyPick,
         buf: &mut Vec<u8>,
         index: u64,
         t: f64,
         (w, h): (usize, usize),
-        key_sent: &mut bool,
-    ) -> Result<(), ()> {
+    ) -> Result<(), Stop> {
         let s = &self.stats;
         s.read.fetch_add(1, Ordering::Relaxed);
         let m = FrameMeasure::of_rgb24(buf, w, h, selector.params().thumb_width);
-        let candidate = !*key_sent
-            && match self.src.keyframe {
-                VideoKeyframe::First => true,
-                VideoKeyframe::AtSeconds(at) => t + 1e-9 >= at,
-                VideoKeyframe::AtFrame(n) => index >= n,
-            };
+        let candidate = pick.is_candidate(index, t);
+        let step = pick.offer(index, t, buf, m.sharpness);
         let verdict = selector.offer(t, &m, candidate);
-        if !*key_sent && !candidate {
-            s.before_key.fetch_add(1, Ordering::Relaxed);
+        match step {
+            KeyStep::Key { index, t, rgb } => self.send_key(index, t, (w, h), rgb)?,
+            KeyStep::Refused { reason } => return Err(Stop::Refused(reason)),
+            KeyStep::Wait => {}
+        }
+        if candidate {
+            // Its pixels travel with the keyframe once it is judged.
             return Ok(());
+        }
+        if !pick.decided() {
+            s.before_key.fetch_add(1, Ordering::Relaxed);
         }
         let counter = match verdict {
             Verdict::Keep => &s.kept,
@@ -605,18 +806,10 @@ impl Decoder {
             return Ok(());
         }
         let rgb = std::mem::replace(buf, vec![0u8; w * h * 3]);
-        let msg = Msg::Frame { index, t, key: candidate, width: w, height: h, rgb, arrived: Instant::now() };
-        if candidate || !self.src.realtime {
-            // The keyframe, or a file read at the service's pace: wait for room.
-            *key_sent = true;
-            let mut msg = msg;
-            loop {
-                match self.out.send_timeout(msg, Duration::from_millis(100)) {
-                    Ok(()) => return Ok(()),
-                    Err(SendTimeoutError::Timeout(m)) if !self.cancel.is_cancelled() => msg = m,
-                    Err(_) => return Err(()),
-                }
-            }
+        let msg = Msg::Frame { index, t, key: false, width: w, height: h, rgb, arrived: Instant::now() };
+        if !self.src.realtime {
+            // A file read at the service's pace: wait for room.
+            return self.send_waiting(msg);
         }
         match self.out.try_send(msg) {
             Ok(()) => Ok(()),
@@ -631,7 +824,7 @@ impl Decoder {
                 }
                 Ok(())
             }
-            Err(TrySendError::Disconnected(_)) => Err(()),
+            Err(TrySendError::Disconnected(_)) => Err(Stop::Gone),
         }
     }
 }
@@ -648,6 +841,9 @@ struct Runner {
     track: VecDeque<(f64, Homography)>,
     /// Accepted frames waiting for the automatic mask.
     stash: Vec<(String, String, AlignRecord, Rgb8)>,
+    /// Kept frames that arrived before the keyframe (at most [`PRE_KEY_FRAMES`], the
+    /// latest): aligned once it is set, since they saw what the keyframe's occluders hide.
+    pre_key: VecDeque<(u64, f64, DynamicImage, Instant)>,
     /// Frames buffered since the last fill (improving or not).
     buffered_since_fill: usize,
     /// Arrival time of the oldest frame admitted since the last fill.
@@ -667,6 +863,7 @@ impl Runner {
             mask,
             track: VecDeque::new(),
             stash: Vec::new(),
+            pre_key: VecDeque::new(),
             buffered_since_fill: 0,
             pending_since: None,
             run_id,
@@ -688,6 +885,13 @@ impl Runner {
                     let image = DynamicImage::ImageRgb8(image);
                     if key {
                         self.take_key(index, t, &image);
+                        self.take_pre_key();
+                    } else if self.slot.session.key_id().is_none() {
+                        if self.pre_key.len() == PRE_KEY_FRAMES {
+                            self.pre_key.pop_front();
+                        }
+                        self.pre_key.push_back((index, t, image, arrived));
+                        continue;
                     } else {
                         self.take_frame(index, t, &image, arrived);
                     }
@@ -731,6 +935,23 @@ impl Runner {
         }
     }
 
+    /// Writes the keyframe beside the results (`keyframe.png`), so that a mask can be
+    /// painted on exactly that frame.
+    fn write_keyframe(&self, image: &DynamicImage) {
+        let dir = self.ctx.config.out_dir.join(&self.slot.name);
+        let mut png = Vec::new();
+        let written = std::fs::create_dir_all(&dir)
+            .and_then(|()| {
+                image
+                    .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+                    .map_err(std::io::Error::other)
+            })
+            .and_then(|()| super::emit::atomic_write(&dir.join(KEYFRAME_FILE), &png));
+        if let Err(e) = written {
+            tracing::error!(error = %e, dir = %dir.display(), "cannot write {KEYFRAME_FILE}");
+        }
+    }
+
     fn frame_name(index: u64) -> String {
         format!("frame-{index:06}")
     }
@@ -749,6 +970,7 @@ impl Runner {
         self.track.push_back((t, Homography::identity()));
         let (w, h) = (image.width(), image.height());
         tracing::info!(key = %name, t, width = w, height = h, "keyframe set");
+        self.write_keyframe(image);
         self.ctx.emitter.event(
             if first { "session_started" } else { "keyframe_changed" },
             Some(&self.slot.name),
@@ -779,6 +1001,17 @@ impl Runner {
                 }
             }
         }
+    }
+
+    /// Aligns the frames kept before the keyframe, nearest first (each one's homography
+    /// is the next one's prior), then restarts the track from the keyframe.
+    fn take_pre_key(&mut self) {
+        let Some(&(t_key, _)) = self.track.back() else { return };
+        while let Some((index, t, image, arrived)) = self.pre_key.pop_back() {
+            self.take_frame(index, t, &image, arrived);
+        }
+        self.track.clear();
+        self.track.push_back((t_key, Homography::identity()));
     }
 
     fn take_frame(&mut self, index: u64, t: f64, image: &DynamicImage, arrived: Instant) {
@@ -1048,17 +1281,74 @@ mod tests {
         };
         let (w, h) = (32, 24);
         let mut selector = FrameSelector::new(decoder.src.select.clone());
-        let mut key_sent = true;
+        let mut pick = KeyPick { done: true, ..KeyPick::new(VideoKeyframe::First, 0.5, 5) };
         let start = Instant::now();
         for i in 0..3u64 {
             let mut buf: Vec<u8> =
                 (0..w * h * 3).map(|k| if (k / 3 + k / (3 * w)) % 2 == 0 { 220 } else { 30 }).collect();
-            decoder.offer(&mut selector, &mut buf, i, i as f64, (w, h), &mut key_sent).unwrap();
+            assert!(decoder.offer(&mut selector, &mut pick, &mut buf, i, i as f64, (w, h)).is_ok());
         }
         assert!(start.elapsed() < Duration::from_millis(100), "the decoder waited");
         assert_eq!(decoder.stats.kept.load(Ordering::Relaxed), 3);
         assert_eq!(decoder.stats.dropped.load(Ordering::Relaxed), 3);
         assert_eq!(rx.len(), 1, "nothing more was queued");
+    }
+
+    /// Feeds sharpness values to a chooser; the frame's pixels are its index.
+    fn pick_over(rule: VideoKeyframe, sharpness: &[f32]) -> Vec<(u64, KeyStep)> {
+        let mut pick = KeyPick::new(rule, 0.5, 3);
+        let mut out = Vec::new();
+        for (i, &s) in sharpness.iter().enumerate() {
+            let step = pick.offer(i as u64, i as f64 / 10.0, &[i as u8], s);
+            if step != KeyStep::Wait {
+                out.push((i as u64, step));
+            }
+        }
+        let step = pick.finish();
+        if step != KeyStep::Wait {
+            out.push((sharpness.len() as u64, step));
+        }
+        out
+    }
+
+    fn key_index(steps: &[(u64, KeyStep)]) -> Option<u64> {
+        steps.iter().find_map(|(_, s)| match s {
+            KeyStep::Key { index, .. } => Some(*index),
+            _ => None,
+        })
+    }
+
+    #[test]
+    fn the_named_frame_is_the_keyframe_exactly_even_at_the_start() {
+        let sharp = [10.0; 40];
+        // Frame 0 without a name, frame 0 and frame 30 by number, 30 by time: exactly those.
+        assert_eq!(key_index(&pick_over(VideoKeyframe::First, &sharp)), Some(0));
+        assert_eq!(key_index(&pick_over(VideoKeyframe::AtFrame(0), &sharp)), Some(0));
+        assert_eq!(key_index(&pick_over(VideoKeyframe::AtFrame(30), &sharp)), Some(30));
+        assert_eq!(key_index(&pick_over(VideoKeyframe::AtSeconds(3.0), &sharp)), Some(30));
+        assert_eq!(key_index(&pick_over(VideoKeyframe::AtSeconds(2.95), &sharp)), Some(30));
+        // The last frame is judged on the neighbours it has when the stream ends.
+        assert_eq!(key_index(&pick_over(VideoKeyframe::AtFrame(39), &sharp)), Some(39));
+        // A frame past the end is never the keyframe.
+        assert_eq!(key_index(&pick_over(VideoKeyframe::AtFrame(40), &sharp)), None);
+    }
+
+    #[test]
+    fn a_blurred_named_frame_is_refused_and_a_blurred_first_frame_skipped() {
+        let mut s = [10.0f32; 40];
+        s[0] = 2.0;
+        s[30] = 3.0;
+        let steps = pick_over(VideoKeyframe::AtFrame(30), &s);
+        assert!(
+            matches!(&steps[..], [(_, KeyStep::Refused { reason })] if reason.contains("frame 30") && reason.contains("blurred")),
+            "{steps:?}"
+        );
+        assert!(matches!(&pick_over(VideoKeyframe::AtSeconds(3.0), &s)[..], [(_, KeyStep::Refused { .. })]));
+        // Without a name the blurred first frame gives way to the next sharp one.
+        let first = key_index(&pick_over(VideoKeyframe::First, &s)).unwrap();
+        assert!(first > 0 && first < 10, "{first}");
+        // Sharp enough against its neighbours (a uniformly soft video): accepted.
+        assert_eq!(key_index(&pick_over(VideoKeyframe::AtFrame(5), &[2.0; 10])), Some(5));
     }
 
     #[test]

@@ -1,0 +1,470 @@
+#!/usr/bin/env python3
+"""Issue 13's evaluation: clearview against OpenCV SIFT + MAGSAC on the cases where a good view
+must not be rejected.
+
+Three sets, built from ../shared/data by `prepare` into a work folder (default
+/tmp/clearview-eval), each pair as key.<ext>, view.<ext> and H (keyframe -> view, 0-based
+pixel centres, row-major):
+
+  mv12   adjacent pairs of the real photo sets in multiview/ (building, hunt, ece, incline,
+         roofs) and transient/ (in1 -> in2, in1 -> in3), upscaled with bicubic interpolation
+         to about 12 MP and saved as JPEG quality 90: as soft as a real 12 MP frame.
+         Ground truth: there is none in the data, so it is made at native size, where both
+         methods are comfortable, and carried to 12 MP exactly (H12 = A H A^-1 with A the
+         resize map x' = s (x + 0.5) - 0.5). At native size: SIFT (8000 features, ratio 0.8)
+         + MAGSAC++ at 1 px, then least squares on the matches within 1 px of it, then ECC
+         (gain-invariant, grey, 2 levels) from there, kept only if the warped overlap's
+         normalised correlation improves and the fit moves by at most 1 px. The script prints the distance between the SIFT fit
+         and the final reference for each pair (the reference's own uncertainty). The
+         reference is SIFT-based, so if anything it favours the peer.
+  occl   the 40 Oxford pairs (img1 -> img2..img6 of the 8 sequences) with occluders pasted
+         into the keyframe (trees: textured foliage and a trunk; cars; people: about 30 % of
+         the frame, seeded per pair) and a smaller one into the view (about 8 %). Ground
+         truth: H1toNp.refined.
+  clean  the 50 clean pairs: those 40 without occluders and HPatches v_churchill,
+         v_wormhole 1 -> 2..6. Ground truth: H1toNp.refined where present, else H1toNp.
+
+Error of an estimate: the median, over a grid of keyframe points (every 1 % of the width)
+whose true image lies inside the view, of the distance in view pixels between where the
+estimate and the truth send the point ("median transfer error over the part of the
+keyframe the view sees"). A rejected view or no homography counts as an infinite error.
+
+Both methods run as whole processes, one per pair, decoding included:
+  - clearview: `clearview align --json KEY VIEW` (release build);
+  - SIFT + MAGSAC: `bench/sift_magsac.py KEY VIEW` (cv2.SIFT_create() defaults, brute-force
+    L2 2-NN, ratio 0.75, cv2.findHomography(..., cv2.USAC_MAGSAC, 3.0)).
+The wall time of each process is recorded; `speed` times the 12 MP pairs several times.
+
+Usage:
+  bench/.venv/bin/python bench/align_eval.py prepare [--work DIR] [--data DIR]
+  bench/.venv/bin/python bench/align_eval.py run [--work DIR] [--sets mv12,occl,clean] [--only SUBSTR]
+  bench/.venv/bin/python bench/align_eval.py speed [--work DIR] [--runs N] [--pairs a,b]
+"""
+
+import argparse
+import json
+import math
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+PY = sys.executable
+OXFORD = ["graf", "wall", "boat", "bark", "bikes", "trees", "leuven", "ubc"]
+HPATCHES = ["v_churchill", "v_wormhole"]
+MULTIVIEW = [
+    ("parapano_building", ["building1.png", "building2.png", "building3.png"]),
+    ("parapano_hunt", [f"hunt{i}.jpg" for i in range(1, 6)]),
+    ("parapano_ece", [f"ece{i}.jpeg" for i in range(1, 8)]),
+    ("cmu_incline", ["incline_L.png", "incline_R.png"]),
+    ("vlfeat_roofs", ["roofs1.jpg", "roofs2.jpg"]),
+]
+TRANSIENT = [("night_street_cars", "in1.jpg", "in2.jpg"), ("night_street_cars", "in1.jpg", "in3.jpg")]
+TARGET_PIXELS = 12e6
+
+
+def read_h(path):
+    v = [float(t) for t in Path(path).read_text().split()]
+    assert len(v) == 9, path
+    h = np.array(v, dtype=np.float64).reshape(3, 3)
+    return h / h[2, 2]
+
+
+def write_h(path, h):
+    h = h / h[2, 2]
+    Path(path).write_text("\n".join(" ".join(f"{x:.12e}" for x in row) for row in h) + "\n")
+
+
+def image_path(seq, n):
+    for ext in ("png", "jpg", "ppm"):
+        p = seq / f"img{n}.{ext}"
+        if p.exists():
+            return p
+    raise FileNotFoundError(f"{seq}: no img{n}")
+
+
+def transfer_error(h, truth, key_size, view_size):
+    """Median distance (view pixels) between h and truth over the keyframe points the view sees."""
+    if h is None:
+        return float("inf")
+    w, hgt = key_size
+    vw, vh = view_size
+    step = max(2.0, w / 100.0)
+    xs, ys = np.meshgrid(np.arange(0, w, step), np.arange(0, hgt, step))
+    p = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
+    t = truth @ p
+    ok = t[2] > 1e-9
+    t = t[:2] / np.where(ok, t[2], 1.0)
+    ok &= (t[0] >= 0) & (t[0] <= vw - 1) & (t[1] >= 0) & (t[1] <= vh - 1)
+    if not ok.any():
+        return float("nan")
+    e = h @ p[:, ok]
+    if np.any(e[2] <= 1e-9):
+        return float("inf")
+    e = e[:2] / e[2]
+    return float(np.median(np.linalg.norm(e - t[:, ok], axis=0)))
+
+
+def seen_share(truth, key_size, view_size):
+    w, hgt = key_size
+    vw, vh = view_size
+    xs, ys = np.meshgrid(np.linspace(0, w - 1, 60), np.linspace(0, hgt - 1, 60))
+    p = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
+    t = truth @ p
+    ok = t[2] > 1e-9
+    t = t[:2] / np.where(ok, t[2], 1.0)
+    ok &= (t[0] >= 0) & (t[0] <= vw - 1) & (t[1] >= 0) & (t[1] <= vh - 1)
+    return float(ok.mean())
+
+
+# ---------------------------------------------------------------- ground truth (multiview)
+
+
+def sift_reference(g1, g2):
+    sift = cv2.SIFT_create(nfeatures=8000)
+    k1, d1 = sift.detectAndCompute(g1, None)
+    k2, d2 = sift.detectAndCompute(g2, None)
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(d1, d2, k=2)
+    good = [m[0] for m in knn if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+    src = np.float64([k1[m.queryIdx].pt for m in good])
+    dst = np.float64([k2[m.trainIdx].pt for m in good])
+    h, _ = cv2.findHomography(src, dst, cv2.USAC_MAGSAC, 1.0, maxIters=20000, confidence=0.9999)
+    for _ in range(3):
+        proj = cv2.perspectiveTransform(src.reshape(-1, 1, 2), h).reshape(-1, 2)
+        inl = np.linalg.norm(proj - dst, axis=1) < 1.0
+        h, _ = cv2.findHomography(src[inl], dst[inl], 0)
+    return h / h[2, 2], int(inl.sum()), len(good)
+
+
+def warp_ncc(g1, g2, h):
+    """NCC of g1 against g2 warped into g1 by h (key -> view), over the overlap."""
+    hgt, w = g1.shape
+    warped = cv2.warpPerspective(g2, h, (w, hgt), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    valid = cv2.warpPerspective(np.full(g2.shape, 255, np.uint8), h, (w, hgt),
+                                flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP) > 0
+    a, b = g1[valid].astype(np.float64), warped[valid].astype(np.float64)
+    a, b = a - a.mean(), b - b.mean()
+    return float((a * b).sum() / math.sqrt((a * a).sum() * (b * b).sum() + 1e-12))
+
+
+def ecc_refine(g1, g2, h):
+    """ECC from h (key -> view), coarse to fine over two levels; (H, ok)."""
+    try:
+        cur = h.copy()
+        for lvl in (1, 0):
+            s = 0.5 ** lvl
+            a = cv2.resize(g1, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if lvl else g1
+            b = cv2.resize(g2, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if lvl else g2
+            sc = np.diag([s, s, 1.0])
+            w0 = (sc @ cur @ np.linalg.inv(sc)).astype(np.float32)
+            crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-6)
+            # findTransformECC warps its second image (input) into the first (template):
+            # template = key, input = view, warp maps template coordinates to input ones.
+            _, w1 = cv2.findTransformECC(a.astype(np.float32), b.astype(np.float32), w0,
+                                         cv2.MOTION_HOMOGRAPHY, crit, None, 5)
+            cur = np.linalg.inv(sc) @ w1.astype(np.float64) @ sc
+        return cur / cur[2, 2], True
+    except cv2.error:
+        return h, False
+
+
+def resize_map(s):
+    return np.array([[s, 0, (s - 1) / 2], [0, s, (s - 1) / 2], [0, 0, 1.0]])
+
+
+# ---------------------------------------------------------------- occluders
+
+
+def _texture(rng, shape, base, amp, scales=(1.5, 4.0)):
+    out = np.zeros(shape + (3,), np.float32)
+    for s in scales:
+        n = rng.standard_normal(shape).astype(np.float32)
+        n = cv2.GaussianBlur(n, (0, 0), s)
+        n /= n.std() + 1e-6
+        out += n[..., None] * (amp / len(scales))
+    return np.clip(out + np.array(base, np.float32), 0, 255)
+
+
+def _tree(rng, img, cover, x0, y0, size):
+    hgt, w = img.shape[:2]
+    mask = np.zeros((hgt, w), np.uint8)
+    # Trunk.
+    tw = max(3, int(size * 0.08))
+    cv2.rectangle(mask, (int(x0 - tw / 2), int(y0)), (int(x0 + tw / 2), hgt - 1), 255, -1)
+    trunk = mask.copy()
+    # Crown: a cluster of discs.
+    for _ in range(int(rng.integers(20, 40))):
+        dx, dy = rng.normal(0, size * 0.35, 2)
+        r = int(rng.uniform(0.12, 0.3) * size)
+        cv2.circle(mask, (int(x0 + dx), int(y0 + dy)), max(r, 2), 255, -1)
+    crown = (mask > 0) & ~(trunk > 0)
+    leaves = _texture(rng, (hgt, w), rng.uniform([20, 60, 20], [60, 120, 60]), 70.0)
+    bark = _texture(rng, (hgt, w), [40, 55, 75], 35.0, (1.0, 2.0))
+    img[crown] = leaves[crown]
+    img[trunk > 0] = bark[trunk > 0]
+    cover |= mask > 0
+
+
+def _car(rng, img, cover, x0, y0, size):
+    hgt, w = img.shape[:2]
+    cw, ch = int(size * 1.6), int(size * 0.55)
+    body = np.zeros((hgt, w), np.uint8)
+    cv2.rectangle(body, (int(x0 - cw / 2), int(y0 - ch / 2)), (int(x0 + cw / 2), int(y0 + ch / 2)), 255, -1)
+    cv2.rectangle(body, (int(x0 - cw / 3), int(y0 - ch)), (int(x0 + cw / 3), int(y0)), 255, -1)
+    colour = rng.uniform(30, 220, 3)
+    grad = np.linspace(1.15, 0.8, hgt, dtype=np.float32)[:, None, None]
+    paint = np.clip(colour[None, None, :] * grad + rng.normal(0, 3, (hgt, w, 3)), 0, 255)
+    b = body > 0
+    img[b] = paint[b]
+    win = np.zeros((hgt, w), np.uint8)
+    cv2.rectangle(win, (int(x0 - cw / 3.6), int(y0 - ch * 0.9)), (int(x0 + cw / 3.6), int(y0 - ch * 0.1)), 255, -1)
+    img[win > 0] = (40, 40, 45)
+    for wx in (x0 - cw / 3, x0 + cw / 3):
+        cv2.circle(img, (int(wx), int(y0 + ch / 2)), int(ch * 0.35), (15, 15, 15), -1)
+        cv2.circle(img, (int(wx), int(y0 + ch / 2)), int(ch * 0.15), (150, 150, 150), -1)
+        cv2.circle(body, (int(wx), int(y0 + ch / 2)), int(ch * 0.35), 255, -1)
+    cover |= body > 0
+
+
+def _person(rng, img, cover, x0, y0, size):
+    hgt, w = img.shape[:2]
+    m = np.zeros((hgt, w), np.uint8)
+    cv2.ellipse(m, (int(x0), int(y0)), (int(size * 0.18), int(size * 0.5)), 0, 0, 360, 255, -1)
+    cv2.circle(m, (int(x0), int(y0 - size * 0.62)), int(size * 0.12), 255, -1)
+    cloth = _texture(rng, (hgt, w), rng.uniform(20, 200, 3), 25.0)
+    img[m > 0] = cloth[m > 0]
+    cover |= m > 0
+
+
+def paste_occluders(img, seed, share):
+    """Pastes trees, cars and people until about `share` of the frame is covered."""
+    rng = np.random.default_rng(seed)
+    out = img.copy()
+    hgt, w = img.shape[:2]
+    cover = np.zeros((hgt, w), bool)
+    short = min(w, hgt)
+    kinds = [_tree, _car, _person]
+    while cover.mean() < share:
+        kind = kinds[int(rng.integers(0, 3))]
+        size = rng.uniform(0.15, 0.35) * short
+        x0, y0 = rng.uniform(0.05 * w, 0.95 * w), rng.uniform(0.2 * hgt, 0.9 * hgt)
+        kind(rng, out, cover, x0, y0, size)
+    return out, float(cover.mean())
+
+
+# ---------------------------------------------------------------- prepare
+
+
+def prepare(args):
+    data, work = Path(args.data), Path(args.work)
+    pairs = []
+    for folder, names in MULTIVIEW:
+        for a, b in zip(names, names[1:]):
+            pairs.append((data / "multiview" / folder, a, b))
+    for folder, a, b in TRANSIENT:
+        pairs.append((data / "transient" / folder, a, b))
+    for folder, a, b in pairs:
+        name = f"{Path(a).stem}-{Path(b).stem}"
+        d = work / "mv12" / name
+        d.mkdir(parents=True, exist_ok=True)
+        c1, c2 = cv2.imread(str(folder / a)), cv2.imread(str(folder / b))
+        g1, g2 = cv2.cvtColor(c1, cv2.COLOR_BGR2GRAY), cv2.cvtColor(c2, cv2.COLOR_BGR2GRAY)
+        h_sift, inl, n = sift_reference(g1, g2)
+        h_ecc, ok = ecc_refine(g1, g2, h_sift)
+        ncc0, ncc1 = warp_ncc(g1, g2, h_sift), (warp_ncc(g1, g2, h_ecc) if ok else -1)
+        delta = transfer_error(h_ecc, h_sift, g1.shape[::-1], g2.shape[::-1]) if ok else float("nan")
+        # ECC is a polish: taken only where it improves the correlation without moving the
+        # fit by more than a pixel (a larger move means it locked onto another depth).
+        use_ecc = ok and ncc1 > ncc0 and delta <= 1.0
+        ref = h_ecc if use_ecc else h_sift
+        s = math.sqrt(TARGET_PIXELS / (c1.shape[0] * c1.shape[1]))
+        sv = math.sqrt(TARGET_PIXELS / (c2.shape[0] * c2.shape[1]))
+        big1 = cv2.resize(c1, (round(c1.shape[1] * s), round(c1.shape[0] * s)), interpolation=cv2.INTER_CUBIC)
+        big2 = cv2.resize(c2, (round(c2.shape[1] * sv), round(c2.shape[0] * sv)), interpolation=cv2.INTER_CUBIC)
+        sx1, sy1 = big1.shape[1] / c1.shape[1], big1.shape[0] / c1.shape[0]
+        sx2, sy2 = big2.shape[1] / c2.shape[1], big2.shape[0] / c2.shape[0]
+        a1 = np.array([[sx1, 0, (sx1 - 1) / 2], [0, sy1, (sy1 - 1) / 2], [0, 0, 1.0]])
+        a2 = np.array([[sx2, 0, (sx2 - 1) / 2], [0, sy2, (sy2 - 1) / 2], [0, 0, 1.0]])
+        h12 = a2 @ ref @ np.linalg.inv(a1)
+        cv2.imwrite(str(d / "key.jpg"), big1, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        cv2.imwrite(str(d / "view.jpg"), big2, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        write_h(d / "H", h12)
+        meta = {"source": f"{folder.name}/{a} -> {b}", "sift_inliers": inl, "sift_matches": n,
+                "ncc_sift": ncc0, "ncc_ecc": ncc1, "reference": "ecc" if use_ecc else "sift",
+                "ecc_vs_sift_native_px": delta, "size": [big1.shape[1], big1.shape[0]],
+                "seen": seen_share(ref, g1.shape[::-1], g2.shape[::-1])}
+        (d / "meta.json").write_text(json.dumps(meta))
+        print(f"mv12/{name}: {meta}", file=sys.stderr)
+    for seq in OXFORD:
+        sdir = data / "oxford" / seq
+        key = cv2.imread(str(image_path(sdir, 1)))
+        for n in range(2, 7):
+            name = f"{seq}-1-{n}"
+            view = cv2.imread(str(image_path(sdir, n)))
+            d = work / "occl" / name
+            d.mkdir(parents=True, exist_ok=True)
+            seed = 1000 * OXFORD.index(seq) + n
+            k_occ, kc = paste_occluders(key, seed, 0.30)
+            v_occ, vc = paste_occluders(view, seed + 500, 0.08)
+            cv2.imwrite(str(d / "key.png"), k_occ)
+            cv2.imwrite(str(d / "view.png"), v_occ)
+            refined = sdir / f"H1to{n}p.refined"
+            write_h(d / "H", read_h(refined if refined.exists() else sdir / f"H1to{n}p"))
+            (d / "meta.json").write_text(json.dumps({"key_covered": kc, "view_covered": vc}))
+        print(f"occl/{seq}: done", file=sys.stderr)
+    # The clean pairs are read in place.
+
+
+def clean_pairs(data):
+    out = []
+    for group, seqs in (("oxford", OXFORD), ("hpatches", HPATCHES)):
+        for seq in seqs:
+            sdir = data / group / seq
+            for n in range(2, 7):
+                refined = sdir / f"H1to{n}p.refined"
+                out.append((f"{seq}-1-{n}", image_path(sdir, 1), image_path(sdir, n),
+                            refined if refined.exists() else sdir / f"H1to{n}p"))
+    return out
+
+
+def set_pairs(work, data, which):
+    if which == "clean":
+        return clean_pairs(data)
+    out = []
+    for d in sorted((work / which).iterdir()):
+        key = next(d.glob("key.*"))
+        view = next(d.glob("view.*"))
+        out.append((d.name, key, view, d / "H"))
+    return out
+
+
+# ---------------------------------------------------------------- run
+
+
+def run_clearview(binary, key, view):
+    start = time.perf_counter()
+    p = subprocess.run([str(binary), "align", "--json", str(key), str(view)], capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    if p.returncode not in (0, 3):
+        return None, False, f"exit {p.returncode}: {p.stderr.strip()}", wall, {}
+    r = json.loads(p.stdout)
+    h = np.array(r["homography"]) if r.get("homography") else None
+    return h, r["accepted"], r.get("reason"), wall, r
+
+
+def run_sift(key, view):
+    start = time.perf_counter()
+    p = subprocess.run([PY, str(ROOT / "bench" / "sift_magsac.py"), str(key), str(view)],
+                       capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    r = json.loads(p.stdout)
+    h = np.array(r["homography"]) if r.get("homography") else None
+    return h, h is not None, None, wall, r
+
+
+def fmt(e):
+    if e is None or not np.isfinite(e):
+        return "none"
+    return f"{e:.2f}" if e < 100 else f"{e:.0f}"
+
+
+def run(args):
+    work, data, binary = Path(args.work), Path(args.data), Path(args.binary)
+    results = {}
+    out = []
+    for which in args.sets.split(","):
+        rows = []
+        for name, key, view, hfile in set_pairs(work, data, which):
+            if args.only and args.only not in name:
+                continue
+            truth = read_h(hfile)
+            ks = cv2.imread(str(key), cv2.IMREAD_UNCHANGED).shape[:2][::-1]
+            vs = cv2.imread(str(view), cv2.IMREAD_UNCHANGED).shape[:2][::-1]
+            h_cv, acc, reason, t_cv, rep = run_clearview(binary, key, view)
+            e_cv = transfer_error(h_cv, truth, ks, vs)
+            e_cv_acc = e_cv if acc else float("inf")
+            if args.no_peer:
+                e_s, t_s = float("nan"), float("nan")
+            else:
+                h_s, _, _, t_s, _ = run_sift(key, view)
+                e_s = transfer_error(h_s, truth, ks, vs)
+            seen = seen_share(truth, ks, vs)
+            rows.append({"pair": name, "cv": e_cv_acc, "cv_raw": e_cv, "accepted": acc, "reason": reason,
+                         "sift": e_s, "t_cv": t_cv, "t_sift": t_s, "seen": seen,
+                         "inliers": rep.get("inliers", 0), "checked": rep.get("checked", 0)})
+            print(f"{which}/{name}: clearview {fmt(e_cv)} {'ok' if acc else 'REJECTED: ' + str(reason)} "
+                  f"({t_cv:.2f} s), SIFT {fmt(e_s)} ({t_s:.2f} s), seen {seen:.0%}", file=sys.stderr)
+        results[which] = rows
+        out.append(f"\n#### {which} ({len(rows)} pairs)\n")
+        out.append("| pair | seen | clearview px | SIFT + MAGSAC px | clearview inliers / checked | clearview s | SIFT + MAGSAC s |")
+        out.append("|---|---:|---:|---:|---:|---:|---:|")
+        for r in rows:
+            cvs = fmt(r["cv_raw"]) + ("" if r["accepted"] else " ✗")
+            out.append(f"| {r['pair']} | {r['seen']:.0%} | {cvs} | {fmt(r['sift'])} | {r['inliers']} / {r['checked']} | "
+                       f"{r['t_cv']:.2f} | {r['t_sift']:.2f} |")
+        cv = [r["cv"] for r in rows]
+        sf = [r["sift"] for r in rows]
+        for label, f in (("within 1 px", lambda v: sum(e <= 1 for e in v)),
+                         ("within 3 px", lambda v: sum(e <= 3 for e in v)),
+                         ("within 5 px", lambda v: sum(e <= 5 for e in v)),
+                         ("median px", lambda v: fmt(statistics.median(v)) if v else "-"),
+                         ("median process s", None)):
+            if f is None:
+                out.append(f"| **{label}** | | **{statistics.median([r['t_cv'] for r in rows]):.2f}** | "
+                           f"**{statistics.median([r['t_sift'] for r in rows]):.2f}** | | | |")
+            else:
+                out.append(f"| **{label}** | | **{f(cv)}** | **{f(sf)}** | | | |")
+        rej = [r for r in rows if not r["accepted"]]
+        if rej:
+            out.append("\nclearview's rejections (✗; its estimate's error is shown, a rejection counts as infinite):\n")
+            out += [f"- {r['pair']}: {r['reason']}" for r in rej]
+    if args.json_out:
+        Path(args.json_out).write_text(json.dumps(results, default=float))
+    print("\n".join(out))
+
+
+def speed(args):
+    work, binary = Path(args.work), Path(args.binary)
+    names = args.pairs.split(",")
+    out = ["| pair | size | clearview process median s | its runs | SIFT + MAGSAC process median s | its runs | ratio |",
+           "|---|---|---:|---|---:|---|---:|"]
+    for name in names:
+        d = work / "mv12" / name
+        key, view = d / "key.jpg", d / "view.jpg"
+        tc, ts = [], []
+        for _ in range(args.runs):
+            tc.append(run_clearview(binary, key, view)[3])
+            ts.append(run_sift(key, view)[3])
+        mc, ms = statistics.median(tc), statistics.median(ts)
+        size = json.loads((d / "meta.json").read_text())["size"]
+        out.append(f"| {name} | {size[0]}×{size[1]} | {mc:.2f} | {', '.join(f'{t:.2f}' for t in tc)} | {ms:.2f} | "
+                   f"{', '.join(f'{t:.2f}' for t in ts)} | {ms / mc:.1f}× |")
+        print(out[-1], file=sys.stderr)
+    out.append(f"\nWhole processes, alternated, decoding of both JPEGs included; OpenCV {cv2.__version__} "
+               f"({cv2.getNumThreads()} threads); {args.runs} runs each.")
+    print("\n".join(out))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("cmd", choices=["prepare", "run", "speed"])
+    ap.add_argument("--work", default="/tmp/clearview-eval")
+    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data"))
+    ap.add_argument("--binary", default=str(ROOT / "target" / "release" / "clearview"))
+    ap.add_argument("--sets", default="mv12,occl,clean")
+    ap.add_argument("--only", default="")
+    ap.add_argument("--no-peer", action="store_true")
+    ap.add_argument("--json-out", default="")
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--pairs", default="hunt3-hunt4,roofs1-roofs2")
+    args = ap.parse_args()
+    {"prepare": prepare, "run": run, "speed": speed}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    main()
