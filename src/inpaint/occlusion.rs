@@ -274,25 +274,12 @@ fn objects(seed: &[bool], w: usize, h: usize, min: usize) -> Vec<bool> {
         members.clear();
         while let Some(i) = stack.pop() {
             members.push(i);
-            let (x, y) = (i % w, i / w);
-            let mut visit = |j: usize| {
+            neighbours4(i, w, h, |j| {
                 if seed[j] && !seen[j] {
                     seen[j] = true;
                     stack.push(j);
                 }
-            };
-            if x > 0 {
-                visit(i - 1);
-            }
-            if x + 1 < w {
-                visit(i + 1);
-            }
-            if y > 0 {
-                visit(i - w);
-            }
-            if y + 1 < h {
-                visit(i + w);
-            }
+            });
         }
         if members.len() >= min {
             for &i in &members {
@@ -303,30 +290,34 @@ fn objects(seed: &[bool], w: usize, h: usize, min: usize) -> Vec<bool> {
     out
 }
 
+/// Calls `visit` with the index of each 4-neighbour of pixel `i` in a `w × h` grid.
+fn neighbours4(i: usize, w: usize, h: usize, mut visit: impl FnMut(usize)) {
+    let (x, y) = (i % w, i / w);
+    if x > 0 {
+        visit(i - 1);
+    }
+    if x + 1 < w {
+        visit(i + 1);
+    }
+    if y > 0 {
+        visit(i - w);
+    }
+    if y + 1 < h {
+        visit(i + w);
+    }
+}
+
 /// Grows `from` through the pixels `allowed` marks (4-connected).
 fn grow(from: &[bool], allowed: &[bool], w: usize, h: usize) -> Vec<bool> {
     let mut out = from.to_vec();
     let mut stack: Vec<usize> = (0..from.len()).filter(|&i| from[i]).collect();
     while let Some(i) = stack.pop() {
-        let (x, y) = (i % w, i / w);
-        let mut visit = |j: usize| {
+        neighbours4(i, w, h, |j| {
             if allowed[j] && !out[j] {
                 out[j] = true;
                 stack.push(j);
             }
-        };
-        if x > 0 {
-            visit(i - 1);
-        }
-        if x + 1 < w {
-            visit(i + 1);
-        }
-        if y > 0 {
-            visit(i - w);
-        }
-        if y + 1 < h {
-            visit(i + w);
-        }
+        });
     }
     out
 }
