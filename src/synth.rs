@@ -341,6 +341,38 @@ pub fn occlusion_case(family: CaseFamily, width: usize, height: usize, n: usize,
     }
 }
 
+/// A keyframe with a tree in front of a facade, the tree's mask, the truth behind it, and
+/// three views from elsewhere, each with a person in a different place and its own
+/// exposure (the one-shot command's standard case).
+pub struct TreeScene {
+    pub truth: RgbF32,
+    pub key: RgbF32,
+    pub mask: Mask,
+    pub views: Vec<RgbF32>,
+}
+
+/// [`TreeScene`] of `width × height` on facade `facade_seed`, views placed by `view_seed`.
+pub fn tree_scene(width: usize, height: usize, facade_seed: u64, view_seed: u64) -> TreeScene {
+    let (w, h) = (width, height);
+    let facade = facade(w * 2, h * 2, facade_seed);
+    let centre = Homography::translation(w as f64 / 2.0, h as f64 / 2.0);
+    let truth = render_view(&facade, &centre, w, h, [0.5; 3]);
+    let mut key = truth.clone();
+    let mut mask = Mask::new(w, h, 0);
+    paint_occluder(&mut key, Some(&mut mask), Occluder::Tree, 240.0, 190.0, 150.0, 3);
+    let mut rng = ChaCha8Rng::seed_from_u64(view_seed);
+    let views = (0..3u64)
+        .map(|i| {
+            let k2v = random_homography(&mut rng, w, h, 0.1, 0.25, (0.9, 1.1));
+            let mut v = render_view(&facade, &centre.after(&k2v.inverse().expect("regular")), w, h, [0.5; 3]);
+            paint_occluder(&mut v, None, Occluder::Person, 60.0 + 170.0 * i as f32, 200.0, 150.0, 10 + i);
+            expose(&mut v, 0.9 + 0.1 * i as f32, 0.0);
+            v
+        })
+        .collect();
+    TreeScene { truth, key, mask, views }
+}
+
 /// Box average of 2×2 blocks.
 pub fn half(img: &RgbF32) -> RgbF32 {
     RgbF32::from_fn(img.width() / 2, img.height() / 2, |x, y| {

@@ -3,13 +3,10 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use clearview::geometry::Homography;
 use clearview::imaging::convert::{mask_to_luma8, to_rgb, to_rgb8};
 use clearview::imaging::metrics::masked_psnr;
 use clearview::imaging::{Mask, RgbF32};
-use clearview::synth::{self, Occluder};
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
+use clearview::synth;
 
 const BIN: &str = env!("CARGO_BIN_EXE_clearview");
 const W: usize = 480;
@@ -33,31 +30,13 @@ impl Scene {
 /// each with a person in a different place and its own exposure.
 fn scene() -> Scene {
     let dir = tempfile::tempdir().unwrap();
-    let facade = synth::facade(W * 2, H * 2, 21);
-    let centre = Homography::translation(W as f64 / 2.0, H as f64 / 2.0);
-    let truth = synth::render_view(&facade, &centre, W, H, [0.5; 3]);
-    let mut key = truth.clone();
-    let mut mask = Mask::new(W, H, 0);
-    synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Tree, 240.0, 190.0, 150.0, 3);
+    let synth::TreeScene { truth, key, mask, views: rendered } = synth::tree_scene(W, H, 21, 8);
     to_rgb8(&key).save(dir.path().join("key.png")).unwrap();
     mask_to_luma8(&mask).save(dir.path().join("key.mask.png")).unwrap();
-    let mut rng = ChaCha8Rng::seed_from_u64(8);
     let mut views = Vec::new();
-    for i in 0..3 {
-        let h = synth::random_homography(&mut rng, W, H, 0.1, 0.25, (0.9, 1.1));
-        let mut view = synth::render_view(&facade, &centre.after(&h.inverse().unwrap()), W, H, [0.5; 3]);
-        synth::paint_occluder(
-            &mut view,
-            None,
-            Occluder::Person,
-            60.0 + 170.0 * i as f32,
-            200.0,
-            150.0,
-            10 + i,
-        );
-        synth::expose(&mut view, 0.9 + 0.1 * i as f32, 0.0);
+    for (i, view) in rendered.iter().enumerate() {
         let p = dir.path().join(format!("view-{i}.png"));
-        to_rgb8(&view).save(&p).unwrap();
+        to_rgb8(view).save(&p).unwrap();
         views.push(p);
     }
     Scene { dir, truth, mask, views }

@@ -13,7 +13,7 @@ use clearview::geometry::Homography;
 use clearview::imaging::metrics::masked_psnr;
 use clearview::imaging::{Mask, RgbF32};
 use clearview::inpaint::{FALLBACK, FillParams, Filled, KEYFRAME, Source, fill};
-use clearview::synth::{self, Occluder};
+use clearview::synth::{self, Occluder, half};
 
 const W: usize = 480;
 const H: usize = 360;
@@ -78,19 +78,6 @@ fn scene(seed: u64) -> Scene {
         homographies.push(hm);
     }
     Scene { truth, key, mask, views, homographies }
-}
-
-/// 2×2 box average.
-fn half(img: &RgbF32) -> RgbF32 {
-    RgbF32::from_fn(img.width() / 2, img.height() / 2, |x, y| {
-        let (a, b, c, d) = (
-            img.get(2 * x, 2 * y),
-            img.get(2 * x + 1, 2 * y),
-            img.get(2 * x, 2 * y + 1),
-            img.get(2 * x + 1, 2 * y + 1),
-        );
-        std::array::from_fn(|k| 0.25 * (a[k] + b[k] + c[k] + d[k]))
-    })
 }
 
 fn dump(name: &str, img: &RgbF32) {

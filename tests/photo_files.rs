@@ -5,16 +5,13 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use clearview::geometry::Homography;
 use clearview::imaging::colour::{adobe_rgb_icc, srgb_icc, srgb8_to_adobe8};
 use clearview::imaging::convert::{mask_to_luma8, to_rgb, to_rgb8};
 use clearview::imaging::decode::{DecodeLimits, decode_photo};
 use clearview::imaging::metrics::masked_psnr;
 use clearview::imaging::{Mask, RgbF32};
-use clearview::synth::{self, Occluder};
+use clearview::synth;
 use exif::{Field, In, Tag, Value};
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
 
 const BIN: &str = env!("CARGO_BIN_EXE_clearview");
 const W: usize = 480;
@@ -31,31 +28,8 @@ struct Scene {
 
 fn scene() -> Scene {
     let dir = tempfile::tempdir().unwrap();
-    let facade = synth::facade(W * 2, H * 2, 33);
-    let centre = Homography::translation(W as f64 / 2.0, H as f64 / 2.0);
-    let truth = synth::render_view(&facade, &centre, W, H, [0.5; 3]);
-    let mut key = truth.clone();
-    let mut mask = Mask::new(W, H, 0);
-    synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Tree, 240.0, 190.0, 150.0, 3);
+    let synth::TreeScene { truth, key, mask, views } = synth::tree_scene(W, H, 33, 9);
     mask_to_luma8(&mask).save(dir.path().join("key.mask.png")).unwrap();
-    let mut rng = ChaCha8Rng::seed_from_u64(9);
-    let views = (0..3)
-        .map(|i| {
-            let h = synth::random_homography(&mut rng, W, H, 0.1, 0.25, (0.9, 1.1));
-            let mut v = synth::render_view(&facade, &centre.after(&h.inverse().unwrap()), W, H, [0.5; 3]);
-            synth::paint_occluder(
-                &mut v,
-                None,
-                Occluder::Person,
-                60.0 + 170.0 * i as f32,
-                200.0,
-                150.0,
-                10 + i,
-            );
-            synth::expose(&mut v, 0.9 + 0.1 * i as f32, 0.0);
-            v
-        })
-        .collect();
     Scene { dir, truth, key, mask, views }
 }
 
