@@ -214,6 +214,10 @@ fn sigterm_mid_fill_stops_within_the_grace_period_and_writes_nothing_after() {
         "the fill was not interrupted (too fast to test?): {ev:#?}"
     );
     assert!(!f.outbox.join("big/result.png").exists(), "a result was written");
+    assert!(
+        log.contains("the fill in hand is given up"),
+        "the fill was not cancelled, only outlived:\n{log}"
+    );
     // Nothing is written later either, by a thread that was still finishing.
     std::thread::sleep(Duration::from_secs(2));
     assert_eq!(events(&f).len(), ev.len());
