@@ -413,7 +413,7 @@ impl Worker {
                     } else {
                         "its file was deleted"
                     };
-                    forget_old_content(ctx, slot, &file.name, "", why);
+                    forget_old_content(ctx, slot, &file.name, None, why);
                 }
             }
             save_state(ctx, slot);
@@ -872,7 +872,7 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
     let _enter = span.enter();
     let id = file.content_id(image);
     let Some(key_id) = slot.session.key_id().map(str::to_owned) else { return };
-    forget_old_content(ctx, slot, &file.name, &id, "its file was replaced");
+    forget_old_content(ctx, slot, &file.name, Some(&id), "its file was replaced");
     let start = Instant::now();
     let (record, from_state) = match slot.state.alignment(&id, &key_id) {
         Some(r) => (r.clone(), true),
@@ -970,12 +970,14 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
     auto_mask(ctx, slot);
 }
 
-/// The file `name` now holds content `id` (or nothing usable, `why` says): the pixels
+/// The file `name` now holds content `id` (`None`: nothing usable, `why` says): the pixels
 /// buffered from what it held before leave the buffer, whatever becomes of the new
 /// content (accepted, rejected, unreadable, deleted). A result must never be made of
 /// pixels that no file holds any more.
-fn forget_old_content(ctx: &Ctx, slot: &mut Slot, name: &str, id: &str, why: &str) {
-    let Some(old) = slot.views.get(name).map(|v| v.id.clone()).filter(|old| old != id) else { return };
+fn forget_old_content(ctx: &Ctx, slot: &mut Slot, name: &str, id: Option<&str>, why: &str) {
+    let Some(old) = slot.views.get(name).map(|v| v.id.clone()).filter(|old| Some(old.as_str()) != id) else {
+        return;
+    };
     slot.paths.remove(&old);
     if slot.session.forget_view(&old) {
         tracing::info!(file = %watch::shown(name), reason = why, "the view's old pixels leave the buffer");

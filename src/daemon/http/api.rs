@@ -127,23 +127,11 @@ async fn inbox_file(s: &Shared, path: PathBuf, what: &'static str) -> Result<Res
     Ok(streamed(tokio::fs::File::from_std(f), &name))
 }
 
-/// The bytes of a file of the watched folder and its identity (for the thumbnail cache).
-async fn read_inbox(
-    inbox: Inbox,
-    path: PathBuf,
-    what: &'static str,
-) -> Result<(Vec<u8>, ThumbKey), ApiError> {
-    let mut f = open_inbox(inbox, path.clone(), what).await?;
-    tokio::task::spawn_blocking(move || {
-        use std::os::unix::fs::MetadataExt;
-        let meta = f.metadata().map_err(|e| io_error(&path, what, e))?;
-        let key = (path.clone(), meta.len(), meta.mtime(), meta.mtime_nsec(), meta.ino());
-        let mut bytes = Vec::new();
-        f.read_to_end(&mut bytes).map_err(|e| io_error(&path, what, e))?;
-        Ok((bytes, key))
-    })
-    .await
-    .map_err(|_| err(StatusCode::INTERNAL_SERVER_ERROR, "read task failed"))?
+/// A file's identity for the thumbnail cache (path, size, modification time, inode).
+fn thumb_key(path: &Path, f: &std::fs::File) -> std::io::Result<ThumbKey> {
+    use std::os::unix::fs::MetadataExt;
+    let meta = f.metadata()?;
+    Ok((path.to_owned(), meta.len(), meta.mtime(), meta.mtime_nsec(), meta.ino()))
 }
 
 fn io_error(path: &Path, what: &str, e: std::io::Error) -> ApiError {
@@ -242,34 +230,40 @@ pub async fn thumb(
     }
     .ok_or_else(|| err(StatusCode::NOT_FOUND, format!("no view {name:?} in session {id:?}")))?;
     let limits = DecodeLimits { max_pixels: s.config.max_pixels };
-    // One decode at a time (a 24 MP view is 72 MB decoded): 48 thumbnails asked at once
-    // took 3.6 GB. Made once per version of the file, then served from the cache.
-    let _turn = s.limits.decode().await;
-    let (bytes, key) = read_inbox(Inbox::of(&s.config), path, "view").await?;
-    let jpeg = match s.limits.thumb(&key) {
-        Some(jpeg) => jpeg,
-        None => {
-            let jpeg = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, ApiError> {
-                let img = decode(&bytes, &limits)
-                    .map_err(|e| err(StatusCode::UNPROCESSABLE_ENTITY, e.to_string()))?;
-                drop(bytes);
-                let small = img.thumbnail(THUMB, THUMB).to_rgb8();
-                drop(img);
-                let mut out = std::io::Cursor::new(Vec::new());
-                small
-                    .write_to(&mut out, image::ImageFormat::Jpeg)
-                    .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
-                Ok(out.into_inner())
-            })
-            .await
-            .map_err(|_| err(StatusCode::INTERNAL_SERVER_ERROR, "thumbnail task failed"))??;
-            let jpeg = Arc::new(jpeg);
-            s.limits.keep_thumb(key, jpeg.clone());
-            jpeg
-        }
+    let mut f = open_inbox(Inbox::of(&s.config), path.clone(), "view").await?;
+    let key = thumb_key(&path, &f).map_err(|e| io_error(&path, "view", e))?;
+    let reply = |jpeg: Bytes| {
+        ([(header::CONTENT_TYPE, "image/jpeg"), (header::CACHE_CONTROL, "max-age=60")], jpeg).into_response()
     };
-    let body = Vec::clone(&jpeg);
-    Ok(([(header::CONTENT_TYPE, "image/jpeg"), (header::CACHE_CONTROL, "max-age=60")], body).into_response())
+    // Made once per version of the file, then served from the cache without reading it.
+    if let Some(jpeg) = s.limits.thumb(&key) {
+        return Ok(reply(jpeg));
+    }
+    // One decode at a time (a 24 MP view is 72 MB decoded): 48 thumbnails asked at once
+    // took 3.6 GB. Whoever waited may find it made by the one before.
+    let _turn = s.limits.decode().await;
+    if let Some(jpeg) = s.limits.thumb(&key) {
+        return Ok(reply(jpeg));
+    }
+    let jpeg = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, ApiError> {
+        let mut bytes = Vec::new();
+        f.read_to_end(&mut bytes).map_err(|e| io_error(&path, "view", e))?;
+        let img =
+            decode(&bytes, &limits).map_err(|e| err(StatusCode::UNPROCESSABLE_ENTITY, e.to_string()))?;
+        drop(bytes);
+        let small = img.thumbnail(THUMB, THUMB).to_rgb8();
+        drop(img);
+        let mut out = std::io::Cursor::new(Vec::new());
+        small
+            .write_to(&mut out, image::ImageFormat::Jpeg)
+            .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+        Ok(out.into_inner())
+    })
+    .await
+    .map_err(|_| err(StatusCode::INTERNAL_SERVER_ERROR, "thumbnail task failed"))??;
+    let jpeg = Bytes::from(jpeg);
+    s.limits.keep_thumb(key, jpeg.clone());
+    Ok(reply(jpeg))
 }
 
 /// The first `base-N` (N = 1, 2, ...) for which `exists` is false.

@@ -12,6 +12,7 @@ use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
+use axum::body::Bytes;
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 /// Event-stream (`/api/events`) subscribers at once; more are answered 503. Each holds a
@@ -66,11 +67,11 @@ impl Limits {
         self.decodes.clone().acquire_owned().await.expect("never closed")
     }
 
-    pub fn thumb(&self, key: &ThumbKey) -> Option<Arc<Vec<u8>>> {
+    pub fn thumb(&self, key: &ThumbKey) -> Option<Bytes> {
         self.thumbs.lock().expect("thumbnail cache").get(key)
     }
 
-    pub fn keep_thumb(&self, key: ThumbKey, jpeg: Arc<Vec<u8>>) {
+    pub fn keep_thumb(&self, key: ThumbKey, jpeg: Bytes) {
         self.thumbs.lock().expect("thumbnail cache").put(key, jpeg);
     }
 }
@@ -78,16 +79,16 @@ impl Limits {
 /// Thumbnails by file identity, bounded in bytes, oldest out first.
 #[derive(Default)]
 struct ThumbCache {
-    entries: VecDeque<(ThumbKey, Arc<Vec<u8>>)>,
+    entries: VecDeque<(ThumbKey, Bytes)>,
     bytes: usize,
 }
 
 impl ThumbCache {
-    fn get(&self, key: &ThumbKey) -> Option<Arc<Vec<u8>>> {
+    fn get(&self, key: &ThumbKey) -> Option<Bytes> {
         self.entries.iter().find(|(k, _)| k == key).map(|(_, v)| v.clone())
     }
 
-    fn put(&mut self, key: ThumbKey, jpeg: Arc<Vec<u8>>) {
+    fn put(&mut self, key: ThumbKey, jpeg: Bytes) {
         if jpeg.len() > THUMB_CACHE_BYTES || self.get(&key).is_some() {
             return;
         }
@@ -119,14 +120,14 @@ mod tests {
     #[test]
     fn the_thumbnail_cache_stays_within_its_bytes_and_forgets_old_versions() {
         let mut c = ThumbCache::default();
-        let big = Arc::new(vec![0u8; THUMB_CACHE_BYTES / 3]);
+        let big = Bytes::from(vec![0u8; THUMB_CACHE_BYTES / 3]);
         for i in 0..5 {
             c.put(key(&format!("v{i}"), 1), big.clone());
         }
         assert!(c.bytes <= THUMB_CACHE_BYTES);
         assert_eq!(c.entries.len(), 3);
         assert!(c.get(&key("v4", 1)).is_some() && c.get(&key("v0", 1)).is_none());
-        c.put(key("v4", 2), Arc::new(vec![1u8; 10]));
+        c.put(key("v4", 2), Bytes::from(vec![1u8; 10]));
         assert!(c.get(&key("v4", 1)).is_none(), "a new version replaces the old");
         assert_eq!(c.bytes, 2 * big.len() + 10);
     }
