@@ -8,7 +8,9 @@ use std::io::Cursor;
 use image::{DynamicImage, ImageDecoder, ImageReader, Limits};
 use thiserror::Error;
 
+use super::RgbF32;
 use super::colour::{Space, to_working};
+use super::convert::to_rgb;
 use super::meta::{Metadata, strip_exif_header};
 
 /// What the decoder may allocate.
@@ -176,6 +178,19 @@ pub fn read_metadata(bytes: &[u8]) -> Result<Metadata, DecodeError> {
     }
     meta.space = space;
     Ok(meta)
+}
+
+/// What a result needs of its keyframe's file (the service reads it again when it writes
+/// one): the metadata, and the pixels in the working space at full precision when the file
+/// holds more than the service keeps of a keyframe, 8-bit sRGB (samples deeper than 8 bits,
+/// or a colour profile whose levels fall between sRGB's); `None` for an 8-bit sRGB file.
+pub fn read_key(bytes: &[u8], limits: &DecodeLimits) -> Result<(Metadata, Option<RgbF32>), DecodeError> {
+    let meta = read_metadata(bytes)?;
+    if meta.bits <= 8 && meta.space.is_srgb() {
+        return Ok((meta, None));
+    }
+    let photo = decode_photo(bytes, limits)?;
+    Ok((photo.meta, Some(to_rgb(&photo.image))))
 }
 
 /// Whether a JPEG stream stops before its end-of-image marker: its segments are walked
