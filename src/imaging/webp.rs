@@ -65,6 +65,9 @@ pub fn encode_lossy(
     config.quality = f32::from(quality.clamp(1, 100));
     // Method 4 (libwebp's default, and cwebp's): the usual balance of speed and size.
     config.method = 4;
+    // VP8 stores chroma at half resolution: the sharp RGB → YUV conversion keeps colour
+    // edges (a facade's window frames) where the plain one smears them.
+    config.use_sharp_yuv = 1;
     let simple = webp::Encoder::from_rgb(rgb, width as u32, height as u32)
         .encode_advanced(&config)
         .map_err(WebPError::Encoder)?;
