@@ -171,6 +171,22 @@ fn every_result_format_keeps_the_keyframes_exif_and_profile() {
             assert_eq!(d.get_tag_u8_vec(T::Unknown(34675)).unwrap(), icc, "ICC tag 34675");
             let make = d.get_tag_ascii_string(T::Make).unwrap();
             assert_eq!(make.trim_end_matches('\0'), "NIKON CORPORATION");
+            // A TIFF keyframe (a developed RAW) passes its EXIF on in turn.
+            let again = s.path("again.jpg");
+            ok(&s.fill(&out, &views, &again, &[]));
+            let bytes = std::fs::read(&again).unwrap();
+            let e = exif::Reader::new().read_from_container(&mut std::io::Cursor::new(&bytes)).unwrap();
+            for tag in [Tag::Make, Tag::Model, Tag::DateTimeOriginal, Tag::GPSLatitude] {
+                let got = e.get_field(tag, In::PRIMARY).map(|f| f.value.clone());
+                let want = orig.get_field(tag, In::PRIMARY).map(|f| f.value.clone());
+                assert_eq!(format!("{got:?}"), format!("{want:?}"), "from a TIFF keyframe: {tag}");
+            }
+            assert!(e.get_field(Tag::StripOffsets, In::PRIMARY).is_none(), "no pixel layout of the TIFF");
+            assert_eq!(
+                read(&again).meta.icc.as_deref(),
+                Some(icc.as_slice()),
+                "from a TIFF keyframe: profile"
+            );
         }
     }
 }

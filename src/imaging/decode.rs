@@ -152,6 +152,36 @@ fn tiff_metadata(bytes: &[u8], meta: &mut Metadata) {
     let Ok(mut d) = tiff::decoder::Decoder::new(Cursor::new(bytes)) else { return };
     meta.icc = meta.icc.take().or_else(|| d.get_tag_u8_vec(Tag::Unknown(34675)).ok());
     meta.xmp = meta.xmp.take().or_else(|| d.get_tag_u8_vec(Tag::Unknown(700)).ok());
+    meta.exif = meta.exif.take().or_else(|| tiff_exif(bytes));
+}
+
+/// A TIFF's camera fields (its EXIF and GPS directories, and the main directory's tags that
+/// describe the picture rather than how its pixels are stored) as a compact EXIF structure.
+fn tiff_exif(bytes: &[u8]) -> Option<Vec<u8>> {
+    use exif::{Context, In};
+    // Make, Model, ImageDescription, Orientation, resolution, Software, DateTime, Artist,
+    // Copyright: the main directory's fields that say nothing of the stored pixels.
+    const PICTURE: [u16; 11] = [270, 271, 272, 274, 282, 283, 296, 305, 306, 315, 33432];
+    let parsed = exif::Reader::new().read_raw(bytes.to_vec()).ok()?;
+    let mut w = exif::experimental::Writer::new();
+    let fields: Vec<&exif::Field> = parsed
+        .fields()
+        .filter(|f| f.ifd_num == In::PRIMARY && !matches!(f.value, exif::Value::Unknown(..)))
+        .filter(|f| match f.tag.0 {
+            Context::Tiff => PICTURE.contains(&f.tag.1),
+            Context::Exif | Context::Gps => true,
+            _ => false,
+        })
+        .collect();
+    if !fields.iter().any(|f| f.tag.0 != Context::Tiff || f.tag.1 != 274) {
+        return None;
+    }
+    for f in &fields {
+        w.push_field(f);
+    }
+    let mut out = Cursor::new(Vec::new());
+    w.write(&mut out, parsed.little_endian()).ok()?;
+    Some(out.into_inner())
 }
 
 /// The metadata of an image without decoding its pixels (the service reads its keyframe's
