@@ -713,6 +713,34 @@ impl Session {
         })
     }
 
+    /// The current result (`result`, as [`FillOutcome::image`] gave it) with the keyframe's
+    /// own pixels taken from `key`: the same keyframe at a precision the session does not
+    /// keep (it holds 8-bit sRGB; a 16-bit file, or an 8-bit one in another colour space,
+    /// has values between those levels). What the fill made stays as it is. So the result
+    /// carries its keyframe at the keyframe's precision, as `clearview fill`'s does (that one
+    /// fills the full-precision keyframe directly). `None` without a current result, or when
+    /// `key` or `result` is not the keyframe's size (a file that changed since).
+    pub fn with_key_pixels(&self, result: &RgbF32, key: &RgbF32) -> Option<RgbF32> {
+        let size = self.key_size()?;
+        let crop = self.provenance.as_ref()?;
+        if (key.width(), key.height()) != size || (result.width(), result.height()) != size {
+            return None;
+        }
+        let mut out = key.clone();
+        if let Some(r) = self.mask.as_ref()?.region {
+            for y in 0..r.height {
+                let from = crop.row(y);
+                let (dst, src) = (&mut out.row_mut(r.y + y)[r.x..r.x1()], &result.row(r.y + y)[r.x..r.x1()]);
+                for ((d, s), &p) in dst.iter_mut().zip(src).zip(from) {
+                    if p != inpaint::KEYFRAME {
+                        *d = *s;
+                    }
+                }
+            }
+        }
+        Some(out)
+    }
+
     /// The automatic mask from whole views and their keyframe → view homographies.
     pub fn auto_mask(&self, views: &[(RgbF32, Homography)]) -> Result<Mask, SessionError> {
         let key = self.key.as_ref().ok_or(SessionError::NoKey)?;

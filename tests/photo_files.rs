@@ -119,38 +119,131 @@ fn read(path: &Path) -> clearview::imaging::decode::Photo {
 }
 
 #[test]
-fn a_jpeg_result_keeps_the_keyframes_exif_and_profile() {
+fn every_result_format_keeps_the_keyframes_exif_and_profile() {
     let s = scene();
     let key = s.path("key.jpg");
     let icc = srgb_icc();
     let exif_in = camera_exif();
     jpeg(&key, to_rgb8(&s.key).as_raw(), W, H, Some(&exif_in), Some(&icc));
     let views = s.write_views("jpg", plain_jpeg);
-    let out = s.path("clear.jpg");
-    ok(&s.fill(&key, &views, &out, &["--report", s.path("report.json").to_str().unwrap()]));
-    let bytes = std::fs::read(&out).unwrap();
-    let e = exif::Reader::new().read_from_container(&mut std::io::Cursor::new(&bytes)).unwrap();
     let orig = exif::Reader::new().read_raw(exif_in).unwrap();
-    for tag in [
-        Tag::Make,
-        Tag::Model,
-        Tag::DateTimeOriginal,
-        Tag::GPSLatitudeRef,
-        Tag::GPSLatitude,
-        Tag::GPSLongitude,
-    ] {
-        let got = e.get_field(tag, In::PRIMARY).map(|f| f.value.clone());
-        let want = orig.get_field(tag, In::PRIMARY).map(|f| f.value.clone());
-        assert_eq!(format!("{got:?}"), format!("{want:?}"), "{tag}");
+    for (name, quality) in
+        [("clear.jpg", None), ("clear.tif", None), ("clear.png", None), ("clear.webp", Some("85"))]
+    {
+        let out = s.path(name);
+        let mut extra = vec!["--report", s.path("report.json").to_str().unwrap().to_owned().leak()];
+        if let Some(q) = quality {
+            extra.extend(["--quality", q]);
+        }
+        ok(&s.fill(&key, &views, &out, &extra));
+        let bytes = std::fs::read(&out).unwrap();
+        let e = exif::Reader::new().read_from_container(&mut std::io::Cursor::new(&bytes)).unwrap();
+        for tag in [
+            Tag::Make,
+            Tag::Model,
+            Tag::DateTimeOriginal,
+            Tag::GPSLatitudeRef,
+            Tag::GPSLatitude,
+            Tag::GPSLongitudeRef,
+            Tag::GPSLongitude,
+        ] {
+            let got = e.get_field(tag, In::PRIMARY).map(|f| f.value.clone());
+            let want = orig.get_field(tag, In::PRIMARY).map(|f| f.value.clone());
+            assert_eq!(format!("{got:?}"), format!("{want:?}"), "{name}: {tag}");
+        }
+        assert_eq!(e.get_field(Tag::Orientation, In::PRIMARY).unwrap().value.get_uint(0), Some(1), "{name}");
+        let software = e.get_field(Tag::Software, In::PRIMARY).unwrap().display_value().to_string();
+        assert!(software.contains("clearview"), "{name}: {software}");
+        let photo = read(&out);
+        assert_eq!(photo.meta.icc.as_deref(), Some(icc.as_slice()), "{name}: the same profile");
+        let xmp = String::from_utf8(photo.meta.xmp.unwrap()).unwrap();
+        assert!(xmp.contains("<clearview:Report>report.json</clearview:Report>"), "{name}: {xmp}");
+        assert!(xmp.contains("<rdf:li>view-"), "{name}: {xmp}");
+        if name.ends_with(".tif") {
+            // Read by a second implementation: the `tiff` crate finds the EXIF and GPS
+            // directories and the profile where the TIFF specification puts them.
+            use tiff::tags::Tag as T;
+            let mut d = tiff::decoder::Decoder::new(std::io::Cursor::new(&bytes)).unwrap();
+            for (tag, what) in [(34665u16, "EXIF IFD"), (34853, "GPS IFD")] {
+                let at = d.get_tag_u64(T::Unknown(tag)).unwrap_or(0);
+                assert!(at > 8 && (at as usize) < bytes.len(), "{what} at {at}");
+            }
+            assert_eq!(d.get_tag_u8_vec(T::Unknown(34675)).unwrap(), icc, "ICC tag 34675");
+            let make = d.get_tag_ascii_string(T::Make).unwrap();
+            assert_eq!(make.trim_end_matches('\0'), "NIKON CORPORATION");
+            // A TIFF keyframe (a developed RAW) passes its EXIF on in turn.
+            let again = s.path("again.jpg");
+            ok(&s.fill(&out, &views, &again, &[]));
+            let bytes = std::fs::read(&again).unwrap();
+            let e = exif::Reader::new().read_from_container(&mut std::io::Cursor::new(&bytes)).unwrap();
+            for tag in [Tag::Make, Tag::Model, Tag::DateTimeOriginal, Tag::GPSLatitude] {
+                let got = e.get_field(tag, In::PRIMARY).map(|f| f.value.clone());
+                let want = orig.get_field(tag, In::PRIMARY).map(|f| f.value.clone());
+                assert_eq!(format!("{got:?}"), format!("{want:?}"), "from a TIFF keyframe: {tag}");
+            }
+            assert!(e.get_field(Tag::StripOffsets, In::PRIMARY).is_none(), "no pixel layout of the TIFF");
+            assert_eq!(
+                read(&again).meta.icc.as_deref(),
+                Some(icc.as_slice()),
+                "from a TIFF keyframe: profile"
+            );
+        }
     }
-    assert_eq!(e.get_field(Tag::Orientation, In::PRIMARY).unwrap().value.get_uint(0), Some(1));
-    let software = e.get_field(Tag::Software, In::PRIMARY).unwrap().display_value().to_string();
-    assert!(software.contains("clearview"), "{software}");
-    let photo = read(&out);
-    assert_eq!(photo.meta.icc.as_deref(), Some(icc.as_slice()), "the same profile");
-    let xmp = String::from_utf8(photo.meta.xmp.unwrap()).unwrap();
-    assert!(xmp.contains("<clearview:Report>report.json</clearview:Report>"), "{xmp}");
-    assert!(xmp.contains("<rdf:li>view-"), "{xmp}");
+}
+
+/// The RIFF chunk names of a WebP file.
+fn webp_chunks(path: &Path) -> Vec<String> {
+    let bytes = std::fs::read(path).unwrap();
+    clearview::imaging::webp::chunks(&bytes)
+        .iter()
+        .map(|(n, _)| String::from_utf8_lossy(n).into_owned())
+        .collect()
+}
+
+#[test]
+fn webp_is_lossy_at_a_quality_and_lossless_without_one_and_keeps_its_metadata() {
+    let s = scene();
+    let key = s.path("key.jpg");
+    let icc = adobe_rgb_icc();
+    let adobe = srgb8_to_adobe8(to_rgb8(&s.key).as_raw());
+    jpeg(&key, &adobe, W, H, Some(&camera_exif()), Some(&icc));
+    let views = s.write_views("jpg", plain_jpeg);
+    let png = s.path("clear.png");
+    ok(&s.fill(&key, &views, &png, &[]));
+    let (m_png, o_png) = s.score(&to_rgb(&read(&png).image));
+    let mut sizes = Vec::new();
+    for quality in [None, Some(90u8), Some(40)] {
+        let out = s.path(&format!("clear-{quality:?}.webp"));
+        let q = quality.map(|q| q.to_string());
+        let extra: Vec<&str> = q.iter().flat_map(|q| ["--quality", q.as_str()]).collect();
+        ok(&s.fill(&key, &views, &out, &extra));
+        let chunks = webp_chunks(&out);
+        let lossy = chunks.iter().any(|c| c == "VP8 ");
+        let lossless = chunks.iter().any(|c| c == "VP8L");
+        assert_eq!((lossy, lossless), (quality.is_some(), quality.is_none()), "{quality:?}: {chunks:?}");
+        for c in ["VP8X", "ICCP", "EXIF", "XMP "] {
+            assert!(chunks.iter().any(|x| x == c), "{quality:?}: no {c} in {chunks:?}");
+        }
+        let photo = read(&out);
+        assert_eq!(photo.meta.icc.as_deref(), Some(icc.as_slice()), "{quality:?}: the profile");
+        let e = exif::Reader::new().read_raw(photo.meta.exif.clone().unwrap()).unwrap();
+        let model = e.get_field(Tag::Model, In::PRIMARY).unwrap().display_value().to_string();
+        assert_eq!(model, "\"NIKON Z 6_2\"", "{quality:?}");
+        assert!(e.get_field(Tag::GPSLatitude, In::PRIMARY).is_some(), "{quality:?}: GPS");
+        let (m, o) = s.score(&to_rgb(&photo.image));
+        let size = std::fs::metadata(&out).unwrap().len();
+        println!(
+            "WebP {quality:?}: {size} bytes, masked {m:.2} dB, outside {o:.2} dB (PNG {m_png:.2} / {o_png:.2} dB)"
+        );
+        sizes.push((size, m, o));
+    }
+    let [(lossless, ..), (q90, m90, o90), (q40, m40, o40)] = sizes[..] else { unreachable!() };
+    assert!(q40 < q90 && q90 < lossless, "sizes: lossless {lossless}, q90 {q90}, q40 {q40}");
+    // Lossy costs something, more at the lower quality (read through its profile; the
+    // rendered facade's fine texture and VP8's half-resolution chroma make it cost more here
+    // than on photographs: 1.7 dB masked at q90, against 0.02 dB on parapano_building).
+    assert!(m90 > m_png - 2.5 && o90 > 28.0, "q90: masked {m90:.2}, outside {o90:.2} dB");
+    assert!(o40 < o90 && m40 > m_png - 4.0, "q40: masked {m40:.2}, outside {o40:.2} dB");
 }
 
 #[test]
@@ -311,4 +404,105 @@ fn bad_heic_files_and_a_garbage_profile_are_told_by_name() {
     assert!(result.meta.icc.is_none(), "the garbage is not passed on");
     let (_, outside) = s.score(&to_rgb(&result.image));
     assert!(outside > 35.0, "read as sRGB: {outside:.2} dB outside the mask");
+}
+
+/// The issue's "what it must show" on real photographs (three hand-held views of an office
+/// building, `../shared/data/multiview/parapano_building`): a rectangle on the glass facade
+/// of the middle one is masked and filled from the two others, the keyframe's own pixels being the truth.
+/// Heavy for CI (a dozen fills of 1 MP); run with
+/// `cargo test --release --test photo_files -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn real_photographs_meet_the_issues_targets() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/multiview/parapano_building");
+    if !dir.is_dir() {
+        println!("skipped: {} is absent", dir.display());
+        return;
+    }
+    let Some(enc) = heif_enc() else { return };
+    let load = |i: usize| to_rgb(&read(&dir.join(format!("building{i}.png"))).image);
+    let (key, views) = (load(2), [load(1), load(3)]);
+    let (w, h) = (key.width(), key.height());
+    let mask =
+        Mask::from_fn(w, h, |x, y| if (300..440).contains(&x) && (180..340).contains(&y) { 255 } else { 0 });
+    let tmp = tempfile::tempdir().unwrap();
+    let keep = std::env::var_os("KEEP").map(PathBuf::from);
+    let p = |n: &str| keep.as_deref().unwrap_or(tmp.path()).join(n);
+    mask_to_luma8(&mask).save(p("key.mask.png")).unwrap();
+    let outside = mask.map(|&m| if m > 127 { 0 } else { 255 });
+    let score = |r: &RgbF32| (masked_psnr(r, &key, &mask), masked_psnr(r, &key, &outside));
+    let fill = |k: &Path, vs: &[PathBuf], out: &Path, extra: &[&str]| {
+        let o = Command::new(BIN)
+            .args(["fill", "--keyframe"])
+            .arg(k)
+            .arg("--mask")
+            .arg(p("key.mask.png"))
+            .arg("--out")
+            .arg(out)
+            .args(extra)
+            .args(vs)
+            .output()
+            .unwrap();
+        ok(&o);
+    };
+    let jpg_views: Vec<PathBuf> = views
+        .iter()
+        .enumerate()
+        .map(|(i, v)| {
+            let path = p(&format!("v{i}.jpg"));
+            plain_jpeg(&path, v);
+            path
+        })
+        .collect();
+    // EXIF + sRGB profile, JPEG result.
+    let key_jpg = p("key.jpg");
+    jpeg(&key_jpg, to_rgb8(&key).as_raw(), w, h, Some(&camera_exif()), Some(&srgb_icc()));
+    fill(&key_jpg, &jpg_views, &p("clear.jpg"), &["--quality", "92"]);
+    let e = exif::Reader::new()
+        .read_from_container(&mut std::io::Cursor::new(std::fs::read(p("clear.jpg")).unwrap()))
+        .unwrap();
+    let tags = [Tag::Make, Tag::Model, Tag::DateTimeOriginal, Tag::GPSLatitude, Tag::GPSLongitude];
+    let kept = tags.iter().filter(|&&t| e.get_field(t, In::PRIMARY).is_some()).count();
+    // moxcms dates the profiles it makes: the keyframe's own bytes are the reference.
+    let same_icc = read(&p("clear.jpg")).meta.icc == read(&key_jpg).meta.icc;
+    println!("JPEG result: {kept} of {} camera tags kept, same profile: {same_icc}", tags.len());
+    assert!(kept == tags.len() && same_icc);
+    fill(&key_jpg, &jpg_views, &p("clear-srgb.png"), &[]);
+    let (m_srgb, o_srgb) = score(&to_rgb(&read(&p("clear-srgb.png")).image));
+    // Adobe RGB keyframe, sRGB views.
+    let key_adobe = p("key-adobe.jpg");
+    jpeg(&key_adobe, &srgb8_to_adobe8(to_rgb8(&key).as_raw()), w, h, None, Some(&adobe_rgb_icc()));
+    fill(&key_adobe, &jpg_views, &p("clear-adobe.png"), &[]);
+    let (m_adobe, o_adobe) = score(&to_rgb(&read(&p("clear-adobe.png")).image));
+    println!(
+        "sRGB keyframe: masked {m_srgb:.2} dB, outside {o_srgb:.2} dB; Adobe RGB keyframe: masked {m_adobe:.2} dB, outside {o_adobe:.2} dB"
+    );
+    // HEIC keyframe and views.
+    let key_heic = p("key.heic");
+    heic(enc, &key_heic, &key, 90, false);
+    let heic_views: Vec<PathBuf> = views
+        .iter()
+        .enumerate()
+        .map(|(i, v)| {
+            let path = p(&format!("v{i}.heic"));
+            heic(enc, &path, v, 90, false);
+            path
+        })
+        .collect();
+    fill(&key_heic, &heic_views, &p("clear-heic.png"), &[]);
+    let (m_heic, o_heic) = score(&to_rgb(&read(&p("clear-heic.png")).image));
+    println!("HEIC: masked {m_heic:.2} dB, outside {o_heic:.2} dB");
+    // Lossy WebP.
+    let mut sizes = Vec::new();
+    for q in ["90", "50"] {
+        let out = p(&format!("clear-{q}.webp"));
+        fill(&key_jpg, &jpg_views, &out, &["--quality", q]);
+        let (m, o) = score(&to_rgb(&read(&out).image));
+        let size = std::fs::metadata(&out).unwrap().len();
+        println!("WebP q{q}: {size} bytes, masked {m:.2} dB, outside {o:.2} dB");
+        sizes.push(size);
+    }
+    assert!(m_adobe > m_srgb - 1.0 && o_adobe > o_srgb - 1.5, "Adobe RGB against sRGB");
+    assert!(m_heic > m_srgb - 1.5, "HEIC against JPEG");
+    assert!(sizes[1] < sizes[0]);
 }

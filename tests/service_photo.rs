@@ -65,12 +65,7 @@ fn the_result_keeps_an_adobe_rgb_keyframes_exif_and_profile_and_heic_views_are_t
         println!("heif-enc not found: the second view is a PNG (apt-get install libheif-examples)");
     }
     // Both views in, and a result made after the first of them (not the keyframe's alone).
-    let events = wait_for(&f, "two views accepted and a result from them", 60, |e| {
-        let first_view = e.iter().position(|v| v["event"] == "view_accepted");
-        let last_result = e.iter().rposition(|v| v["event"] == "result_updated");
-        of_kind(e, "view_accepted").len() == 2
-            && matches!((first_view, last_result), (Some(v), Some(r)) if r > v)
-    });
+    let events = wait_for_result_from_views(&f);
     assert!(of_kind(&events, "view_rejected").is_empty(), "{events:?}");
     let out = f.outbox.join("archive");
     let bytes = std::fs::read(out.join("result.png")).unwrap();
@@ -110,5 +105,83 @@ fn the_result_keeps_an_adobe_rgb_keyframes_exif_and_profile_and_heic_views_are_t
         }
     }
     assert!(diff / (n as f64) < 0.01, "outside the mask off by {:.4}", diff / n as f64);
+    // As stored (Adobe RGB), the keyframe's own pixels come back exactly, not through an
+    // 8-bit sRGB copy of them.
+    let (stored, key_stored) = (
+        image::open(out.join("result.png")).unwrap().to_rgb8(),
+        image::load_from_memory(&key).unwrap().to_rgb8(),
+    );
+    let off = (0..W * H)
+        .filter(|&i| !scene.mask.is_hole(i % W, i / W))
+        .filter(|&i| stored.as_raw()[3 * i..3 * i + 3] != key_stored.as_raw()[3 * i..3 * i + 3])
+        .count();
+    assert_eq!(off, 0, "{off} pixels outside the mask differ from the keyframe's stored values");
+    assert_eq!(s.terminate(), 0);
+}
+
+/// Waits for two accepted views and a result made after the first of them.
+fn wait_for_result_from_views(f: &Folders) -> Vec<serde_json::Value> {
+    wait_for(f, "two views accepted and a result from them", 60, |e| {
+        let first_view = e.iter().position(|v| v["event"] == "view_accepted");
+        let last_result = e.iter().rposition(|v| v["event"] == "result_updated");
+        of_kind(e, "view_accepted").len() == 2
+            && matches!((first_view, last_result), (Some(v), Some(r)) if r > v)
+    })
+}
+
+#[test]
+fn a_16_bit_keyframe_gives_a_16_bit_result_with_its_own_pixels_outside_the_mask() {
+    let f = folders("");
+    let s = Service::start(&f);
+    let mut scene = Scene::new(8);
+    let dir = f.inbox.join("deep");
+    put(&dir.join("key.mask.png"), &mask_png(&scene.mask));
+    // The keyframe in 16 bits, with a fine gradient between 8-bit levels (steps of one
+    // 16-bit level, at most 60): an 8-bit copy of it cannot give these values back.
+    let key16: Vec<u16> = (0..W * H)
+        .flat_map(|i| {
+            let (x, y) = (i % W, i / W);
+            let fine = ((x * 7 + y * 3) % 61) as f32;
+            scene.key.get(x, y).map(|v| (v * 65000.0 + fine).round() as u16)
+        })
+        .collect();
+    let key_img =
+        image::ImageBuffer::<image::Rgb<u16>, _>::from_raw(W as u32, H as u32, key16.clone()).unwrap();
+    let mut bytes = std::io::Cursor::new(Vec::new());
+    key_img.write_to(&mut bytes, image::ImageFormat::Png).unwrap();
+    put(&dir.join("key.png"), bytes.get_ref());
+    for i in 1..=2u64 {
+        let v = scene.clear_view(i);
+        put(&dir.join(format!("v{i}.png")), &png(&v));
+    }
+    let events = wait_for_result_from_views(&f);
+    assert!(of_kind(&events, "view_rejected").is_empty(), "{events:?}");
+    let result = image::open(f.outbox.join("deep").join("result.png")).unwrap();
+    let image::DynamicImage::ImageRgb16(result) = result else {
+        panic!("a 16-bit keyframe gives a 16-bit result, not {:?}", result.color())
+    };
+    let (mut outside, mut equal, mut between_levels) = (0, 0, 0);
+    for y in 0..H {
+        for x in 0..W {
+            if scene.mask.is_hole(x, y) {
+                continue;
+            }
+            let got = result.get_pixel(x as u32, y as u32).0;
+            let want = &key16[3 * (y * W + x)..3 * (y * W + x) + 3];
+            outside += 1;
+            equal += usize::from(got.as_slice() == want);
+            between_levels += usize::from(got.iter().any(|v| v % 257 != 0));
+        }
+    }
+    println!(
+        "outside the mask: {equal} of {outside} pixels equal the keyframe's, {between_levels} between 8-bit levels"
+    );
+    assert_eq!(equal, outside, "the keyframe's own pixels, exactly");
+    assert!(between_levels > outside / 2, "{between_levels} of {outside}");
+    // The fill's pixels are there too.
+    let err = scene.masked_error(&image::DynamicImage::ImageRgb16(result).to_rgb8());
+    let e_key = scene.masked_error(&to_rgb8(&scene.key));
+    println!("masked error: keyframe {e_key:.4}, result {err:.4}");
+    assert!(err < 0.3 * e_key, "masked error {e_key:.4} -> {err:.4}");
     assert_eq!(s.terminate(), 0);
 }

@@ -19,7 +19,7 @@ use crate::align::{AlignParams, Frame, align};
 use crate::geometry::{Homography, Rows};
 use crate::imaging::convert::{crop_rgb8, mask_to_luma8, to_luminance, to_mask, to_rgb};
 use crate::imaging::decode::DecodeLimits;
-use crate::imaging::encode::{DEFAULT_QUALITY, EncodeOptions, OutputSpace};
+use crate::imaging::encode::{EncodeOptions, OutputSpace};
 use crate::imaging::meta::{Metadata, Provenance};
 use crate::imaging::{Mask, Rect, Rgb8, RgbF32};
 use crate::inpaint::region::{footprint, into_crop};
@@ -48,9 +48,10 @@ pub struct FillArgs {
     /// keyframe is deeper than 8 bits.
     #[arg(long)]
     pub out: PathBuf,
-    /// JPEG quality of the result, 1 to 100 (WebP results are lossless).
-    #[arg(long, default_value_t = DEFAULT_QUALITY, value_parser = clap::value_parser!(u8).range(1..=100))]
-    pub quality: u8,
+    /// Quality of a JPEG or WebP result, 1 to 100. JPEG: 75 when not given. WebP: lossy at
+    /// this quality; lossless when not given.
+    #[arg(long, value_parser = clap::value_parser!(u8).range(1..=100))]
+    pub quality: Option<u8>,
     /// The result's colour space: `keyframe` (the keyframe's own, with its profile) or `srgb`.
     #[arg(long, default_value = "keyframe")]
     pub colour_space: OutputSpace,

@@ -13,7 +13,7 @@ use thiserror::Error;
 use super::DaemonError;
 use crate::config::{Config, OutputFormat};
 use crate::imaging::RgbF32;
-use crate::imaging::encode::{DEFAULT_QUALITY, EncodeOptions, Format, OutputSpace, encode};
+use crate::imaging::encode::{EncodeOptions, Format, OutputSpace, encode};
 use crate::imaging::meta::{Metadata, Provenance};
 
 /// Marks our temporary files: `.<name>.clearview-tmp-<pid>-<n>`.
@@ -383,8 +383,8 @@ impl Emitter {
         report: &serde_json::Value,
     ) -> std::io::Result<Vec<u8>> {
         let (format, quality) = match self.format {
-            OutputFormat::Png => (Format::Png, DEFAULT_QUALITY),
-            OutputFormat::Jpeg { quality } => (Format::Jpeg, quality),
+            OutputFormat::Png => (Format::Png, None),
+            OutputFormat::Jpeg { quality } => (Format::Jpeg, Some(quality)),
         };
         let filled_by =
             report["views"].as_array().into_iter().flatten().filter(|v| v["filled"].as_u64() > Some(0));

@@ -806,13 +806,17 @@ fn auto_mask(ctx: &Ctx, slot: &mut Slot) {
     }
 }
 
-/// The keyframe's metadata (EXIF, XMP, profile) its result carries, read again from its
-/// file (headers only); none when it cannot be read.
-fn key_metadata(ctx: &Ctx, slot: &Slot) -> Option<crate::imaging::meta::Metadata> {
+/// The keyframe's metadata (EXIF, XMP, profile) its result carries, and its pixels at full
+/// precision when the session's 8-bit copy lacks some ([`crate::imaging::decode::read_key`]),
+/// read again from its file; none when it cannot be read.
+fn key_metadata(
+    ctx: &Ctx,
+    slot: &Slot,
+) -> Option<(crate::imaging::meta::Metadata, Option<crate::imaging::RgbF32>)> {
     use std::io::Read;
     let mut bytes = Vec::new();
     inbox(ctx).open(slot.key_path.as_ref()?).ok()?.read_to_end(&mut bytes).ok()?;
-    crate::imaging::decode::read_metadata(&bytes).ok()
+    crate::imaging::decode::read_key(&bytes, &limits(ctx)).ok()
 }
 
 fn limits(ctx: &Ctx) -> DecodeLimits {
@@ -1151,7 +1155,10 @@ fn write(ctx: &Ctx, slot: &mut Slot, mut p: Pending) -> Option<u64> {
     let ext = ctx.emitter.result_name();
     let write_start = Instant::now();
     let image = p.outcome.image.as_ref().expect("a pending result has an image");
-    let key = key_metadata(ctx, slot);
+    let (key, full) = key_metadata(ctx, slot).unzip();
+    // The keyframe's own pixels at its precision (16-bit, or another colour space).
+    let precise = full.flatten().and_then(|k| slot.session.with_key_pixels(image, &k));
+    let image = precise.as_ref().unwrap_or(image);
     match ctx.emitter.write_result(&slot.name, number, image, key.as_ref(), &mut p.report) {
         Ok(path) => {
             let write_ms = write_start.elapsed().as_secs_f64() * 1e3;

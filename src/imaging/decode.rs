@@ -8,7 +8,9 @@ use std::io::Cursor;
 use image::{DynamicImage, ImageDecoder, ImageReader, Limits};
 use thiserror::Error;
 
+use super::RgbF32;
 use super::colour::{Space, to_working};
+use super::convert::to_rgb;
 use super::meta::{Metadata, strip_exif_header};
 
 /// What the decoder may allocate.
@@ -150,6 +152,36 @@ fn tiff_metadata(bytes: &[u8], meta: &mut Metadata) {
     let Ok(mut d) = tiff::decoder::Decoder::new(Cursor::new(bytes)) else { return };
     meta.icc = meta.icc.take().or_else(|| d.get_tag_u8_vec(Tag::Unknown(34675)).ok());
     meta.xmp = meta.xmp.take().or_else(|| d.get_tag_u8_vec(Tag::Unknown(700)).ok());
+    meta.exif = meta.exif.take().or_else(|| tiff_exif(bytes));
+}
+
+/// A TIFF's camera fields (its EXIF and GPS directories, and the main directory's tags that
+/// describe the picture rather than how its pixels are stored) as a compact EXIF structure.
+fn tiff_exif(bytes: &[u8]) -> Option<Vec<u8>> {
+    use exif::{Context, In};
+    // Make, Model, ImageDescription, Orientation, resolution, Software, DateTime, Artist,
+    // Copyright: the main directory's fields that say nothing of the stored pixels.
+    const PICTURE: [u16; 11] = [270, 271, 272, 274, 282, 283, 296, 305, 306, 315, 33432];
+    let parsed = exif::Reader::new().read_raw(bytes.to_vec()).ok()?;
+    let mut w = exif::experimental::Writer::new();
+    let fields: Vec<&exif::Field> = parsed
+        .fields()
+        .filter(|f| f.ifd_num == In::PRIMARY && !matches!(f.value, exif::Value::Unknown(..)))
+        .filter(|f| match f.tag.0 {
+            Context::Tiff => PICTURE.contains(&f.tag.1),
+            Context::Exif | Context::Gps => true,
+            _ => false,
+        })
+        .collect();
+    if !fields.iter().any(|f| f.tag.0 != Context::Tiff || f.tag.1 != 274) {
+        return None;
+    }
+    for f in &fields {
+        w.push_field(f);
+    }
+    let mut out = Cursor::new(Vec::new());
+    w.write(&mut out, parsed.little_endian()).ok()?;
+    Some(out.into_inner())
 }
 
 /// The metadata of an image without decoding its pixels (the service reads its keyframe's
@@ -176,6 +208,19 @@ pub fn read_metadata(bytes: &[u8]) -> Result<Metadata, DecodeError> {
     }
     meta.space = space;
     Ok(meta)
+}
+
+/// What a result needs of its keyframe's file (the service reads it again when it writes
+/// one): the metadata, and the pixels in the working space at full precision when the file
+/// holds more than the service keeps of a keyframe, 8-bit sRGB (samples deeper than 8 bits,
+/// or a colour profile whose levels fall between sRGB's); `None` for an 8-bit sRGB file.
+pub fn read_key(bytes: &[u8], limits: &DecodeLimits) -> Result<(Metadata, Option<RgbF32>), DecodeError> {
+    let meta = read_metadata(bytes)?;
+    if meta.bits <= 8 && meta.space.is_srgb() {
+        return Ok((meta, None));
+    }
+    let photo = decode_photo(bytes, limits)?;
+    Ok((photo.meta, Some(to_rgb(&photo.image))))
 }
 
 /// Whether a JPEG stream stops before its end-of-image marker: its segments are walked

@@ -61,8 +61,9 @@ impl std::str::FromStr for OutputSpace {
 /// How a result is encoded.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct EncodeOptions {
-    /// JPEG quality, 1 to 100 (WebP results are lossless).
-    pub quality: u8,
+    /// Quality of the lossy formats, 1 to 100. JPEG: [`DEFAULT_QUALITY`] when `None`. WebP:
+    /// lossy (VP8) at this quality, lossless (VP8L) when `None`.
+    pub quality: Option<u8>,
     pub space: OutputSpace,
 }
 
@@ -71,7 +72,7 @@ pub const DEFAULT_QUALITY: u8 = 75;
 
 impl Default for EncodeOptions {
     fn default() -> Self {
-        Self { quality: DEFAULT_QUALITY, space: OutputSpace::Keyframe }
+        Self { quality: None, space: OutputSpace::Keyframe }
     }
 }
 
@@ -93,6 +94,8 @@ pub enum EncodeError {
     Tiff(exif::Error),
     #[error("cannot encode WebP: {0}")]
     WebP(#[from] image_webp::EncodingError),
+    #[error("cannot encode WebP: {0}")]
+    WebPLossy(#[from] super::webp::WebPError),
     #[error("{width}x{height} is too large for JPEG (at most 65535 pixels a side)")]
     TooLargeForJpeg { width: usize, height: usize },
 }
@@ -146,7 +149,8 @@ pub fn encode(
             };
             let raw = quantise8(pixels);
             let mut out = Vec::with_capacity(raw.len() / 8);
-            let mut enc = jpeg_encoder::Encoder::new(&mut out, opts.quality.clamp(1, 100));
+            let quality = opts.quality.unwrap_or(DEFAULT_QUALITY).clamp(1, 100);
+            let mut enc = jpeg_encoder::Encoder::new(&mut out, quality);
             enc.set_sampling_factor(jpeg_encoder::SamplingFactor::R_4_4_4);
             let mut app = |nr: u8, signature: &[u8], data: &[u8], what: &str| -> Result<(), EncodeError> {
                 if signature.len() + data.len() > APP_MAX {
@@ -192,21 +196,39 @@ pub fn encode(
             out
         }
         Format::Tiff => tiff(pixels, deep, meta, icc.as_deref(), &xmp, iptc)?,
-        Format::WebP => {
-            let mut out = Vec::new();
-            let mut enc = image_webp::WebPEncoder::new(&mut out);
-            if let Some(p) = icc {
-                enc.set_icc_profile(p);
+        Format::WebP => match opts.quality {
+            Some(quality) => {
+                use super::webp::{Chunk, encode_lossy};
+                let mut chunks = vec![(Chunk::Xmp, xmp.as_slice())];
+                chunks.extend(icc.as_deref().map(|p| (Chunk::Icc, p)));
+                chunks.extend(exif.as_deref().map(|e| (Chunk::Exif, e)));
+                encode_lossy(&quantise8(pixels), w, h, quality, &chunks)?
             }
-            if let Some(e) = exif {
-                enc.set_exif_metadata(e);
-            }
-            enc.set_xmp_metadata(xmp);
-            enc.encode(&quantise8(pixels), w as u32, h as u32, image_webp::ColorType::Rgb8)?;
-            out
-        }
+            None => webp_lossless(pixels, icc, exif, xmp)?,
+        },
     };
     Ok(Encoded { bytes, warnings })
+}
+
+/// A lossless WebP (VP8L) through `image-webp`, with the profile, EXIF and XMP.
+fn webp_lossless(
+    pixels: &RgbF32,
+    icc: Option<Vec<u8>>,
+    exif: Option<Vec<u8>>,
+    xmp: Vec<u8>,
+) -> Result<Vec<u8>, EncodeError> {
+    let (w, h) = (pixels.width(), pixels.height());
+    let mut out = Vec::new();
+    let mut enc = image_webp::WebPEncoder::new(&mut out);
+    if let Some(p) = icc {
+        enc.set_icc_profile(p);
+    }
+    if let Some(e) = exif {
+        enc.set_exif_metadata(e);
+    }
+    enc.set_xmp_metadata(xmp);
+    enc.encode(&quantise8(pixels), w as u32, h as u32, image_webp::ColorType::Rgb8)?;
+    Ok(out)
 }
 
 /// An uncompressed TIFF written with `kamadak-exif`'s writer, which lays out the EXIF and GPS
@@ -345,11 +367,13 @@ mod tests {
                 space: crate::imaging::colour::Space::from_icc(Some(&icc)).0,
                 bits,
             };
-            for format in [Format::Jpeg, Format::Png, Format::Tiff, Format::WebP] {
-                let enc = encode(&rgb, format, &EncodeOptions::default(), &meta, &provenance).unwrap();
+            let lossless = [Format::Jpeg, Format::Png, Format::Tiff, Format::WebP].map(|f| (f, None));
+            for (format, quality) in lossless.into_iter().chain([(Format::WebP, Some(90))]) {
+                let opts = EncodeOptions { quality, ..EncodeOptions::default() };
+                let enc = encode(&rgb, format, &opts, &meta, &provenance).unwrap();
                 assert!(enc.warnings.is_empty(), "{format:?}: {:?}", enc.warnings);
                 let back = decode_photo(&enc.bytes, &DecodeLimits::default()).unwrap();
-                let what = format!("{format:?} from a {bits}-bit keyframe");
+                let what = format!("{format:?} (quality {quality:?}) from a {bits}-bit keyframe");
                 assert_eq!(back.meta.icc.as_deref(), Some(icc.as_slice()), "{what}: profile");
                 let xmp = String::from_utf8(back.meta.xmp.clone().expect("XMP")).unwrap();
                 assert!(xmp.contains("<rdf:li>v1.jpg</rdf:li>"), "{what}: {xmp}");
@@ -384,7 +408,7 @@ mod tests {
                 let worst = errors.iter().copied().fold(0.0, f32::max);
                 // JPEG's loss, in Adobe RGB, is magnified in sRGB's dark toe: judged on average.
                 let ok = match format {
-                    Format::Jpeg => mean < 0.02,
+                    _ if quality.is_some() || format == Format::Jpeg => mean < 0.02,
                     _ if deep => worst < 0.002,
                     _ => worst < 0.05 && mean < 0.004,
                 };

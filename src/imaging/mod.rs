@@ -17,6 +17,7 @@ pub mod photometric;
 pub mod pyramid;
 pub mod sharpness;
 pub mod warp;
+pub mod webp;
 
 use std::fmt;
 
