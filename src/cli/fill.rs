@@ -23,7 +23,7 @@ use crate::imaging::encode::{EncodeOptions, OutputSpace};
 use crate::imaging::meta::{Metadata, Provenance};
 use crate::imaging::{Mask, Rect, Rgb8, RgbF32};
 use crate::inpaint::region::{footprint, into_crop};
-use crate::inpaint::{AutoMaskParams, FillParams, Observer, Source, Stage, auto_mask, fill};
+use crate::inpaint::{AutoMaskParams, FillParams, Observer, Source, Stage, auto_mask_report, fill};
 
 /// Views decoded and aligned at the same time. JPEG decoding is sequential, so with two in
 /// flight (and the keyframe decoded beside them) both cores stay busy; the alignment inside
@@ -128,9 +128,25 @@ struct Report<'a> {
     share_doubtful: f64,
     /// Mean confidence over the mask (0..=1).
     expected_quality: f64,
+    /// With `--mask auto`: what was found and how sure it is.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    auto_mask: Option<AutoMaskSummary>,
     views: Vec<ViewReport>,
     /// Wall time per stage, in order.
     timings_ms: Vec<(&'static str, f64)>,
+}
+
+/// How sure `--mask auto` is of the mask it found.
+#[derive(Debug, Serialize)]
+struct AutoMaskSummary {
+    /// Connected objects in the mask.
+    objects: usize,
+    /// Share of the mask the views contradict directly; the rest was joined to those objects
+    /// (weaker evidence, the object's own colours, closed gaps and holes).
+    share_certain: f64,
+    /// Share of the keyframe that enough agreeing views saw to judge: an occluder elsewhere
+    /// cannot be found.
+    share_judged: f64,
 }
 
 /// Times the stages and drives the progress bar.
@@ -289,16 +305,21 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
 
     let sources: Vec<Source<'_, [u8; 3]>> =
         aligned.iter().map(|a| Source { image: &a.crop, homography: a.homography }).collect();
-    let mask: Mask = match given_mask {
-        Some(m) => m,
+    let (mask, auto): (Mask, Option<AutoMaskSummary>) = match given_mask {
+        Some(m) => (m, None),
         None => {
             progress.begin("auto mask", 0);
-            let m = auto_mask(&key_rgb, &sources, &AutoMaskParams::default());
+            let found = auto_mask_report(&key_rgb, &sources, &AutoMaskParams::default());
             if let Some(p) = &args.save_mask {
-                save_image(p, &DynamicImage::ImageLuma8(mask_to_luma8(&m)))
+                save_image(p, &DynamicImage::ImageLuma8(mask_to_luma8(&found.mask)))
                     .map_err(|e| failure(e.to_string()))?;
             }
-            m
+            let summary = AutoMaskSummary {
+                objects: found.objects,
+                share_certain: found.certain_share,
+                share_judged: found.judged_share,
+            };
+            (found.mask, Some(summary))
         }
     };
     let filled = fill(&key_rgb, &mask, &sources, &FillParams::default(), args.seed, &mut progress);
@@ -345,6 +366,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         share_confident: fr.confident_share(),
         share_doubtful: fr.doubtful_share(),
         expected_quality: fr.expected_quality(),
+        auto_mask: auto,
         views: reports,
         timings_ms: timings,
     };
@@ -493,6 +515,15 @@ fn print_summary(r: &Report<'_>) {
         100.0 * r.share_from_views,
         r.fallback_pixels
     );
+    if let Some(a) = &r.auto_mask {
+        println!(
+            "  auto mask: {} object{}, {:.1} % of it contradicted by the views directly, the rest joined to it; {:.1} % of the keyframe could be judged",
+            a.objects,
+            if a.objects == 1 { "" } else { "s" },
+            100.0 * a.share_certain,
+            100.0 * a.share_judged
+        );
+    }
     for v in &r.views {
         match (&v.accepted, &v.reason) {
             (true, _) => println!(

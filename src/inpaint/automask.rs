@@ -20,17 +20,39 @@ pub struct AutoMaskParams {
     /// At least this many views must see a pixel (and agree) to judge it.
     pub min_views: usize,
     /// RGB distance (Euclidean, 0..=√3) between the keyframe and the views' consensus
-    /// above which a pixel is transient.
+    /// above which a pixel is transient for certain (a seed of an object).
     pub threshold: f32,
+    /// The lower threshold of the hysteresis: pixels whose keyframe differs from the
+    /// consensus by more than this, or from every view that sees them by more than
+    /// `threshold`, belong to an object when they are connected to a seed.
+    pub low_threshold: f32,
     /// Views within this RGB distance of their median agree.
     pub agreement: f32,
     /// Both sides are box-averaged over `(2·r + 1)²` before comparing (tolerates the
     /// alignment's fraction of a pixel along sharp edges).
     pub blur_radius: usize,
-    /// Opening radius: removes specks and thin lines narrower than about twice this.
+    /// Opening radius of the seeds: removes specks and thin lines narrower than about twice
+    /// this.
     pub open_radius: usize,
     /// Closing radius: joins a figure's parts.
     pub close_radius: usize,
+    /// Holes inside an object (not reaching the image's border) up to this share of the
+    /// image are part of it: an occluder is painted whole, not with the wall showing
+    /// through where the views happened to agree with it.
+    pub max_hole_share: f32,
+    /// Where the keyframe's pixel looks more like the keyframe's own unflagged surroundings
+    /// than the views' consensus does, by this factor of likelihood (averaged over a small
+    /// window), it is the views that show something in front (an occluder every view shares,
+    /// displaced by parallax), not the keyframe: such pixels are not flagged.
+    pub background_ratio: f32,
+    /// An object grows into neighbouring pixels whose colour is this many times more likely
+    /// under the object's own colours than under the building's.
+    pub colour_ratio: f32,
+    /// The keyframe is also compared with the consensus moved by up to this many work
+    /// pixels, patch against patch: what matches a little further along is the building seen
+    /// with parallax or a slightly imperfect alignment (a pier standing off the wall, the
+    /// edge of a window), not an object in front of it.
+    pub parallax_radius: usize,
     /// The mask is finally grown by this many pixels (full resolution).
     pub dilate_radius: usize,
     /// The comparison runs on an image box-reduced to at most this many pixels.
@@ -42,21 +64,70 @@ impl Default for AutoMaskParams {
         Self {
             min_views: 2,
             threshold: 0.15,
+            low_threshold: 0.08,
             agreement: 0.12,
             blur_radius: 1,
             open_radius: 2,
             close_radius: 3,
+            max_hole_share: 0.06,
+            background_ratio: 4.0,
+            colour_ratio: 4.0,
+            parallax_radius: 3,
             dilate_radius: 3,
             work_pixels: 1_500_000,
         }
     }
 }
 
+/// What [`auto_mask_report`] found, and how sure it is.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AutoMask {
+    /// 255 = fill, keyframe-sized.
+    pub mask: Mask,
+    /// Connected objects in the mask.
+    pub objects: usize,
+    /// Share of the mask (before the final growth) that the views contradict directly (the
+    /// rest was joined to it as part of the same object: weaker evidence, closed gaps, holes).
+    pub certain_share: f64,
+    /// Share of the keyframe that at least `min_views` agreeing views judged: elsewhere an
+    /// occluder cannot be found.
+    pub judged_share: f64,
+}
+
 /// The mask of transient objects in `key` (255 = fill), judged against `sources`.
 pub fn auto_mask<P: RgbPixel>(key: &RgbF32, sources: &[Source<'_, P>], params: &AutoMaskParams) -> Mask {
+    auto_mask_report(key, sources, params).mask
+}
+
+/// Per pixel of the work image, what the views say about the keyframe.
+struct Evidence {
+    /// The keyframe differs from the agreeing views by more than `threshold`.
+    strong: Plane<bool>,
+    /// By more than `low_threshold`, or from every view that sees the pixel.
+    weak: Plane<bool>,
+    /// At least `min_views` views agree here.
+    judged: Plane<bool>,
+    /// The agreeing views' mean colour (the keyframe's own where none agree).
+    consensus: RgbF32,
+}
+
+/// [`auto_mask`] with the figures that say how sure it is.
+///
+/// Stages: (1) each view warped into a reduced keyframe and compensated; (2) per pixel, the
+/// consensus of the views that agree with each other, and the keyframe's distance to it
+/// (strong and weak evidence); (3) strong pixels where the keyframe looks like its own
+/// surroundings and the consensus does not are dropped (the views share an occluder there);
+/// (4) seeds (strong, opened) grown by hysteresis through the weak pixels connected to them;
+/// (5) closed, holes inside objects filled; (6) back to full size and grown.
+pub fn auto_mask_report<P: RgbPixel>(
+    key: &RgbF32,
+    sources: &[Source<'_, P>],
+    params: &AutoMaskParams,
+) -> AutoMask {
     let (w, h) = (key.width(), key.height());
+    let empty = || AutoMask { mask: Mask::new(w, h, 0), objects: 0, certain_share: 0.0, judged_share: 0.0 };
     if sources.len() < params.min_views.max(1) || w == 0 || h == 0 {
-        return Mask::new(w, h, 0);
+        return empty();
     }
     let f = ((w * h) as f64 / params.work_pixels.max(1) as f64).sqrt().ceil().max(1.0) as usize;
     let key_r = reduce(key, f);
@@ -82,14 +153,139 @@ pub fn auto_mask<P: RgbPixel>(key: &RgbF32, sources: &[Source<'_, P>], params: &
         .collect();
     let all = Plane::new(rw, rh, true);
     let key_b = box_blur(&key_r, &all, params.blur_radius);
+    let mut ev = evidence(&key_b, &warped, params);
+    explain_by_parallax(&key_b, &mut ev, params);
 
-    let mut changed = Plane::new(rw, rh, false);
-    let mut vals: Vec<[f32; 3]> = Vec::with_capacity(sources.len());
-    let mut chan: Vec<f32> = Vec::with_capacity(sources.len());
-    for y in 0..rh {
-        for x in 0..rw {
+    let veto = shared_occluders(&key_b, &ev, params);
+    let keep = |p: &Plane<bool>| Plane::from_fn(rw, rh, |x, y| p.get(x, y) && !veto.get(x, y));
+    let seeds = keep(&ev.strong);
+    let seeds = dilate(&erode(&seeds, params.open_radius), params.open_radius);
+    let reach = keep(&Plane::from_fn(rw, rh, |x, y| ev.strong.get(x, y) || ev.weak.get(x, y)));
+    let grown = grow_from(&seeds, &reach);
+    let grown = grow_by_colour(&key_b, &grown, params);
+    let closed = erode(&dilate(&grown, params.close_radius), params.close_radius);
+    let max_hole = (params.max_hole_share.max(0.0) as f64 * (rw * rh) as f64) as usize;
+    // Holes are looked for with the objects grown by 2 px, so that a hole joined to the
+    // outside by a crack is one too.
+    let thick = dilate(&closed, 2);
+    let (filled, _) = fill_holes(&thick, max_hole);
+    let with_holes =
+        Plane::from_fn(rw, rh, |x, y| closed.get(x, y) || (filled.get(x, y) && !thick.get(x, y)));
+    let (objects, count) = fill_holes(&with_holes, 0);
+
+    let total = objects.as_slice().iter().filter(|&&v| v).count();
+    let certain = objects.as_slice().iter().zip(seeds.as_slice()).filter(|&(&o, &s)| o && s).count();
+    let judged = ev.judged.as_slice().iter().filter(|&&v| v).count();
+    let full = Plane::from_fn(w, h, |x, y| objects.get((x / f).min(rw - 1), (y / f).min(rh - 1)));
+    AutoMask {
+        mask: dilate(&full, params.dilate_radius).map(|&b| if b { 255 } else { 0 }),
+        objects: count,
+        certain_share: if total == 0 { 0.0 } else { certain as f64 / total as f64 },
+        judged_share: judged as f64 / (rw * rh) as f64,
+    }
+}
+
+/// Stage (4b): each object grows into the neighbouring pixels whose colour is much more
+/// likely under its own colours than under the building's (the keyframe's unflagged pixels
+/// around the object), within a quarter of its size: where the views show an occluder of their own over the
+/// keyframe's (and so agree with it), the object is still one object.
+fn grow_by_colour(key: &RgbF32, objects: &Plane<bool>, params: &AutoMaskParams) -> Plane<bool> {
+    let (w, h) = (key.width(), key.height());
+    let near_objects = dilate(objects, 2);
+    let global = ColourHistogram::of(key, &near_objects);
+    let mut out = objects.clone();
+    for component in components(objects) {
+        let own = ColourHistogram::within(key, &component, |x, y| objects.get(x, y));
+        let margin = (component.width.max(component.height) / 4).max(2);
+        let zone = component.grown(margin, w, h);
+        // The building as it looks around this object (a cloud is compared with the sky
+        // about it, a tree with the wall behind it), outside the object's box only: what
+        // lies within it may be more of the object that the views could not judge.
+        let around = component.grown(2 * margin, w, h);
+        let local = ColourHistogram::within(key, &around, |x, y| {
+            !near_objects.get(x, y) && !component.contains(x, y)
+        });
+        let likely = |x: usize, y: usize| {
+            let c = key.get(x, y);
+            own.density(c) > params.colour_ratio * 0.5 * (local.density(c) + global.density(c))
+        };
+        let mut stack: Vec<(usize, usize)> = Vec::new();
+        for y in zone.y..zone.y1() {
+            for x in zone.x..zone.x1() {
+                if objects.get(x, y) {
+                    stack.push((x, y));
+                }
+            }
+        }
+        while let Some((x, y)) = stack.pop() {
+            for (dx, dy) in NEIGHBOURS_8 {
+                let (nx, ny) = (x as isize + dx, y as isize + dy);
+                if nx < 0 || ny < 0 {
+                    continue;
+                }
+                let (nx, ny) = (nx as usize, ny as usize);
+                if zone.contains(nx, ny) && !out.get(nx, ny) && likely(nx, ny) {
+                    out.set(nx, ny, true);
+                    stack.push((nx, ny));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Bounding boxes of the 8-connected components of `m`.
+fn components(m: &Plane<bool>) -> Vec<Rect> {
+    let (w, h) = (m.width(), m.height());
+    let mut seen = Plane::new(w, h, false);
+    let mut out = Vec::new();
+    for start in 0..w * h {
+        let (sx, sy) = (start % w, start / w);
+        if !m.get(sx, sy) || seen.get(sx, sy) {
+            continue;
+        }
+        let (mut x0, mut y0, mut x1, mut y1) = (sx, sy, sx, sy);
+        let mut stack = vec![(sx, sy)];
+        seen.set(sx, sy, true);
+        while let Some((x, y)) = stack.pop() {
+            (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
+            for (dx, dy) in NEIGHBOURS_8 {
+                let (nx, ny) = (x as isize + dx, y as isize + dy);
+                if m.get_checked(nx, ny) == Some(true) && !seen.get(nx as usize, ny as usize) {
+                    seen.set(nx as usize, ny as usize, true);
+                    stack.push((nx as usize, ny as usize));
+                }
+            }
+        }
+        out.push(Rect::from_corners(x0, y0, x1 + 1, y1 + 1));
+    }
+    out
+}
+
+/// Stage (2): per pixel, the consensus of the views that agree with each other and the
+/// keyframe's distance to it.
+fn evidence(key: &RgbF32, warped: &[(RgbF32, Plane<bool>)], params: &AutoMaskParams) -> Evidence {
+    let (w, h) = (key.width(), key.height());
+    let mut strong = Plane::new(w, h, false);
+    let mut weak = Plane::new(w, h, false);
+    let mut judged = Plane::new(w, h, false);
+    let mut consensus = key.clone();
+    let mut vals: Vec<[f32; 3]> = Vec::with_capacity(warped.len());
+    let mut chan: Vec<f32> = Vec::with_capacity(warped.len());
+    let dist = |a: [f32; 3], b: [f32; 3]| ((0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>()).sqrt();
+    for y in 0..h {
+        for x in 0..w {
             vals.clear();
             vals.extend(warped.iter().filter(|(_, v)| v.get(x, y)).map(|(img, _)| img.get(x, y)));
+            if vals.is_empty() {
+                continue;
+            }
+            let k = key.get(x, y);
+            // No view shows what the keyframe shows: weak evidence even where the views do
+            // not agree with each other (each may have an occluder of its own).
+            if vals.iter().all(|&v| dist(k, v) > params.threshold) {
+                weak.set(x, y, true);
+            }
             if vals.len() < params.min_views {
                 continue;
             }
@@ -100,23 +296,241 @@ pub fn auto_mask<P: RgbPixel>(key: &RgbF32, sources: &[Source<'_, P>], params: &
                 let n = chan.len();
                 0.5 * (chan[(n - 1) / 2] + chan[n / 2])
             });
-            let dist = |a: [f32; 3], b: [f32; 3]| ((0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>()).sqrt();
-            let agreeing: Vec<[f32; 3]> =
-                vals.iter().copied().filter(|&v| dist(v, med) < params.agreement).collect();
-            if agreeing.len() < params.min_views {
+            let (mut sum, mut n) = ([0.0f32; 3], 0usize);
+            for v in vals.iter().filter(|&&v| dist(v, med) < params.agreement) {
+                (0..3).for_each(|c| sum[c] += v[c]);
+                n += 1;
+            }
+            if n < params.min_views {
                 continue;
             }
-            let mean: [f32; 3] =
-                std::array::from_fn(|c| agreeing.iter().map(|v| v[c]).sum::<f32>() / agreeing.len() as f32);
-            if dist(key_b.get(x, y), mean) > params.threshold {
-                changed.set(x, y, true);
+            let mean = sum.map(|s| s / n as f32);
+            judged.set(x, y, true);
+            consensus.set(x, y, mean);
+            let d = dist(k, mean);
+            if d > params.threshold {
+                strong.set(x, y, true);
+            } else if d > params.low_threshold {
+                weak.set(x, y, true);
             }
         }
     }
-    let opened = dilate(&erode(&changed, params.open_radius), params.open_radius);
-    let closed = erode(&dilate(&opened, params.close_radius), params.close_radius);
-    let full = Plane::from_fn(w, h, |x, y| closed.get((x / f).min(rw - 1), (y / f).min(rh - 1)));
-    dilate(&full, params.dilate_radius).map(|&b| if b { 255 } else { 0 })
+    Evidence { strong, weak, judged, consensus }
+}
+
+/// Strong pixels whose 5×5 patch matches the consensus moved by at most `parallax_radius`
+/// become weak: the building, displaced.
+fn explain_by_parallax(key: &RgbF32, ev: &mut Evidence, params: &AutoMaskParams) {
+    let (w, h) = (key.width(), key.height());
+    let r = params.parallax_radius as isize;
+    if r == 0 {
+        return;
+    }
+    const HALF: isize = 2;
+    let t2 = params.threshold * params.threshold;
+    let mut explained = Vec::new();
+    for i in (0..w * h).filter(|&i| ev.strong.as_slice()[i]) {
+        let (x, y) = ((i % w) as isize, (i / w) as isize);
+        let matches = |dx: isize, dy: isize| {
+            let (mut sum, mut n) = (0.0f32, 0usize);
+            for py in y - HALF..=y + HALF {
+                for px in x - HALF..=x + HALF {
+                    let (Some(a), Some(true)) =
+                        (key.get_checked(px, py), ev.judged.get_checked(px + dx, py + dy))
+                    else {
+                        continue;
+                    };
+                    let b = ev.consensus.get((px + dx) as usize, (py + dy) as usize);
+                    sum += (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>();
+                    n += 1;
+                }
+            }
+            n * 2 > ((2 * HALF + 1) * (2 * HALF + 1)) as usize && sum <= t2 * n as f32
+        };
+        if (-r..=r).any(|dy| (-r..=r).any(|dx| (dx, dy) != (0, 0) && matches(dx, dy))) {
+            explained.push(i);
+        }
+    }
+    for i in explained {
+        ev.strong.as_mut_slice()[i] = false;
+        ev.weak.as_mut_slice()[i] = true;
+    }
+}
+
+/// Stage (3): the strong pixels where the views, not the keyframe, show something in front.
+///
+/// The keyframe's unflagged pixels are the building as the keyframe sees it; a colour
+/// histogram of them says how building-like a colour is. A transient occluder in the
+/// keyframe is unlike the building and its consensus is like it; an occluder that every view
+/// shows (a tree off the wall, displaced by parallax) puts its colours in the consensus where
+/// the keyframe shows plain wall. Compared over a small window, since single pixels of a
+/// facade take all sorts of colours.
+fn shared_occluders(key: &RgbF32, ev: &Evidence, params: &AutoMaskParams) -> Plane<bool> {
+    let (w, h) = (key.width(), key.height());
+    let flagged = dilate(&Plane::from_fn(w, h, |x, y| ev.strong.get(x, y) || ev.weak.get(x, y)), 2);
+    let hist = ColourHistogram::of(key, &flagged);
+    let ratio = Plane::from_fn(w, h, |x, y| {
+        if ev.strong.get(x, y) {
+            hist.log_density(key.get(x, y)) - hist.log_density(ev.consensus.get(x, y))
+        } else {
+            0.0
+        }
+    });
+    let smooth = box_mean(&ratio, &ev.strong, 3);
+    let cut = params.background_ratio.max(1.0).ln();
+    Plane::from_fn(w, h, |x, y| ev.strong.get(x, y) && smooth.get(x, y) > cut)
+}
+
+/// A 16³-bin colour histogram with add-one smoothing.
+struct ColourHistogram {
+    bins: Vec<f32>,
+    total: f32,
+}
+
+impl ColourHistogram {
+    const N: usize = 16;
+
+    fn bin(p: [f32; 3]) -> usize {
+        let q = |v: f32| ((v.clamp(0.0, 1.0) * Self::N as f32) as usize).min(Self::N - 1);
+        (q(p[0]) * Self::N + q(p[1])) * Self::N + q(p[2])
+    }
+
+    fn of(img: &RgbF32, excluded: &Plane<bool>) -> Self {
+        let mut bins = vec![1.0f32; Self::N.pow(3)];
+        let mut total = bins.len() as f32;
+        for (p, &e) in img.as_slice().iter().zip(excluded.as_slice()) {
+            if !e {
+                bins[Self::bin(*p)] += 1.0;
+                total += 1.0;
+            }
+        }
+        Self { bins, total }
+    }
+
+    /// The histogram of the pixels of `img` inside `r` where `take` holds.
+    fn within(img: &RgbF32, r: &Rect, take: impl Fn(usize, usize) -> bool) -> Self {
+        let mut bins = vec![1.0f32; Self::N.pow(3)];
+        let mut total = bins.len() as f32;
+        for y in r.y..r.y1() {
+            for x in r.x..r.x1() {
+                if take(x, y) {
+                    bins[Self::bin(img.get(x, y))] += 1.0;
+                    total += 1.0;
+                }
+            }
+        }
+        Self { bins, total }
+    }
+
+    fn density(&self, p: [f32; 3]) -> f32 {
+        self.bins[Self::bin(p)] / self.total
+    }
+
+    fn log_density(&self, p: [f32; 3]) -> f32 {
+        (self.bins[Self::bin(p)] / self.total).ln()
+    }
+}
+
+/// Mean of `v` over the `(2r + 1)²` window's pixels where `on` is set (0 where none are).
+fn box_mean(v: &Plane<f32>, on: &Plane<bool>, r: usize) -> Plane<f32> {
+    let (w, h) = (v.width(), v.height());
+    // Summed-area tables of the values and of the count.
+    let mut s = vec![0.0f64; (w + 1) * (h + 1)];
+    let mut c = vec![0u32; (w + 1) * (h + 1)];
+    for y in 0..h {
+        for x in 0..w {
+            let i = (y + 1) * (w + 1) + x + 1;
+            let (val, n) = if on.get(x, y) { (v.get(x, y) as f64, 1) } else { (0.0, 0) };
+            s[i] = val + s[i - 1] + s[i - w - 1] - s[i - w - 2];
+            c[i] = n + c[i - 1] + c[i - w - 1] - c[i - w - 2];
+        }
+    }
+    Plane::from_fn(w, h, |x, y| {
+        let (x0, y0) = (x.saturating_sub(r), y.saturating_sub(r));
+        let (x1, y1) = ((x + r + 1).min(w), (y + r + 1).min(h));
+        let at = |xx: usize, yy: usize| yy * (w + 1) + xx;
+        let n = c[at(x1, y1)] + c[at(x0, y0)] - c[at(x0, y1)] - c[at(x1, y0)];
+        if n == 0 {
+            return 0.0;
+        }
+        ((s[at(x1, y1)] + s[at(x0, y0)] - s[at(x0, y1)] - s[at(x1, y0)]) / n as f64) as f32
+    })
+}
+
+/// The pixels of `reach` 8-connected to a pixel of `seeds` (seeds outside `reach` count).
+fn grow_from(seeds: &Plane<bool>, reach: &Plane<bool>) -> Plane<bool> {
+    let (w, h) = (seeds.width(), seeds.height());
+    let mut out = seeds.clone();
+    let mut stack: Vec<(usize, usize)> =
+        (0..w * h).filter(|&i| seeds.as_slice()[i]).map(|i| (i % w, i / w)).collect();
+    while let Some((x, y)) = stack.pop() {
+        for (dx, dy) in NEIGHBOURS_8 {
+            let (nx, ny) = (x as isize + dx, y as isize + dy);
+            if reach.get_checked(nx, ny) == Some(true) && !out.get(nx as usize, ny as usize) {
+                out.set(nx as usize, ny as usize, true);
+                stack.push((nx as usize, ny as usize));
+            }
+        }
+    }
+    out
+}
+
+const NEIGHBOURS_8: [(isize, isize); 8] =
+    [(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)];
+const NEIGHBOURS_4: [(isize, isize); 4] = [(0, -1), (-1, 0), (1, 0), (0, 1)];
+
+/// Stage (5): fills the 4-connected holes of `m` that do not reach the border and have at
+/// most `max_hole` pixels, and counts the 8-connected objects.
+fn fill_holes(m: &Plane<bool>, max_hole: usize) -> (Plane<bool>, usize) {
+    let (w, h) = (m.width(), m.height());
+    let mut out = m.clone();
+    let mut seen = Plane::new(w, h, false);
+    let mut region = Vec::new();
+    for start in 0..w * h {
+        let (sx, sy) = (start % w, start / w);
+        if m.get(sx, sy) || seen.get(sx, sy) {
+            continue;
+        }
+        region.clear();
+        let mut touches_border = false;
+        let mut stack = vec![(sx, sy)];
+        seen.set(sx, sy, true);
+        while let Some((x, y)) = stack.pop() {
+            region.push((x, y));
+            touches_border |= x == 0 || y == 0 || x + 1 == w || y + 1 == h;
+            for (dx, dy) in NEIGHBOURS_4 {
+                let (nx, ny) = (x as isize + dx, y as isize + dy);
+                if m.get_checked(nx, ny) == Some(false) && !seen.get(nx as usize, ny as usize) {
+                    seen.set(nx as usize, ny as usize, true);
+                    stack.push((nx as usize, ny as usize));
+                }
+            }
+        }
+        if !touches_border && region.len() <= max_hole {
+            region.iter().for_each(|&(x, y)| out.set(x, y, true));
+        }
+    }
+    let mut objects = 0;
+    let mut seen = Plane::new(w, h, false);
+    for start in 0..w * h {
+        let (sx, sy) = (start % w, start / w);
+        if !out.get(sx, sy) || seen.get(sx, sy) {
+            continue;
+        }
+        objects += 1;
+        let mut stack = vec![(sx, sy)];
+        seen.set(sx, sy, true);
+        while let Some((x, y)) = stack.pop() {
+            for (dx, dy) in NEIGHBOURS_8 {
+                let (nx, ny) = (x as isize + dx, y as isize + dy);
+                if out.get_checked(nx, ny) == Some(true) && !seen.get(nx as usize, ny as usize) {
+                    seen.set(nx as usize, ny as usize, true);
+                    stack.push((nx as usize, ny as usize));
+                }
+            }
+        }
+    }
+    (out, objects)
 }
 
 /// Gain and offset of a whole warped view against the keyframe, on a grid of samples.
@@ -239,6 +653,40 @@ mod tests {
         assert!(d.get(8, 12) && !d.get(7, 10));
         assert_eq!(erode(&d, 2).as_slice().iter().filter(|&&v| v).count(), 1);
         assert!(erode(&d, 3).as_slice().iter().all(|&v| !v));
+    }
+
+    fn iou(a: &Mask, b: &Mask) -> f64 {
+        let (mut inter, mut union) = (0usize, 0usize);
+        for (&p, &q) in a.as_slice().iter().zip(b.as_slice()) {
+            inter += usize::from(p > 127 && q > 127);
+            union += usize::from(p > 127 || q > 127);
+        }
+        inter as f64 / union.max(1) as f64
+    }
+
+    /// Views with occluders of their own over the keyframe's (so that they agree with it
+    /// there): the keyframe's objects are still found whole, as a person would paint them.
+    #[test]
+    fn finds_whole_objects_where_the_views_are_occluded_too() {
+        for seed in [1001, 1002, 1003] {
+            let c = crate::synth::occlusion_case(crate::synth::CaseFamily::Planar, 320, 240, 3, seed);
+            let sources: Vec<Source<'_>> = c
+                .views
+                .iter()
+                .zip(&c.homographies)
+                .map(|(image, &homography)| Source { image, homography })
+                .collect();
+            let found = auto_mask_report(&c.key, &sources, &AutoMaskParams::default());
+            let score = iou(&found.mask, &c.mask);
+            assert!(score > 0.85, "seed {seed}: IoU {score:.3} with the true mask");
+            assert!(found.objects >= 1 && found.objects <= 6, "seed {seed}: {} objects", found.objects);
+            assert!(
+                found.certain_share > 0.3 && found.certain_share < 1.0,
+                "seed {seed}: {:?}",
+                found.certain_share
+            );
+            assert!(found.judged_share > 0.5, "seed {seed}: judged {:.3}", found.judged_share);
+        }
     }
 
     #[test]

@@ -25,7 +25,7 @@ use blend::{BlendParams, guidance_rhs, solve_membrane};
 use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region};
 use occlusion::{OcclusionMap, OcclusionParams, RegionInput, occlusion_map};
 
-pub use automask::{AutoMaskParams, auto_mask};
+pub use automask::{AutoMask, AutoMaskParams, auto_mask, auto_mask_report};
 pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_until};
 
 /// Where each pixel of a result came from: [`KEYFRAME`] outside the mask, [`FALLBACK`]
