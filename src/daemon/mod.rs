@@ -32,6 +32,7 @@
 pub mod emit;
 pub mod http;
 pub mod intake;
+pub mod job;
 pub mod paths;
 pub mod provenance;
 pub mod registry;

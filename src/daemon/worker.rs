@@ -16,7 +16,7 @@ use serde_json::json;
 use tokio_util::sync::CancellationToken;
 
 use super::emit::{Emitter, rfc3339};
-use super::intake::{DecodeOutcome, read_and_decode};
+use super::job::{DecodeOutcome, FileId, Job};
 use super::paths::Inbox;
 use super::registry::{LegendEntry, Registry, SessionSnapshot, ViewSnapshot};
 use super::state::{self, SavedResult, SessionState};
@@ -27,46 +27,6 @@ use crate::imaging::convert::{to_luminance, to_mask, to_rgb};
 use crate::imaging::decode::DecodeLimits;
 use crate::inpaint::{Observer, Stage};
 use crate::session::{Admission, AlignRecord, Rgb8, Session};
-
-/// A file's identity: name, size and modification time. A file that changes is a new
-/// view; saved alignments are keyed by it.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct FileId {
-    pub name: String,
-    pub size: u64,
-    pub mtime: SystemTime,
-}
-
-impl FileId {
-    pub fn id(&self) -> String {
-        let ns = self.mtime.duration_since(SystemTime::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
-        format!("{}|{}|{}", self.name, self.size, ns)
-    }
-
-    /// [`FileId::id`] and a digest of the decoded pixels: what saved alignments and
-    /// results are keyed by, so a file replaced under the same name, size and time (a
-    /// sync client that keeps times, a fixed-size format) is not mistaken for the old one.
-    pub fn content_id(&self, image: &DynamicImage) -> String {
-        format!("{}|{:016x}", self.id(), state::content_digest(image.as_bytes()))
-    }
-
-    pub fn of(path: &Path) -> std::io::Result<Self> {
-        let meta = std::fs::metadata(path)?;
-        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        Ok(Self { name, size: meta.len(), mtime: meta.modified()? })
-    }
-}
-
-/// A decoded file for a session.
-pub struct Job {
-    pub session: String,
-    pub path: PathBuf,
-    pub role: Role,
-    pub file: FileId,
-    /// 8-bit RGB for keyframes and views, 8-bit grey for masks; `None`: a mask was
-    /// deleted, or a view's file now holds something that cannot be used.
-    pub image: Option<DynamicImage>,
-}
 
 /// The workers' queues and threads.
 pub type Workers = (Vec<Sender<Job>>, Vec<JoinHandle<()>>);
@@ -357,12 +317,7 @@ impl Worker {
         let _enter = span.enter();
         let Some(key_name) = slot.state.key_file.clone() else { return };
         let key_path = slot.dir.join(&key_name);
-        let Ok(file) = FileId::of(&key_path) else { return };
-        let Ok(img) =
-            read_and_decode(&key_path, Role::View, file.size, file.mtime, &limits(ctx), &inbox(ctx))
-        else {
-            return;
-        };
+        let Ok((file, img)) = load(ctx, &key_path, Role::View) else { return };
         let key_id = format!("{}|", file.id());
         for path in watch::scan(&slot.dir, ctx.config.follow_symlinks) {
             let Some(c) = watch::classify(&ctx.config.watch_dir, &path, &ctx.config.extensions) else {
@@ -578,12 +533,9 @@ fn take_key(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &Dyna
         json!({ "keyframe": file.name, "width": w, "height": h }),
     );
     if let Some(mask_path) = find_mask(ctx, &slot.dir, &file.name) {
-        match FileId::of(&mask_path).map_err(|e| DecodeOutcome::Io(e.to_string())).and_then(|f| {
-            read_and_decode(&mask_path, Role::Mask, f.size, f.mtime, &limits(ctx), &inbox(ctx))
-                .map(|img| (f, img))
-        }) {
+        match load(ctx, &mask_path, Role::Mask) {
             Ok((f, img)) => apply_mask(ctx, slot, &f, &img),
-            Err(e) => skip(ctx, slot, &mask_path, &outcome_reason(&e)),
+            Err(e) => skip(ctx, slot, &mask_path, &e.reason()),
         }
     }
     say_waiting(ctx, slot);
@@ -650,8 +602,7 @@ fn take_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
         && current_stem != Some(owner.as_str())
         && matches!(ctx.config.keyframe, KeyframeRule::First)
         && let Some(image_path) = image_of(ctx, &slot.dir, &owner)
-        && let Ok(f) = FileId::of(&image_path)
-        && let Ok(img) = read_and_decode(&image_path, Role::View, f.size, f.mtime, &limits(ctx), &inbox(ctx))
+        && let Ok((f, img)) = load(ctx, &image_path, Role::View)
     {
         tracing::info!(mask = %watch::shown(&file.name), key = %watch::shown(&f.name), "the mask names its image: it is the keyframe");
         // take_key finds and applies this mask.
@@ -755,8 +706,7 @@ fn mask_removed(ctx: &Ctx, slot: &mut Slot, file: &FileId) {
     // Another mask beside the keyframe (`mask.<ext>`) takes over.
     if let Some(k) = &key_stem
         && let Some(other) = find_mask(ctx, &slot.dir, k)
-        && let Ok(f) = FileId::of(&other)
-        && let Ok(img) = read_and_decode(&other, Role::Mask, f.size, f.mtime, &limits(ctx), &inbox(ctx))
+        && let Ok((f, img)) = load(ctx, &other, Role::Mask)
     {
         apply_mask(ctx, slot, &f, &img);
     }
@@ -780,10 +730,7 @@ fn auto_mask(ctx: &Ctx, slot: &mut Slot) {
     }
     let mut images = Vec::new();
     for (_, path, h) in &chosen {
-        let Ok(f) = FileId::of(path) else { return };
-        let Ok(img) = read_and_decode(path, Role::View, f.size, f.mtime, &limits(ctx), &inbox(ctx)) else {
-            return;
-        };
+        let Ok((_, img)) = load(ctx, path, Role::View) else { return };
         images.push((to_rgb(&img), *h));
     }
     let Ok(mask) = slot.session.auto_mask(&images) else { return };
@@ -811,23 +758,14 @@ fn auto_mask(ctx: &Ctx, slot: &mut Slot) {
 fn key_metadata(ctx: &Ctx, slot: &Slot) -> Option<crate::imaging::meta::Metadata> {
     use std::io::Read;
     let mut bytes = Vec::new();
-    inbox(ctx).open(slot.key_path.as_ref()?).ok()?.read_to_end(&mut bytes).ok()?;
+    Inbox::of(&ctx.config).open(slot.key_path.as_ref()?).ok()?.read_to_end(&mut bytes).ok()?;
     crate::imaging::decode::read_metadata(&bytes).ok()
 }
 
-fn limits(ctx: &Ctx) -> DecodeLimits {
-    DecodeLimits { max_pixels: ctx.config.max_pixels }
-}
-
-fn inbox(ctx: &Ctx) -> Inbox {
-    Inbox::of(&ctx.config)
-}
-
-fn outcome_reason(e: &DecodeOutcome) -> String {
-    match e {
-        DecodeOutcome::Changed => "changed while being read".into(),
-        DecodeOutcome::Io(r) | DecodeOutcome::Failed(r) => r.clone(),
-    }
+/// Reads a file of the session's folder again, as it is now (see [`super::job::load`]).
+fn load(ctx: &Ctx, path: &Path, role: Role) -> Result<(FileId, DynamicImage), DecodeOutcome> {
+    let limits = DecodeLimits { max_pixels: ctx.config.max_pixels };
+    super::job::load(path, role, &limits, &Inbox::of(&ctx.config))
 }
 
 fn skip(ctx: &Ctx, slot: &Slot, path: &Path, reason: &str) {
@@ -843,18 +781,14 @@ fn skip(ctx: &Ctx, slot: &Slot, path: &Path, reason: &str) {
 
 /// Reads a view again from disk (after a keyframe or mask change) and offers it.
 fn reprocess(ctx: &Ctx, slot: &mut Slot, path: &Path) {
-    let file = match FileId::of(path) {
-        Ok(f) => f,
-        Err(e) => {
+    match load(ctx, path, Role::View) {
+        Ok((file, img)) => process_view(ctx, slot, &file, path, &img),
+        Err(DecodeOutcome::Gone(e)) => {
             tracing::debug!(file = %path.display(), error = %e, "gone before it could be read again");
-            return;
         }
-    };
-    match read_and_decode(path, Role::View, file.size, file.mtime, &limits(ctx), &inbox(ctx)) {
-        Ok(img) => process_view(ctx, slot, &file, path, &img),
         // A change means the intake will bring the new version.
         Err(DecodeOutcome::Changed) => {}
-        Err(e) => skip(ctx, slot, path, &outcome_reason(&e)),
+        Err(e) => skip(ctx, slot, path, &e.reason()),
     }
 }
 
