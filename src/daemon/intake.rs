@@ -21,6 +21,7 @@ use crossbeam_channel::{Sender, TrySendError};
 use tokio::sync::{Semaphore, mpsc};
 use tokio_util::sync::CancellationToken;
 
+use super::event::{Event, FileSkipped};
 use super::job::{DecodeOutcome, FileId, Job, read_and_decode};
 use super::paths::Inbox;
 use super::watch::{self, Role};
@@ -181,11 +182,9 @@ impl Intake {
                         RootChange::Same => {}
                         RootChange::Vanished => {
                             tracing::warn!(dir = %self.config.watch_dir.display(), "the watched folder is gone: waiting for it to come back");
-                            self.emitter.event(
-                                "watch_dir_vanished",
-                                None,
-                                serde_json::json!({ "dir": self.config.watch_dir, "reason": "the watched folder was removed or unmounted" }),
-                            );
+                            let reason = "the watched folder was removed or unmounted".into();
+                            let dir = self.config.watch_dir.clone();
+                            self.emitter.emit(None, &Event::WatchDirVanished { dir, reason });
                         }
                         RootChange::Back => {
                             // Kernel watches die with their folder: armed again, and a
@@ -198,14 +197,9 @@ impl Intake {
                                 tracing::error!(error = %e, "cannot watch the folder again: relying on rescans");
                             }
                             tracing::info!(dir = %self.config.watch_dir.display(), "the watched folder is back: watching and scanning it again");
-                            self.emitter.event(
-                                "watch_dir_restored",
-                                None,
-                                serde_json::json!({
-                                    "dir": self.config.watch_dir,
-                                    "rewatched": rearmed.as_ref().map(Result::is_ok),
-                                }),
-                            );
+                            let rewatched = rearmed.as_ref().map(Result::is_ok);
+                            let dir = self.config.watch_dir.clone();
+                            self.emitter.emit(None, &Event::WatchDirRestored { dir, rewatched });
                             last_scan = None;
                         }
                     }
@@ -357,11 +351,9 @@ impl Intake {
         );
         self.stats.skipped.fetch_add(1, Ordering::Relaxed);
         tracing::warn!(file = %watch::shown_path(&link), session = %watch::shown(&session), %reason, "file skipped");
-        self.emitter.event(
-            "file_skipped",
-            Some(&session),
-            serde_json::json!({ "file": name, "path": link, "reason": reason, "symlink": true }),
-        );
+        let path = link.to_string_lossy().into_owned();
+        let e = FileSkipped { file: Some(name), path, reason, retried: None, symlink: true };
+        self.emitter.emit(Some(&session), &Event::FileSkipped(e));
         self.refused.insert(link);
     }
 
@@ -374,11 +366,14 @@ impl Intake {
         let reason = format!("{kind}, not a regular file: it is not read");
         self.stats.skipped.fetch_add(1, Ordering::Relaxed);
         tracing::warn!(file = %watch::shown_path(&path), session = %watch::shown(session), %reason, "file skipped");
-        self.emitter.event(
-            "file_skipped",
-            Some(session),
-            serde_json::json!({ "file": name, "path": path.to_string_lossy(), "reason": reason, "retried": RETRIED }),
-        );
+        let e = FileSkipped {
+            file: Some(name),
+            path: path.to_string_lossy().into_owned(),
+            reason,
+            retried: Some(RETRIED),
+            symlink: false,
+        };
+        self.emitter.emit(Some(session), &Event::FileSkipped(e));
         self.refused.insert(path);
     }
 
@@ -510,16 +505,14 @@ impl Intake {
                     } else {
                         tracing::warn!(%file, session = %session_shown, %reason, "file skipped");
                     }
-                    self.emitter.event(
-                        "file_skipped",
-                        Some(&session),
-                        serde_json::json!({
-                            "file": path.file_name().map(|n| n.to_string_lossy()),
-                            "path": path.to_string_lossy(),
-                            "reason": reason,
-                            "retried": RETRIED,
-                        }),
-                    );
+                    let e = FileSkipped {
+                        file: path.file_name().map(|n| n.to_string_lossy().into_owned()),
+                        path: path.to_string_lossy().into_owned(),
+                        reason,
+                        retried: Some(RETRIED),
+                        symlink: false,
+                    };
+                    self.emitter.emit(Some(&session), &Event::FileSkipped(e));
                 }
             }
         }

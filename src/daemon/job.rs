@@ -36,11 +36,11 @@ impl FileId {
         format!("{}|{}|{}", self.name, self.size, ns)
     }
 
-    /// [`FileId::id`] and a digest of the decoded pixels: what saved alignments and
-    /// results are keyed by, so a file replaced under the same name, size and time (a
-    /// sync client that keeps times, a fixed-size format) is not mistaken for the old one.
-    pub fn content_id(&self, image: &DynamicImage) -> String {
-        format!("{}|{:016x}", self.id(), state::content_digest(image.as_bytes()))
+    /// The view this file's content is: [`FileId::id`] and a digest of the decoded
+    /// pixels, so a file replaced under the same name, size and time (a sync client that
+    /// keeps times, a fixed-size format) is not mistaken for the old one.
+    pub fn view_id(&self, image: &DynamicImage) -> ViewId {
+        ViewId(format!("{}|{:016x}", self.id(), state::content_digest(image.as_bytes())))
     }
 
     pub fn of(path: &Path) -> std::io::Result<Self> {
@@ -48,6 +48,45 @@ impl FileId {
         let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         Ok(Self { name, size: meta.len(), mtime: meta.modified()? })
     }
+}
+
+/// A view's identity, as saved alignments and results are keyed by: for a file
+/// `name|size|mtime_ns|pixel_digest` ([`FileId::view_id`]), for a video frame
+/// `frame-NNNNNN|run` ([`ViewId::frame`]). The core ([`crate::session`]) keys views by the
+/// same string; the file (or frame) name is always the part before the first `|`.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct ViewId(String);
+
+impl ViewId {
+    /// Frame `name` of the video run `run` (a run's frames never meet a saved state).
+    pub fn frame(name: &str, run: u128) -> Self {
+        Self(format!("{name}|{run}"))
+    }
+
+    /// An id as the core gives it back.
+    pub fn from_core(id: &str) -> Self {
+        Self(id.to_owned())
+    }
+
+    /// The file (or frame) name.
+    pub fn name(&self) -> &str {
+        name_of(&self.0)
+    }
+
+    pub fn as_str(&self) -> &str {
+        &self.0
+    }
+}
+
+impl From<ViewId> for String {
+    fn from(id: ViewId) -> Self {
+        id.0
+    }
+}
+
+/// The file (or frame) name of a view id as the core keeps it (see [`ViewId`]).
+pub fn name_of(id: &str) -> &str {
+    id.split('|').next().unwrap_or(id)
 }
 
 /// A decoded file for a session.
