@@ -25,13 +25,15 @@
 //! (each owning some sessions), writes results atomically, logs events, saves state and
 //! talks to systemd.
 //!
-//! The edges (`main.rs`, [`cli`], [`config`]) parse arguments and TOML, read files and print.
+//! The edges (`main.rs`, [`cli`], [`config`]) parse arguments and TOML, read files and
+//! print; [`fsio`] is their and the service's crash-safe file write.
 
 pub mod align;
 pub mod cli;
 pub mod config;
 pub mod daemon;
 pub mod features;
+pub mod fsio;
 pub mod geometry;
 pub mod imaging;
 pub mod inpaint;

@@ -347,16 +347,22 @@ impl Session {
         }
         let region = mask.hole_bounds().map(|r| r.grown(self.params.margin_px, kw, kh));
         self.mask = Some(MaskInfo { id, mask, region });
+        self.mask_changed();
+        self.dirty = true;
+        Ok(self.buffer.iter().map(|b| b.id.clone()).collect())
+    }
+
+    /// What a new mask (or none) invalidates: the result and its maps, and every buffered
+    /// view's crop and contribution (their alignments stay).
+    fn mask_changed(&mut self) {
         self.provenance = None;
         self.confidence = None;
         self.best = None;
-        self.dirty = true;
         self.admitted_since_fill = 0;
         for b in &mut self.buffer {
             b.crop = None;
             b.contribution = None;
         }
-        Ok(self.buffer.iter().map(|b| b.id.clone()).collect())
     }
 
     /// The prior for the next view: the homography of the most recently admitted accepted
@@ -485,15 +491,8 @@ impl Session {
     /// views keep their alignments but lose their crops, as when a mask changes.
     pub fn clear_mask(&mut self) {
         self.mask = None;
-        self.provenance = None;
-        self.confidence = None;
-        self.best = None;
+        self.mask_changed();
         self.dirty = false;
-        self.admitted_since_fill = 0;
-        for b in &mut self.buffer {
-            b.crop = None;
-            b.contribution = None;
-        }
     }
 
     /// Whether view `pixels`, mapped by keyframe → view `h`, show the keyframe's own

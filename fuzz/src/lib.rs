@@ -11,7 +11,7 @@ use std::sync::OnceLock;
 
 use clearview::align::{AlignParams, Frame, align as align_pair};
 use clearview::config::Config;
-use clearview::daemon::intake::decode_as;
+use clearview::daemon::job::decode_as;
 use clearview::daemon::state;
 use clearview::daemon::watch::Role;
 use clearview::geometry::Homography;

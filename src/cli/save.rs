@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use image::{DynamicImage, ImageFormat};
 use thiserror::Error;
 
-use crate::daemon::emit::atomic_write;
+use crate::fsio::atomic_write;
 use crate::imaging::RgbF32;
 use crate::imaging::encode::{EncodeError, EncodeOptions, Format, encode};
 use crate::imaging::meta::{Metadata, Provenance};

@@ -4,64 +4,18 @@
 use std::fs::{File, OpenOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Mutex, RwLock};
 use std::time::SystemTime;
 
 use thiserror::Error;
 
 use super::DaemonError;
+use super::event::Event;
 use crate::config::{Config, OutputFormat};
+use crate::fsio::{atomic_write, atomic_write_linked};
 use crate::imaging::RgbF32;
 use crate::imaging::encode::{EncodeOptions, Format, OutputSpace, encode};
 use crate::imaging::meta::{Metadata, Provenance};
-
-/// Marks our temporary files: `.<name>.clearview-tmp-<pid>-<n>`.
-const TMP_MARK: &str = ".clearview-tmp-";
-
-static TMP_COUNTER: AtomicU64 = AtomicU64::new(0);
-
-/// Writes `bytes` to `path` so that a reader sees the old file or the new one, never a
-/// part: a temporary name in the same folder, fsync, rename, fsync of the folder.
-pub fn atomic_write(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    atomic_write_linked(path, bytes, None)
-}
-
-/// [`atomic_write`] that also gives the new file a second name `also` (atomically too: a
-/// hard link to the fsynced temporary, falling back to a copy where links are refused).
-pub fn atomic_write_linked(path: &Path, bytes: &[u8], also: Option<&Path>) -> std::io::Result<()> {
-    let dir = path.parent().unwrap_or(Path::new("."));
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
-    let n = TMP_COUNTER.fetch_add(1, Ordering::Relaxed);
-    let tmp = dir.join(format!(".{name}{TMP_MARK}{}-{n}", std::process::id()));
-    let result: std::io::Result<()> = (|| {
-        // A new file, never an existing name: a link planted under the temporary's
-        // (guessable) name in the inbox is not followed to write elsewhere (O_EXCL).
-        let mut f = OpenOptions::new().write(true).create_new(true).open(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        drop(f);
-        if let Some(also) = also {
-            let _ = std::fs::remove_file(also);
-            if std::fs::hard_link(&tmp, also).is_err() {
-                atomic_write(also, bytes)?;
-            }
-        }
-        std::fs::rename(&tmp, path)?;
-        for d in [Some(dir), also.and_then(Path::parent)].into_iter().flatten() {
-            if let Ok(d) = File::open(d) {
-                let _ = d.sync_all();
-            }
-        }
-        Ok(())
-    })();
-    if let Err(e) = &result
-        && e.kind() != std::io::ErrorKind::AlreadyExists
-    {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
-}
 
 /// Removes temporaries a killed process left behind in `dir` and its sub-folders (two
 /// levels: sessions and their history).
@@ -74,7 +28,7 @@ pub fn remove_stale_temporaries(dir: &Path) {
                 if depth > 0 {
                     walk(&path, depth - 1);
                 }
-            } else if e.file_name().to_string_lossy().contains(TMP_MARK) {
+            } else if e.file_name().to_string_lossy().contains(crate::fsio::TMP_MARK) {
                 tracing::info!(file = %path.display(), "removing a temporary file left by an interrupted run");
                 let _ = std::fs::remove_file(&path);
             }
@@ -208,6 +162,20 @@ fn line(time: String, kind: &str, session: Option<&str>, fields: serde_json::Val
     line
 }
 
+/// An event's kind (its `event` field) and its other fields.
+fn split(event: &Event) -> (String, serde_json::Value) {
+    match serde_json::to_value(event) {
+        Ok(serde_json::Value::Object(mut m)) => {
+            let kind = match m.remove("event") {
+                Some(serde_json::Value::String(k)) => k,
+                _ => String::new(),
+            };
+            (kind, serde_json::Value::Object(m))
+        }
+        _ => (String::new(), serde_json::Value::Null),
+    }
+}
+
 /// Whether `path` still names the open file `f` (not deleted, not replaced).
 fn still_names(path: &Path, f: &File) -> bool {
     #[cfg(unix)]
@@ -253,9 +221,11 @@ impl Emitter {
     }
 
     /// Appends one event, a JSON object on one line: `time`, `event`, `session`, then
-    /// `fields`' members. A failure to log is itself logged, never fatal.
-    pub fn event(&self, kind: &str, session: Option<&str>, fields: serde_json::Value) {
-        let line = line(rfc3339(SystemTime::now()), kind, session, fields);
+    /// the event's fields ([`Event`]). A failure to log is itself logged, never fatal.
+    pub fn emit(&self, session: Option<&str>, event: &Event) {
+        let (kind, fields) = split(event);
+        let line = line(rfc3339(SystemTime::now()), &kind, session, fields);
+        let kind = kind.as_str();
         let closed = self.closed.read().expect("emitter gate");
         if *closed {
             tracing::debug!(event = kind, "after service_stopped: not logged");
@@ -264,15 +234,16 @@ impl Emitter {
         self.append(kind, &line);
     }
 
-    /// Writes the run's last event, `service_stopped` with `fields`, once every write in
-    /// progress has ended; nothing is written after it.
-    pub fn close(&self, fields: serde_json::Value) {
+    /// Writes the run's last event, `service_stopped`, once every write in progress has
+    /// ended; nothing is written after it.
+    pub fn close(&self, clean: bool) {
         let mut closed = self.closed.write().expect("emitter gate");
         if *closed {
             return;
         }
         *closed = true;
-        self.append("service_stopped", &line(rfc3339(SystemTime::now()), "service_stopped", None, fields));
+        let (kind, fields) = split(&Event::ServiceStopped { clean });
+        self.append(&kind, &line(rfc3339(SystemTime::now()), &kind, None, fields));
     }
 
     /// Whether the service has said `service_stopped` (then nothing more is written).
@@ -455,43 +426,6 @@ mod tests {
         assert_eq!(rfc3339(SystemTime::UNIX_EPOCH), "1970-01-01T00:00:00.000Z");
         let t = SystemTime::UNIX_EPOCH + Duration::from_millis(1_709_210_096_789);
         assert_eq!(rfc3339(t), "2024-02-29T12:34:56.789Z");
-    }
-
-    #[test]
-    fn atomic_write_replaces_and_leaves_no_temporary() {
-        let dir = tempfile::tempdir().unwrap();
-        let p = dir.path().join("a.txt");
-        atomic_write(&p, b"one").unwrap();
-        atomic_write(&p, b"two").unwrap();
-        assert_eq!(std::fs::read(&p).unwrap(), b"two");
-        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
-    }
-
-    #[cfg(unix)]
-    #[test]
-    fn a_link_planted_under_the_temporary_name_is_not_written_through() {
-        let dir = tempfile::tempdir().unwrap();
-        let victim = dir.path().join("victim");
-        std::fs::write(&victim, b"keep").unwrap();
-        let n = TMP_COUNTER.load(Ordering::Relaxed);
-        for k in n..n + 64 {
-            let tmp = dir.path().join(format!(".a.png{TMP_MARK}{}-{k}", std::process::id()));
-            std::os::unix::fs::symlink(&victim, tmp).unwrap();
-        }
-        let _ = atomic_write(&dir.path().join("a.png"), b"new");
-        assert_eq!(std::fs::read(&victim).unwrap(), b"keep");
-    }
-
-    #[test]
-    fn a_linked_write_gives_two_names_to_the_new_file_and_keeps_the_old_history() {
-        let dir = tempfile::tempdir().unwrap();
-        let (p, h1, h2) = (dir.path().join("r.png"), dir.path().join("h1.png"), dir.path().join("h2.png"));
-        atomic_write_linked(&p, b"one", Some(&h1)).unwrap();
-        atomic_write_linked(&p, b"two", Some(&h2)).unwrap();
-        assert_eq!(std::fs::read(&p).unwrap(), b"two");
-        assert_eq!(std::fs::read(&h1).unwrap(), b"one");
-        assert_eq!(std::fs::read(&h2).unwrap(), b"two");
-        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 3);
     }
 
     #[test]

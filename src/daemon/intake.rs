@@ -7,8 +7,8 @@
 //! masks before views, older before newer. A worker whose queue is full gets nothing more:
 //! its files stay ready, on disk, and are queued at a later tick. A file that fails to
 //! decode is reported once (event `file_skipped`) and not retried until it changes.
-//! Keyframes and views must look like photographs: at least [`MIN_SIDE`] pixels a side
-//! and at most [`MAX_ASPECT`]:1. A mask that a worker has taken and that is then deleted
+//! Keyframes and views must look like photographs: at least [`MIN_SIDE`](super::job::MIN_SIDE) pixels a side
+//! and at most [`MAX_ASPECT`](super::job::MAX_ASPECT):1. A mask that a worker has taken and that is then deleted
 //! is reported to that worker (a job without an image).
 
 use std::collections::{HashMap, HashSet};
@@ -18,16 +18,16 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant, SystemTime};
 
 use crossbeam_channel::{Sender, TrySendError};
-use image::DynamicImage;
 use tokio::sync::{Semaphore, mpsc};
 use tokio_util::sync::CancellationToken;
 
-use super::paths::{Inbox, Refusal};
+use super::event::{Event, FileSkipped};
+use super::job::{DecodeOutcome, FileId, Job, read_and_decode};
+use super::paths::Inbox;
 use super::watch::{self, Role};
-use super::worker::{FileId, Job};
 use super::{Backlog, Stats, emit::Emitter};
 use crate::config::{Config, WatchMode};
-use crate::imaging::decode::{DecodeError, DecodeLimits, decode};
+use crate::imaging::decode::DecodeLimits;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Status {
@@ -122,14 +122,6 @@ impl Root {
     }
 }
 
-/// Keyframes and views with a side shorter than this are refused: too few pixels for
-/// corners to be found and matched.
-pub const MIN_SIDE: u32 = 32;
-
-/// Keyframes and views longer than this many times their other side are refused: strips,
-/// not photographs of a facade.
-pub const MAX_ASPECT: u32 = 10;
-
 /// The worker that owns `session` (stable for the life of the process).
 pub fn worker_for(session: &str, workers: usize) -> usize {
     let mut h = crate::session::Fnv::new();
@@ -190,11 +182,9 @@ impl Intake {
                         RootChange::Same => {}
                         RootChange::Vanished => {
                             tracing::warn!(dir = %self.config.watch_dir.display(), "the watched folder is gone: waiting for it to come back");
-                            self.emitter.event(
-                                "watch_dir_vanished",
-                                None,
-                                serde_json::json!({ "dir": self.config.watch_dir, "reason": "the watched folder was removed or unmounted" }),
-                            );
+                            let reason = "the watched folder was removed or unmounted".into();
+                            let dir = self.config.watch_dir.clone();
+                            self.emitter.emit(None, &Event::WatchDirVanished { dir, reason });
                         }
                         RootChange::Back => {
                             // Kernel watches die with their folder: armed again, and a
@@ -207,14 +197,9 @@ impl Intake {
                                 tracing::error!(error = %e, "cannot watch the folder again: relying on rescans");
                             }
                             tracing::info!(dir = %self.config.watch_dir.display(), "the watched folder is back: watching and scanning it again");
-                            self.emitter.event(
-                                "watch_dir_restored",
-                                None,
-                                serde_json::json!({
-                                    "dir": self.config.watch_dir,
-                                    "rewatched": rearmed.as_ref().map(Result::is_ok),
-                                }),
-                            );
+                            let rewatched = rearmed.as_ref().map(Result::is_ok);
+                            let dir = self.config.watch_dir.clone();
+                            self.emitter.emit(None, &Event::WatchDirRestored { dir, rewatched });
                             last_scan = None;
                         }
                     }
@@ -366,11 +351,9 @@ impl Intake {
         );
         self.stats.skipped.fetch_add(1, Ordering::Relaxed);
         tracing::warn!(file = %watch::shown_path(&link), session = %watch::shown(&session), %reason, "file skipped");
-        self.emitter.event(
-            "file_skipped",
-            Some(&session),
-            serde_json::json!({ "file": name, "path": link, "reason": reason, "symlink": true }),
-        );
+        let path = link.to_string_lossy().into_owned();
+        let e = FileSkipped { file: Some(name), path, reason, retried: None, symlink: true };
+        self.emitter.emit(Some(&session), &Event::FileSkipped(e));
         self.refused.insert(link);
     }
 
@@ -383,11 +366,14 @@ impl Intake {
         let reason = format!("{kind}, not a regular file: it is not read");
         self.stats.skipped.fetch_add(1, Ordering::Relaxed);
         tracing::warn!(file = %watch::shown_path(&path), session = %watch::shown(session), %reason, "file skipped");
-        self.emitter.event(
-            "file_skipped",
-            Some(session),
-            serde_json::json!({ "file": name, "path": path.to_string_lossy(), "reason": reason, "retried": RETRIED }),
-        );
+        let e = FileSkipped {
+            file: Some(name),
+            path: path.to_string_lossy().into_owned(),
+            reason,
+            retried: Some(RETRIED),
+            symlink: false,
+        };
+        self.emitter.emit(Some(session), &Event::FileSkipped(e));
         self.refused.insert(path);
     }
 
@@ -501,7 +487,9 @@ impl Intake {
                     t.since = Instant::now();
                     self.backlog.done(&session);
                 }
-                Err(DecodeOutcome::Failed(reason)) | Err(DecodeOutcome::Io(reason)) => {
+                Err(
+                    DecodeOutcome::Failed(reason) | DecodeOutcome::Io(reason) | DecodeOutcome::Gone(reason),
+                ) => {
                     (room[w], given_back) = (room[w] + 1, true);
                     t.status = Status::Failed;
                     if t.delivered && t.role == Role::View {
@@ -517,16 +505,14 @@ impl Intake {
                     } else {
                         tracing::warn!(%file, session = %session_shown, %reason, "file skipped");
                     }
-                    self.emitter.event(
-                        "file_skipped",
-                        Some(&session),
-                        serde_json::json!({
-                            "file": path.file_name().map(|n| n.to_string_lossy()),
-                            "path": path.to_string_lossy(),
-                            "reason": reason,
-                            "retried": RETRIED,
-                        }),
-                    );
+                    let e = FileSkipped {
+                        file: path.file_name().map(|n| n.to_string_lossy().into_owned()),
+                        path: path.to_string_lossy().into_owned(),
+                        reason,
+                        retried: Some(RETRIED),
+                        symlink: false,
+                    };
+                    self.emitter.emit(Some(&session), &Event::FileSkipped(e));
                 }
             }
         }
@@ -550,89 +536,7 @@ fn special_kind(t: &std::fs::FileType) -> &'static str {
     }
 }
 
-/// Why a ready file did not become a job.
-#[derive(Debug)]
-pub enum DecodeOutcome {
-    /// Its size or time changed while it was read.
-    Changed,
-    Io(String),
-    Failed(String),
-}
-
-/// Reads and decodes a file of the watched folder, opened through `inbox` (no symbolic
-/// link followed unless configured, see [`super::paths`]), checking it did not change
-/// meanwhile; views and keyframes come back as 8-bit RGB, masks as 8-bit grey.
-pub fn read_and_decode(
-    path: &std::path::Path,
-    role: Role,
-    size: u64,
-    mtime: SystemTime,
-    limits: &DecodeLimits,
-    inbox: &Inbox,
-) -> Result<DynamicImage, DecodeOutcome> {
-    use std::io::Read;
-    let mut file = inbox.open(path).map_err(|e| match e {
-        Refusal::Io(e) => DecodeOutcome::Io(format!("cannot read: {e}")),
-        refused => DecodeOutcome::Io(refused.to_string()),
-    })?;
-    let mut bytes = Vec::new();
-    file.read_to_end(&mut bytes).map_err(|e| DecodeOutcome::Io(format!("cannot read: {e}")))?;
-    // The same file as was read (its descriptor), not whatever the name means now.
-    let meta = file.metadata().map_err(|e| DecodeOutcome::Io(format!("cannot read: {e}")))?;
-    if meta.len() != size || meta.modified().ok() != Some(mtime) || bytes.len() as u64 != size {
-        return Err(DecodeOutcome::Changed);
-    }
-    let img = decode_as(&bytes, role, limits).map_err(|e| DecodeOutcome::Failed(e.to_string()))?;
-    if role != Role::Mask
-        && let Some(reason) = shape_problem(img.width(), img.height())
-    {
-        return Err(DecodeOutcome::Failed(reason));
-    }
-    Ok(img)
-}
-
-/// The bytes half of [`read_and_decode`] (also what the fuzz targets drive): decoded
-/// within `limits`, views and keyframes as 8-bit RGB, masks as 8-bit grey.
-pub fn decode_as(bytes: &[u8], role: Role, limits: &DecodeLimits) -> Result<DynamicImage, DecodeError> {
-    Ok(match (role, decode(bytes, limits)?) {
-        (Role::Mask, DynamicImage::ImageLuma8(g)) => DynamicImage::ImageLuma8(g),
-        (Role::Mask, other) => DynamicImage::ImageLuma8(other.to_luma8()),
-        (_, DynamicImage::ImageRgb8(c)) => DynamicImage::ImageRgb8(c),
-        (_, other) => DynamicImage::ImageRgb8(other.to_rgb8()),
-    })
-}
-
-/// Why a `width × height` image cannot be a keyframe or a view, if it cannot.
-pub fn shape_problem(width: u32, height: u32) -> Option<String> {
-    let (short, long) = (width.min(height), width.max(height));
-    if short < MIN_SIDE {
-        Some(format!("{width}x{height} is too small to align (at least {MIN_SIDE} pixels a side)"))
-    } else if u64::from(long) > u64::from(short) * u64::from(MAX_ASPECT) {
-        Some(format!(
-            "{width}x{height} is a strip ({}:1), not a photograph of a facade (at most {MAX_ASPECT}:1)",
-            long / short
-        ))
-    } else {
-        None
-    }
-}
-
 /// Time a test or a caller may wait for a file to be taken: quiet period plus two ticks.
 pub fn settle_time(config: &Config) -> Duration {
     config.quiet_period + 2 * super::tick_interval(config)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn photographs_pass_and_dots_and_strips_do_not() {
-        for (w, h) in [(400, 300), (32, 32), (320, 32), (4000, 3000), (300, 3000)] {
-            assert_eq!(shape_problem(w, h), None, "{w}x{h}");
-        }
-        for (w, h) in [(1, 1), (31, 400), (400, 0), (20_000, 50), (33, 331)] {
-            assert!(shape_problem(w, h).is_some(), "{w}x{h}");
-        }
-    }
 }

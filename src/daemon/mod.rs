@@ -30,9 +30,14 @@
 //! disk). The whole is bounded by the grace period.
 
 pub mod emit;
+pub(crate) mod engine;
+pub mod event;
+pub(crate) mod folder;
 pub mod http;
 pub mod intake;
+pub mod job;
 pub mod paths;
+pub mod policy;
 pub mod provenance;
 pub mod registry;
 pub mod state;
@@ -245,10 +250,9 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
         workers = config.workers.get(),
         "service started"
     );
-    emitter.event(
-        "service_started",
+    emitter.emit(
         None,
-        serde_json::json!({ "watch": config.watch_dir, "pid": std::process::id() }),
+        &event::Event::ServiceStarted { watch: config.watch_dir.clone(), pid: std::process::id() },
     );
     let intake =
         intake::Intake::new(config.clone(), senders, backlog.clone(), emitter.clone(), stats.clone());
@@ -285,7 +289,7 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
         Err(_) => tracing::warn!(grace_ms = grace.as_millis() as u64, "grace period over: stopping mid-step"),
     }
     // The last line: a worker still busy past the grace period writes nothing after it.
-    emitter.close(serde_json::json!({ "clean": finished.is_ok() }));
+    emitter.close(finished.is_ok());
     Ok(())
 }
 

@@ -217,14 +217,14 @@ pub fn parse(bytes: &[u8]) -> Result<SessionState, StateError> {
 /// reported as `false`, so the caller can try again later.
 pub fn save(state_dir: &Path, session: &str, state: &SessionState) -> bool {
     let p = path(state_dir, session);
-    let write = |bytes: &[u8]| match super::emit::atomic_write(&p, bytes) {
+    let write = |bytes: &[u8]| match crate::fsio::atomic_write(&p, bytes) {
         // The state folder was deleted under us: made again, not given up on (a restart
         // would otherwise realign every session).
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             let dir = sessions_dir(state_dir);
             std::fs::create_dir_all(&dir)?;
             tracing::warn!(dir = %dir.display(), "the state folder was gone: made again");
-            super::emit::atomic_write(&p, bytes)
+            crate::fsio::atomic_write(&p, bytes)
         }
         r => r,
     };

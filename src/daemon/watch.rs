@@ -75,14 +75,18 @@ pub fn classify(root: &Path, path: &Path, extensions: &[String]) -> Option<Candi
     if stem.is_empty() || !extensions.iter().any(|e| e.eq_ignore_ascii_case(ext)) {
         return None;
     }
-    let role = if stem == "key" {
+    Some(Candidate { session: session.to_owned(), role: role_of_stem(stem) })
+}
+
+/// What an image whose name's stem is `stem` is to its session.
+pub fn role_of_stem(stem: &str) -> Role {
+    if stem == "key" {
         Role::Key
     } else if mask_owner(stem).is_some() {
         Role::Mask
     } else {
         Role::View
-    };
-    Some(Candidate { session: session.to_owned(), role })
+    }
 }
 
 /// Whose mask a file whose stem is `stem` is: `Some("")` for the session's own `mask`,

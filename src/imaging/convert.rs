@@ -5,8 +5,15 @@ use rayon::prelude::*;
 
 use super::{GrayF32, Mask, Rect, Rgb8, RgbF32, RgbPixel};
 
-/// Rec. 601 luma weights, as most cameras' JPEG encoders use.
-const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
+/// Rec. 601 luma weights, as most cameras' JPEG encoders use: the one definition of
+/// grey in the project (alignment, the fill's isophotes, frame sharpness).
+pub const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
+
+/// The luma of an RGB pixel ([`LUMA`]).
+#[inline]
+pub fn luma(p: [f32; 3]) -> f32 {
+    LUMA[0] * p[0] + LUMA[1] * p[1] + LUMA[2] * p[2]
+}
 
 /// Any decoded image as RGB in 0..=1 (16-bit and float inputs keep their precision;
 /// alpha is dropped: a photograph's alpha carries nothing the fill can use). 8-bit RGB (what
@@ -69,7 +76,7 @@ pub fn luminance(rgb: &RgbF32) -> GrayF32 {
 pub fn luminance_into(rgb: &RgbF32, out: &mut GrayF32) {
     out.reset(rgb.width(), rgb.height(), 0.0);
     for (o, p) in out.as_mut_slice().iter_mut().zip(rgb.as_slice()) {
-        *o = LUMA[0] * p[0] + LUMA[1] * p[1] + LUMA[2] * p[2];
+        *o = luma(*p);
     }
 }
 

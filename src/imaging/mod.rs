@@ -276,16 +276,22 @@ impl Mask {
 
     /// The bounding box of the holes, or `None` when there are none.
     pub fn hole_bounds(&self) -> Option<Rect> {
+        self.hole_bounds_within(Rect::full(self.width, self.height))
+    }
+
+    /// The bounding box of the hole pixels inside `rect` (which must lie in the mask),
+    /// `None` when there is none.
+    pub fn hole_bounds_within(&self, rect: Rect) -> Option<Rect> {
         let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
-        for y in 0..self.height {
-            let row = self.row(y);
+        for y in rect.y..rect.y + rect.height {
+            let row = &self.row(y)[rect.x..rect.x + rect.width];
             let (Some(first), Some(last)) =
                 (row.iter().position(|&v| v > 127), row.iter().rposition(|&v| v > 127))
             else {
                 continue;
             };
-            x0 = x0.min(first);
-            x1 = x1.max(last + 1);
+            x0 = x0.min(rect.x + first);
+            x1 = x1.max(rect.x + last + 1);
             y0 = y0.min(y);
             y1 = y + 1;
         }
@@ -298,18 +304,17 @@ impl Mask {
     }
 }
 
-/// Samples a grey image at a real-valued position with bilinear interpolation.
-///
-/// Returns `None` when the 2×2 neighbourhood is not inside the image (so callers can tell
-/// "not seen" from "black").
+/// The four samples around a real-valued position of a `w × h` image and the weights
+/// between them: indices of the top-left, top-right, bottom-left and bottom-right
+/// neighbours, and the fractions `fx`, `fy`. `None` when the 2×2 neighbourhood is not
+/// inside the image (a position on the last row or column counts when it is exactly on it).
 #[inline]
-pub fn bilinear(img: &GrayF32, x: f32, y: f32) -> Option<f32> {
+fn bilinear_taps(w: usize, h: usize, x: f32, y: f32) -> Option<([usize; 4], f32, f32)> {
     if !(x >= 0.0 && y >= 0.0) {
         return None;
     }
     let x0 = x as usize;
     let y0 = y as usize;
-    let (w, h) = (img.width, img.height);
     if x0 >= w || y0 >= h {
         return None;
     }
@@ -329,11 +334,18 @@ pub fn bilinear(img: &GrayF32, x: f32, y: f32) -> Option<f32> {
     } else {
         return None;
     };
+    Some(([y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1], fx, fy))
+}
+
+/// Samples a grey image at a real-valued position with bilinear interpolation.
+///
+/// Returns `None` when the 2×2 neighbourhood is not inside the image (so callers can tell
+/// "not seen" from "black").
+#[inline]
+pub fn bilinear(img: &GrayF32, x: f32, y: f32) -> Option<f32> {
+    let ([i00, i01, i10, i11], fx, fy) = bilinear_taps(img.width, img.height, x, y)?;
     let d = &img.data;
-    let a = d[y0 * w + x0];
-    let b = d[y0 * w + x1];
-    let c = d[y1 * w + x0];
-    let e = d[y1 * w + x1];
+    let (a, b, c, e) = (d[i00], d[i01], d[i10], d[i11]);
     let top = a + (b - a) * fx;
     let bottom = c + (e - c) * fx;
     Some(top + (bottom - top) * fy)
@@ -351,34 +363,9 @@ pub fn bilinear_clamped(img: &GrayF32, x: f32, y: f32) -> f32 {
 /// outside the image.
 #[inline]
 pub fn bilinear_rgb<P: RgbPixel>(img: &Plane<P>, x: f32, y: f32) -> Option<[f32; 3]> {
-    if !(x >= 0.0 && y >= 0.0) {
-        return None;
-    }
-    let x0 = x as usize;
-    let y0 = y as usize;
-    let (w, h) = (img.width, img.height);
-    if x0 >= w || y0 >= h {
-        return None;
-    }
-    let fx = x - x0 as f32;
-    let fy = y - y0 as f32;
-    let x1 = if x0 + 1 < w {
-        x0 + 1
-    } else if fx == 0.0 {
-        x0
-    } else {
-        return None;
-    };
-    let y1 = if y0 + 1 < h {
-        y0 + 1
-    } else if fy == 0.0 {
-        y0
-    } else {
-        return None;
-    };
+    let ([i00, i01, i10, i11], fx, fy) = bilinear_taps(img.width, img.height, x, y)?;
     let d = &img.data;
-    let (a, b, c, e) =
-        (d[y0 * w + x0].to_f32(), d[y0 * w + x1].to_f32(), d[y1 * w + x0].to_f32(), d[y1 * w + x1].to_f32());
+    let (a, b, c, e) = (d[i00].to_f32(), d[i01].to_f32(), d[i10].to_f32(), d[i11].to_f32());
     let mut out = [0.0; 3];
     for k in 0..3 {
         let top = a[k] + (b[k] - a[k]) * fx;

@@ -16,6 +16,7 @@
 //! before the selector knows what sharp looks like in this stream).
 
 use super::GrayF32;
+use super::convert::luma;
 
 /// Parameters of the frame selection.
 #[derive(Debug, Clone, PartialEq)]
@@ -110,7 +111,7 @@ pub fn gray_reduced(bytes: &[u8], width: usize, height: usize, factor: usize) ->
                 let mut acc = 0.0;
                 for sx in x * f..((x + 1) * f).min(width) {
                     let p = &src[sx * 3..sx * 3 + 3];
-                    acc += 0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32;
+                    acc += luma([p[0] as f32, p[1] as f32, p[2] as f32]);
                 }
                 *o += acc * norm;
             }

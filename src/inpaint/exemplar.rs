@@ -75,10 +75,9 @@ use std::collections::BinaryHeap;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use crate::imaging::convert::luma;
 use crate::imaging::{Mask, RgbF32};
 
-/// Rec. 601 luma, for the isophotes.
-const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
 /// Added to the data term so flat regions are still ordered by confidence.
 const DATA_EPSILON: f32 = 1e-3;
 
@@ -753,7 +752,7 @@ impl Group<'_> {
                 self.image.set(x, y, v);
                 self.state[i] = FILLED;
                 self.confidence[i] = confidence;
-                self.luma[i] = LUMA[0] * v[0] + LUMA[1] * v[1] + LUMA[2] * v[2];
+                self.luma[i] = luma(v);
                 self.copied_from[i] = sy * w + sx;
                 n += 1;
             }
@@ -821,7 +820,7 @@ fn fill_group(
                 g.confidence[i] = 0.0;
             } else {
                 let v = g.image.get(x, y);
-                g.luma[i] = LUMA[0] * v[0] + LUMA[1] * v[1] + LUMA[2] * v[2];
+                g.luma[i] = luma(v);
             }
         }
     }

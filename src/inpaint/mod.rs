@@ -490,21 +490,8 @@ struct Part {
 /// Cuts the mask into parts: 8-connected components of the hole grown by `margin`.
 fn regions(mask: &Mask, margin: usize, ring_gap: usize, ring_width: usize) -> Vec<Part> {
     let (w, h) = (mask.width(), mask.height());
-    let (mut x0, mut y0, mut x1, mut y1) = (w, h, 0, 0);
-    for y in 0..h {
-        for (x, &m) in mask.row(y).iter().enumerate() {
-            if m > 127 {
-                x0 = x0.min(x);
-                x1 = x1.max(x + 1);
-                y0 = y0.min(y);
-                y1 = y1.max(y + 1);
-            }
-        }
-    }
-    if x1 <= x0 {
-        return Vec::new();
-    }
-    let work = Rect { x: x0, y: y0, width: x1 - x0, height: y1 - y0 }.grown(margin + 1, w, h);
+    let Some(bounds) = mask.hole_bounds() else { return Vec::new() };
+    let work = bounds.grown(margin + 1, w, h);
     let hole = Plane::from_fn(work.width, work.height, |x, y| mask.is_hole(work.x + x, work.y + y));
     let need = dilate(&hole, margin);
     let (ww, wh) = (work.width, work.height);
@@ -705,26 +692,9 @@ fn fallback(
     seed: u64,
     stop: &dyn Fn() -> bool,
 ) -> usize {
-    let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
-    for y in rect.y..rect.y + rect.height {
-        for x in rect.x..rect.x + rect.width {
-            if pending.is_hole(x, y) {
-                x0 = x0.min(x);
-                x1 = x1.max(x + 1);
-                y0 = y0.min(y);
-                y1 = y1.max(y + 1);
-            }
-        }
-    }
-    if x1 <= x0 {
-        return 0;
-    }
-    let extent = (x1 - x0).max(y1 - y0);
-    let crop = Rect { x: x0, y: y0, width: x1 - x0, height: y1 - y0 }.grown(
-        params.fallback_margin + extent / 2,
-        image.width(),
-        image.height(),
-    );
+    let Some(bounds) = pending.hole_bounds_within(rect) else { return 0 };
+    let extent = bounds.width.max(bounds.height);
+    let crop = bounds.grown(params.fallback_margin + extent / 2, image.width(), image.height());
     let mut sub = RgbF32::from_fn(crop.width, crop.height, |x, y| image.get(crop.x + x, crop.y + y));
     let hole = Mask::from_fn(crop.width, crop.height, |x, y| pending.get(crop.x + x, crop.y + y));
     exemplar_fill_until(&mut sub, &hole, &params.exemplar, seed, stop);

@@ -9,6 +9,7 @@
 use rayon::prelude::*;
 
 use super::priority::{FrontQueue, confidence_term, data_term};
+use crate::imaging::convert::luma;
 
 /// Pixel states of a region.
 /// A keyframe pixel outside the hole: known, never changed.
@@ -98,11 +99,6 @@ pub struct Region<'a> {
     pub pixels: &'a mut [[f32; 3]],
     pub state: &'a mut [u8],
     pub pick: &'a mut [Pick],
-}
-
-#[inline]
-fn luma(p: [f32; 3]) -> f32 {
-    0.299 * p[0] + 0.587 * p[1] + 0.114 * p[2]
 }
 
 #[inline]

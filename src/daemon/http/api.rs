@@ -33,10 +33,10 @@ use tokio_stream::wrappers::ReceiverStream;
 
 use super::limits::ThumbKey;
 use super::{AppState, Shared};
-use crate::daemon::emit::atomic_write;
 use crate::daemon::paths::{Inbox, Refusal};
 use crate::daemon::registry::SessionSnapshot;
 use crate::daemon::watch;
+use crate::fsio::atomic_write;
 use crate::imaging::decode::{DecodeLimits, decode};
 
 /// A refusal with its status and a JSON `{"error": ...}` body.

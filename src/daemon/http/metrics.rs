@@ -31,18 +31,20 @@ fn render(s: &Shared) -> String {
         family(out, name, "counter", help);
         let _ = writeln!(out, "{name} {v}");
     };
-    counter(
-        &mut out,
-        "clearview_views_received_total",
-        "Views handed to a worker (image files that are neither keyframes nor masks).",
-        m.views_received.load(Ordering::Relaxed),
-    );
-    counter(
-        &mut out,
-        "clearview_views_accepted_total",
-        "Views admitted with a trusted alignment (views offered again after a keyframe or mask change count again).",
-        m.views_accepted.load(Ordering::Relaxed),
-    );
+    for (name, help, v) in [
+        (
+            "clearview_views_received_total",
+            "Views handed to a session (image files that are neither keyframes nor masks, and video frames kept after the keyframe).",
+            &m.views_received,
+        ),
+        (
+            "clearview_views_accepted_total",
+            "Views admitted with a trusted alignment (views offered again after a keyframe or mask change count again).",
+            &m.views_accepted,
+        ),
+    ] {
+        counter(&mut out, name, help, v.load(Ordering::Relaxed));
+    }
     family(
         &mut out,
         "clearview_views_rejected_total",
@@ -68,24 +70,17 @@ fn render(s: &Shared) -> String {
         "clearview_frames_dropped_total{{reason=\"unreadable\"}} {}",
         s.stats.skipped.load(Ordering::Relaxed)
     );
-    counter(
-        &mut out,
-        "clearview_results_written_total",
-        "Result images written.",
-        m.results_written.load(Ordering::Relaxed),
-    );
-    counter(
-        &mut out,
-        "clearview_results_not_better_total",
-        "Fills that scored lower than the current result (which was kept).",
-        m.results_not_better.load(Ordering::Relaxed),
-    );
-    counter(
-        &mut out,
-        "clearview_masks_painted_total",
-        "Masks painted on the preview page.",
-        m.masks_painted.load(Ordering::Relaxed),
-    );
+    for (name, help, v) in [
+        ("clearview_results_written_total", "Result images written.", &m.results_written),
+        (
+            "clearview_results_not_better_total",
+            "Fills that scored lower than the current result (which was kept).",
+            &m.results_not_better,
+        ),
+        ("clearview_masks_painted_total", "Masks painted on the preview page.", &m.masks_painted),
+    ] {
+        counter(&mut out, name, help, v.load(Ordering::Relaxed));
+    }
     let name = "clearview_update_latency_seconds";
     family(&mut out, name, "histogram", "From a view reaching its worker to the result it led to.");
     let (buckets, count, sum) = m.update_latency.read();

@@ -43,8 +43,8 @@ use crossbeam_channel::Sender;
 use tokio_util::sync::CancellationToken;
 
 use super::emit::Emitter;
+use super::job::Job;
 use super::registry::Registry;
-use super::worker::Job;
 use super::{Backlog, Stats};
 use crate::config::{Config, HttpConfig};
 

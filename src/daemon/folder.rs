@@ -1,0 +1,308 @@
+//! The folder source (shell layer): what a decoded file of a session folder does to its
+//! session. [`super::policy`] says what the file is (keyframe, mask, view); this module
+//! reads what else it needs from the folder (the keyframe's mask, a view to align again),
+//! aligns views, and hands everything to the session engine ([`super::engine::Slot`]).
+//! It runs on the worker thread that owns the session ([`super::worker`]).
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::Ordering;
+use std::time::Instant;
+
+use image::DynamicImage;
+
+use super::engine::{Ctx, MaskOrigin, Offer, Slot, rgb8};
+use super::event::{Event, FileSkipped};
+use super::job::{DecodeOutcome, FileId, ViewId};
+use super::paths::Inbox;
+use super::policy::{self, KeyNow, KeySource, Listing, MaskFit};
+use super::watch::{self, Role};
+use crate::config::MaskRule;
+use crate::imaging::convert::{to_luminance, to_mask, to_rgb};
+use crate::imaging::decode::DecodeLimits;
+
+/// The regular files of the session's folder, by name.
+pub(super) fn listing(ctx: &Ctx, dir: &Path) -> Listing {
+    let names = std::fs::read_dir(dir)
+        .map(|entries| {
+            entries
+                .flatten()
+                .filter(|e| e.path().is_file())
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .collect()
+        })
+        .unwrap_or_default();
+    Listing::new(names, &ctx.config.extensions)
+}
+
+/// The keyframe as the policy sees it.
+fn key_now(slot: &Slot) -> (Option<String>, Option<KeySource>, Option<String>) {
+    (slot.key_name(), slot.key_source, slot.state.key_file.clone())
+}
+
+/// A new image (not a mask) of the session: the keyframe, a view, or a view that waits
+/// for the keyframe.
+pub(super) fn take_image(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &DynamicImage) {
+    let l = listing(ctx, &slot.dir);
+    let (current, source, saved) = key_now(slot);
+    let key = KeyNow { current: current.as_deref().zip(source), saved: saved.as_deref() };
+    match policy::key_source_for(&ctx.config.keyframe, &l, key, &file.name) {
+        Some(source) => take_key(ctx, slot, file, path, image, source),
+        None if slot.session.key_id().is_none() => {
+            tracing::info!(file = %watch::shown(&file.name), "waiting for the keyframe");
+            let reason = "no keyframe yet: it is aligned when the keyframe arrives".to_owned();
+            ctx.emitter.emit(Some(&slot.name), &Event::ViewWaiting { file: file.name.clone(), reason });
+            slot.parked.insert(file.name.clone(), path.to_owned());
+        }
+        None => process_view(ctx, slot, file, path, image),
+    }
+}
+
+/// Makes `image` the keyframe; views parked, buffered or refused against the old one
+/// (and the old keyframe, if it was an ordinary image) are aligned again, and the new
+/// keyframe's mask is read from beside it.
+pub(super) fn take_key(
+    ctx: &Ctx,
+    slot: &mut Slot,
+    file: &FileId,
+    path: &Path,
+    image: &DynamicImage,
+    source: KeySource,
+) {
+    let id = file.view_id(image);
+    if slot.session.key_id() == Some(id.as_str()) {
+        return;
+    }
+    let old = slot.key_path.clone();
+    // Views rejected against the old keyframe may well match the new one.
+    let refused: Vec<PathBuf> =
+        slot.refused_views().into_iter().map(|n| slot.dir.join(n)).filter(|p| p.is_file()).collect();
+    let mut again = slot.set_key(ctx, id, path.to_owned(), image, source, None);
+    if let Some(old) = old
+        && old != path
+        && watch::classify(&ctx.config.watch_dir, &old, &ctx.config.extensions)
+            .is_some_and(|c| c.role == Role::View)
+    {
+        // The previous keyframe was an ordinary image: it is a view now.
+        again.push(old);
+    }
+    again.extend(std::mem::take(&mut slot.parked).into_values());
+    again.extend(refused);
+    again.retain(|p| p != path);
+    again.sort();
+    again.dedup();
+    if slot.state.key_file.as_deref() != Some(&file.name) {
+        slot.state.key_file = Some(file.name.clone());
+        slot.state_dirty = true;
+    }
+    let (w, h) = (image.width(), image.height());
+    tracing::info!(key = %watch::shown(&file.name), width = w, height = h, views = again.len(), "keyframe set");
+    if let Some(mask) = listing(ctx, &slot.dir).mask_for(&file.name) {
+        let mask_path = slot.dir.join(mask);
+        match load(ctx, &mask_path, Role::Mask) {
+            Ok((f, img)) => apply_mask(ctx, slot, &f, &img),
+            Err(e) => skip(ctx, slot, &mask_path, &e.reason()),
+        }
+    }
+    say_waiting(ctx, slot);
+    for p in again {
+        reprocess(ctx, slot, &p);
+    }
+    auto_mask(ctx, slot);
+}
+
+/// A keyframe without a mask (and no automatic mask configured) makes no result: said
+/// once per keyframe (event `session_waiting`, naming the files it waits for).
+fn say_waiting(ctx: &Ctx, slot: &mut Slot) {
+    if slot.waiting_said || slot.session.mask_id().is_some() || !matches!(ctx.config.mask, MaskRule::File) {
+        return;
+    }
+    let Some(key) = slot.key_name() else { return };
+    let expected = watch::mask_names(watch::stem(&key), &["png".to_owned()]);
+    let reason = format!(
+        "waiting for a mask of the keyframe {key}: {} or mask.png beside it (white = remove), or paint one on the preview page",
+        expected.join(", ")
+    );
+    tracing::info!(keyframe = %watch::shown(&key), "session waiting for a mask");
+    let e = Event::SessionWaiting { keyframe: key, waiting_for: "mask".into(), expected, reason };
+    ctx.emitter.emit(Some(&slot.name), &e);
+    slot.waiting_said = true;
+}
+
+/// A mask file arrived (or changed).
+pub(super) fn take_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
+    let l = listing(ctx, &slot.dir);
+    let (current, source, saved) = key_now(slot);
+    let key = KeyNow { current: current.as_deref().zip(source), saved: saved.as_deref() };
+    // A mask names its image: that image is the keyframe unless one was named more
+    // strongly (`key.*`, the configuration), whatever the order the files landed in.
+    if let Some(image_name) = policy::key_named_by_mask(&ctx.config.keyframe, &l, key, &file.name) {
+        let image_path = slot.dir.join(image_name);
+        if let Ok((f, img)) = load(ctx, &image_path, Role::View) {
+            tracing::info!(mask = %watch::shown(&file.name), key = %watch::shown(&f.name), "the mask names its image: it is the keyframe");
+            // take_key finds and applies this mask.
+            take_key(ctx, slot, &f, &image_path, &img, KeySource::Masked);
+            return;
+        }
+    }
+    let Some(key_name) = current else {
+        tracing::debug!(mask = %file.name, "mask waits for its keyframe");
+        return;
+    };
+    match policy::mask_fit(&l, &key_name, &file.name) {
+        MaskFit::Applies => apply_mask(ctx, slot, file, image),
+        MaskFit::OtherImage(owner) => skip(
+            ctx,
+            slot,
+            &slot.dir.join(&file.name),
+            &format!("a mask for another image ({owner}) than the keyframe {key_name}"),
+        ),
+        MaskFit::Shadowed => tracing::info!(mask = %file.name, "ignored: the keyframe has a mask of its own"),
+    }
+}
+
+fn apply_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
+    let id = String::from(file.view_id(image));
+    if slot.session.mask_id() == Some(id.as_str()) {
+        return;
+    }
+    if slot.refused_mask.as_deref() == Some(id.as_str()) {
+        tracing::debug!(mask = %watch::shown(&file.name), "refused already for this keyframe");
+        return;
+    }
+    match slot.set_mask(ctx, id.clone(), to_mask(image), MaskOrigin::File(&file.name)) {
+        Ok(again) => {
+            for p in again {
+                reprocess(ctx, slot, &p);
+            }
+        }
+        Err(reason) => {
+            skip(ctx, slot, &slot.dir.join(&file.name), &reason);
+            slot.refused_mask = Some(id);
+        }
+    }
+}
+
+/// The mask file `file` was deleted. If it was the session's mask, the session forgets
+/// it: no new result until a mask arrives; the last result stays as it is.
+pub(super) fn mask_removed(ctx: &Ctx, slot: &mut Slot, file: &FileId) {
+    let key_name = slot.key_name();
+    let current = slot.mask_is_file(&file.name);
+    // A session rebuilt from disk since (put to sleep and woken) no longer has it.
+    let was_its = key_name.as_deref().is_some_and(|k| {
+        let owner = watch::mask_owner(watch::stem(&file.name));
+        slot.session.mask_id().is_none() && (owner == Some("") || owner == Some(watch::stem(k)))
+    });
+    if !current && !was_its {
+        tracing::debug!(mask = %watch::shown(&file.name), "a mask that was not in use was deleted");
+        return;
+    }
+    slot.clear_mask(ctx, &file.name, current);
+    // Another mask beside the keyframe (`mask.<ext>`) takes over.
+    if let Some(k) = &key_name
+        && let Some(other) = listing(ctx, &slot.dir).mask_for(k)
+        && let Ok((f, img)) = load(ctx, &slot.dir.join(other), Role::Mask)
+    {
+        apply_mask(ctx, slot, &f, &img);
+    }
+}
+
+/// With `mask = "auto"`: once enough views are accepted, the mask from their consensus.
+fn auto_mask(ctx: &Ctx, slot: &mut Slot) {
+    let MaskRule::Auto { views } = ctx.config.mask else { return };
+    if slot.session.mask_id().is_some() || slot.session.key_id().is_none() {
+        return;
+    }
+    let chosen: Vec<(String, PathBuf, crate::geometry::Homography)> = slot
+        .session
+        .buffered()
+        .iter()
+        .filter_map(|b| Some((b.id.clone(), slot.paths.get(&b.id)?.clone(), b.record.homography()?)))
+        .take(views)
+        .collect();
+    if chosen.len() < views {
+        return;
+    }
+    let mut images = Vec::new();
+    for (_, path, h) in &chosen {
+        let Ok((_, img)) = load(ctx, path, Role::View) else { return };
+        images.push((to_rgb(&img), *h));
+    }
+    let Ok(mask) = slot.session.auto_mask(&images) else { return };
+    drop(images);
+    let id = format!("auto|{}", chosen.iter().map(|c| c.0.as_str()).collect::<Vec<_>>().join("|"));
+    if let Ok(again) = slot.set_mask(ctx, id, mask, MaskOrigin::Auto(views)) {
+        for p in again {
+            reprocess(ctx, slot, &p);
+        }
+    }
+}
+
+/// Reads a file of the session's folder again, as it is now (see [`super::job::load`]).
+pub(super) fn load(ctx: &Ctx, path: &Path, role: Role) -> Result<(FileId, DynamicImage), DecodeOutcome> {
+    let limits = DecodeLimits { max_pixels: ctx.config.max_pixels };
+    super::job::load(path, role, &limits, &Inbox::of(&ctx.config))
+}
+
+fn skip(ctx: &Ctx, slot: &Slot, path: &Path, reason: &str) {
+    ctx.stats.skipped.fetch_add(1, Ordering::Relaxed);
+    tracing::warn!(file = %watch::shown_path(path), %reason, "file skipped");
+    let e = FileSkipped {
+        file: path.file_name().map(|n| n.to_string_lossy().into_owned()),
+        path: path.to_string_lossy().into_owned(),
+        reason: reason.to_owned(),
+        retried: None,
+        symlink: false,
+    };
+    ctx.emitter.emit(Some(&slot.name), &Event::FileSkipped(e));
+}
+
+/// Reads a view again from disk (after a keyframe or mask change) and offers it.
+fn reprocess(ctx: &Ctx, slot: &mut Slot, path: &Path) {
+    match load(ctx, path, Role::View) {
+        Ok((file, img)) => process_view(ctx, slot, &file, path, &img),
+        Err(DecodeOutcome::Gone(e)) => {
+            tracing::debug!(file = %path.display(), error = %e, "gone before it could be read again");
+        }
+        // A change means the intake will bring the new version.
+        Err(DecodeOutcome::Changed) => {}
+        Err(e) => skip(ctx, slot, path, &e.reason()),
+    }
+}
+
+/// Aligns a view against the keyframe (or takes its saved alignment) and offers it.
+fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &DynamicImage) {
+    let span = tracing::info_span!("view", file = %watch::shown(&file.name));
+    let _enter = span.enter();
+    let id: ViewId = file.view_id(image);
+    let Some(key_id) = slot.session.key_id().map(str::to_owned) else { return };
+    slot.forget_old_content(ctx, &file.name, Some(&id), "its file was replaced");
+    let start = Instant::now();
+    let (record, from_state) = match slot.state.alignment(id.as_str(), &key_id) {
+        Some(r) => (r.clone(), true),
+        None => match slot.session.align(to_luminance(image)) {
+            Ok(r) => {
+                slot.state.remember(id.as_str().to_owned(), key_id, r.clone());
+                slot.state_dirty = true;
+                (r, false)
+            }
+            Err(e) => return skip(ctx, slot, path, &e.to_string()),
+        },
+    };
+    let align_ms = start.elapsed().as_secs_f64() * 1e3;
+    let pixels = (record.accepted && slot.session.mask_id().is_some()).then(|| rgb8(image));
+    let offer =
+        Offer { id, frame: None, record, from_state, align_ms, since: start, path: Some(path.to_owned()) };
+    if let Err(reason) = slot.admit(ctx, offer, pixels.as_ref()) {
+        return skip(ctx, slot, path, &reason);
+    }
+    drop(pixels);
+    auto_mask(ctx, slot);
+}
+
+/// The view file `name` now holds nothing usable (deleted or replaced by what cannot be
+/// read): its old pixels go.
+pub(super) fn view_gone(ctx: &Ctx, slot: &mut Slot, name: &str, path: &Path) {
+    let why =
+        if path.exists() { "its file was replaced by something unusable" } else { "its file was deleted" };
+    slot.forget_old_content(ctx, name, None, why);
+}

@@ -1,0 +1,373 @@
+//! The session thread of one video source (shell layer): takes the frames the decoder
+//! kept, aligns each against the keyframe (the prior: the camera's motion so far,
+//! [`predict`]) and hands it to the session engine ([`crate::daemon::engine::Slot`]),
+//! which admits, reports and fills exactly as for a photo.
+
+use std::collections::VecDeque;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant, SystemTime};
+
+use crossbeam_channel::{Receiver, RecvTimeoutError};
+use image::{DynamicImage, RgbImage};
+use tokio_util::sync::CancellationToken;
+
+use super::{KEYFRAME_FILE, Msg, VideoStats};
+use crate::config::{VideoMask, VideoSource};
+use crate::daemon::engine::{Admitted, Ctx, MaskOrigin, Offer, Slot, rgb8};
+use crate::daemon::event::Event;
+use crate::daemon::job::ViewId;
+use crate::daemon::policy::KeySource;
+use crate::daemon::state;
+use crate::geometry::Homography;
+use crate::imaging::convert::to_luminance;
+use crate::imaging::{Mask, RgbF32};
+use crate::session::{AlignRecord, Rgb8};
+
+/// Kept frames from before the keyframe that wait for it (the latest ones).
+const PRE_KEY_FRAMES: usize = 8;
+
+/// Frames buffered without calling for a fill after which a video refills anyway.
+const REFILL_AFTER: usize = 4;
+
+/// An accepted frame waiting for the automatic mask: its id, index and time, alignment,
+/// pixels and alignment time.
+type Stashed = (ViewId, (u64, f64), AlignRecord, Rgb8, f64);
+
+/// The session thread of one source.
+pub(super) struct Runner {
+    ctx: Ctx,
+    src: VideoSource,
+    stats: Arc<VideoStats>,
+    slot: Slot,
+    mask: Option<Mask>,
+    /// Stream times and homographies of the last two accepted frames: the next frame's
+    /// prior is their motion carried on ([`predict`]), or the last one's alone.
+    track: VecDeque<(f64, Homography)>,
+    /// Accepted frames waiting for the automatic mask.
+    stash: Vec<Stashed>,
+    /// Kept frames that arrived before the keyframe (at most [`PRE_KEY_FRAMES`], the
+    /// latest): aligned once it is set, since they saw what the keyframe's occluders hide.
+    pre_key: VecDeque<(u64, f64, DynamicImage, Instant)>,
+    /// Frames buffered since the last fill (improving or not).
+    buffered_since_fill: usize,
+    /// Arrival time of the oldest frame admitted since the last fill.
+    pending_since: Option<Instant>,
+    run_id: u128,
+}
+
+impl Runner {
+    pub(super) fn new(ctx: Ctx, src: VideoSource, stats: Arc<VideoStats>, mask: Option<Mask>) -> Self {
+        let slot = Slot::new(&ctx, &src.session, PathBuf::new());
+        let run_id = SystemTime::now().duration_since(SystemTime::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
+        Self {
+            ctx,
+            src,
+            stats,
+            slot,
+            mask,
+            track: VecDeque::new(),
+            stash: Vec::new(),
+            pre_key: VecDeque::new(),
+            buffered_since_fill: 0,
+            pending_since: None,
+            run_id,
+        }
+    }
+
+    pub(super) fn run(mut self, rx: &Receiver<Msg>, cancel: &CancellationToken) {
+        let span = tracing::info_span!("session", session = %self.src.session);
+        let _enter = span.enter();
+        let heart = self.ctx.stats.heartbeats.register(format!("video {}", self.src.session));
+        loop {
+            heart.beat();
+            match rx.recv_timeout(Duration::from_millis(100)) {
+                Ok(Msg::Frame { index, t, key, width, height, rgb, arrived }) => {
+                    if cancel.is_cancelled() {
+                        break;
+                    }
+                    let Some(image) = RgbImage::from_raw(width as u32, height as u32, rgb) else { continue };
+                    let image = DynamicImage::ImageRgb8(image);
+                    if key {
+                        self.take_key(index, t, &image);
+                        self.take_pre_key();
+                    } else if self.slot.session.key_id().is_none() {
+                        if self.pre_key.len() == PRE_KEY_FRAMES {
+                            self.pre_key.pop_front();
+                        }
+                        self.pre_key.push_back((index, t, image, arrived));
+                        continue;
+                    } else {
+                        self.take_frame(index, t, &image, arrived);
+                    }
+                    let batch = self.ctx.config.batch_max.get();
+                    // A file read at the service's pace fills after every frame that calls
+                    // for it (results follow the camera); a stream fills when it has caught
+                    // up, or after `batch_max` frames.
+                    if !self.src.realtime || rx.is_empty() || self.slot.session.admitted_since_fill() >= batch
+                    {
+                        self.fill();
+                    }
+                }
+                Ok(Msg::End { reason }) => {
+                    // The final result: with every witness buffered since the last fill.
+                    if self.buffered_since_fill > 0 {
+                        self.slot.session.request_fill();
+                    }
+                    self.fill();
+                    match &reason {
+                        Some(r) => tracing::error!(reason = %r, "video ended with an error"),
+                        None => tracing::info!("video ended"),
+                    }
+                    let e = Event::VideoEnded {
+                        counters: self.stats.counters(),
+                        input: self.src.input.clone(),
+                        reason,
+                        results: self.slot.state.last_number,
+                    };
+                    self.ctx.emitter.emit(Some(&self.src.session), &e);
+                    break;
+                }
+                Err(RecvTimeoutError::Timeout) => {
+                    if cancel.is_cancelled() {
+                        break;
+                    }
+                    self.fill();
+                }
+                Err(RecvTimeoutError::Disconnected) => break,
+            }
+        }
+        if self.slot.state_dirty {
+            state::save(&self.ctx.config.state_dir, &self.slot.name, &self.slot.state);
+        }
+    }
+
+    /// Writes the keyframe beside the results (`keyframe.png`), so that a mask can be
+    /// painted on exactly that frame.
+    fn write_keyframe(&self, image: &DynamicImage) {
+        let dir = self.ctx.config.out_dir.join(&self.slot.name);
+        let mut png = Vec::new();
+        let written = std::fs::create_dir_all(&dir)
+            .and_then(|()| {
+                image
+                    .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+                    .map_err(std::io::Error::other)
+            })
+            .and_then(|()| crate::fsio::atomic_write(&dir.join(KEYFRAME_FILE), &png));
+        if let Err(e) = written {
+            tracing::error!(error = %e, dir = %dir.display(), "cannot write {KEYFRAME_FILE}");
+        }
+    }
+
+    fn frame_name(index: u64) -> String {
+        format!("frame-{index:06}")
+    }
+
+    fn take_key(&mut self, index: u64, t: f64, image: &DynamicImage) {
+        let name = Self::frame_name(index);
+        let id = ViewId::frame(&name, self.run_id);
+        self.track.clear();
+        self.track.push_back((t, Homography::identity()));
+        let (w, h) = (image.width(), image.height());
+        tracing::info!(key = %name, t, width = w, height = h, "keyframe set");
+        self.write_keyframe(image);
+        let frame = Some((index, t, self.src.input.as_str()));
+        self.slot.set_key(&self.ctx, id, PathBuf::from(&name), image, KeySource::Video, frame);
+        if let Some(mask) = self.mask.clone() {
+            let file = match &self.src.mask {
+                VideoMask::File(p) => p.display().to_string(),
+                VideoMask::Auto { .. } => String::new(),
+            };
+            let id = format!("file|{}", self.run_id);
+            if let Err(reason) = self.slot.set_mask(&self.ctx, id, mask, MaskOrigin::File(&file)) {
+                tracing::error!(error = %reason, "the mask does not fit the video");
+                self.ctx.emitter.emit(Some(&self.slot.name), &Event::MaskRejected { reason });
+            }
+        }
+    }
+
+    /// Aligns the frames kept before the keyframe, nearest first (each one's homography
+    /// is the next one's prior), then restarts the track from the keyframe.
+    fn take_pre_key(&mut self) {
+        let Some(&(t_key, _)) = self.track.back() else { return };
+        while let Some((index, t, image, arrived)) = self.pre_key.pop_back() {
+            self.take_frame(index, t, &image, arrived);
+        }
+        self.track.clear();
+        self.track.push_back((t_key, Homography::identity()));
+    }
+
+    fn take_frame(&mut self, index: u64, t: f64, image: &DynamicImage, arrived: Instant) {
+        if self.slot.session.key_id().is_none() {
+            return;
+        }
+        self.ctx.registry.metrics.views_received.fetch_add(1, Ordering::Relaxed);
+        let id = ViewId::frame(&Self::frame_name(index), self.run_id);
+        let start = Instant::now();
+        let prior = predict(&self.track, t);
+        let record = match self.slot.session.align_with_prior(to_luminance(image), prior) {
+            Ok(r) => r,
+            Err(e) => {
+                tracing::warn!(frame = index, error = %e, "frame skipped");
+                return;
+            }
+        };
+        let align_ms = start.elapsed().as_secs_f64() * 1e3;
+        self.stats.aligned.fetch_add(1, Ordering::Relaxed);
+        if record.accepted
+            && let Some(h) = record.homography()
+        {
+            if self.track.len() == 2 {
+                self.track.pop_front();
+            }
+            self.track.push_back((t, h));
+        }
+        if self.slot.session.mask_id().is_none()
+            && let VideoMask::Auto { views } = self.src.mask
+        {
+            if !record.accepted {
+                self.admit(id, (index, t), record, None, align_ms, arrived);
+                return;
+            }
+            self.stash.push((id, (index, t), record, rgb8(image), align_ms));
+            if self.stash.len() >= views {
+                self.auto_mask();
+            }
+            return;
+        }
+        let pixels = record.accepted.then(|| rgb8(image));
+        let before = self.slot.session.inputs_digest();
+        if self.admit(id, (index, t), record, pixels.as_ref(), align_ms, arrived) {
+            self.pending_since.get_or_insert(arrived);
+        }
+        if self.slot.session.inputs_digest() != before {
+            self.buffered_since_fill += 1;
+            // Frames that see only well-witnessed pixels do not call for a fill by the
+            // improvement rule, but a few of them can outvote views that saw the
+            // occluder there: refill after REFILL_AFTER of them.
+            if self.buffered_since_fill >= REFILL_AFTER {
+                self.slot.session.request_fill();
+                self.pending_since.get_or_insert(arrived);
+            }
+        }
+    }
+
+    /// The automatic mask from the stashed frames, then their admission with pixels.
+    fn auto_mask(&mut self) {
+        let views: Vec<(RgbF32, Homography)> = self
+            .stash
+            .iter()
+            .filter_map(|(_, _, r, px, _)| Some((rgb8_to_f32(px), r.homography()?)))
+            .collect();
+        let mask = match self.slot.session.auto_mask(&views) {
+            Ok(m) => m,
+            Err(e) => {
+                tracing::warn!(error = %e, "automatic mask failed; trying with later frames");
+                self.stash.remove(0);
+                return;
+            }
+        };
+        drop(views);
+        let id = format!("auto|{}", self.stash.iter().map(|s| s.0.name()).collect::<Vec<_>>().join("|"));
+        if self.slot.set_mask(&self.ctx, id, mask, MaskOrigin::Auto(self.stash.len())).is_err() {
+            return;
+        }
+        for (id, frame, record, px, align_ms) in std::mem::take(&mut self.stash) {
+            let now = Instant::now();
+            if self.admit(id, frame, record, Some(&px), align_ms, now) {
+                self.pending_since.get_or_insert(now);
+            }
+        }
+    }
+
+    /// Offers an aligned frame to the session (which reports it); `true` when it calls for
+    /// a fill.
+    fn admit(
+        &mut self,
+        id: ViewId,
+        frame: (u64, f64),
+        record: AlignRecord,
+        pixels: Option<&Rgb8>,
+        align_ms: f64,
+        since: Instant,
+    ) -> bool {
+        let index = frame.0;
+        let offer = Offer { id, frame: Some(frame), record, from_state: false, align_ms, since, path: None };
+        match self.slot.admit(&self.ctx, offer, pixels) {
+            Ok(admitted) => admitted == Admitted::Buffered { improves: true },
+            Err(e) => {
+                tracing::warn!(frame = index, error = %e, "frame skipped");
+                false
+            }
+        }
+    }
+
+    fn fill(&mut self) {
+        self.slot.retry_pending(&self.ctx);
+        if !self.slot.session.needs_fill() {
+            self.slot.save_state(&self.ctx);
+            return;
+        }
+        self.buffered_since_fill = 0;
+        let step = self.slot.fill(&self.ctx);
+        if let Some(since) = self.pending_since.take()
+            && step.written().is_some()
+        {
+            self.stats.latency_ms_sum.fetch_add(since.elapsed().as_millis() as u64, Ordering::Relaxed);
+            self.stats.latency_n.fetch_add(1, Ordering::Relaxed);
+        }
+        self.slot.save_state(&self.ctx);
+    }
+}
+
+/// The prior for a frame at time `t` from the last accepted frames: the latest
+/// homography, carried on at the speed of the last two (entries extrapolated linearly in
+/// time, at most three intervals ahead). A camera panning steadily is predicted to within
+/// a few pixels, so guided matching finds it without descriptors.
+fn predict(track: &VecDeque<(f64, Homography)>, t: f64) -> Option<Homography> {
+    let (t2, h2) = *track.back()?;
+    let Some(&(t1, h1)) = track.len().checked_sub(2).and_then(|i| track.get(i)) else { return Some(h2) };
+    if t2 - t1 <= 1e-6 {
+        return Some(h2);
+    }
+    let r = ((t - t2) / (t2 - t1)).clamp(0.0, 3.0);
+    let (a, b) = (normalised(&h1), normalised(&h2));
+    let mut rows = [[0.0; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            rows[i][j] = b[i][j] + (b[i][j] - a[i][j]) * r;
+        }
+    }
+    Homography::from_rows(rows).or(Some(h2))
+}
+
+fn normalised(h: &Homography) -> [[f64; 3]; 3] {
+    let r = h.rows();
+    let s = if r[2][2].abs() > 1e-12 { 1.0 / r[2][2] } else { 1.0 };
+    r.map(|row| row.map(|v| v * s))
+}
+
+fn rgb8_to_f32(px: &Rgb8) -> RgbF32 {
+    px.map(|p| p.map(|v| v as f32 / 255.0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_steady_pan_is_predicted() {
+        let mut track = VecDeque::new();
+        assert!(predict(&track, 1.0).is_none());
+        track.push_back((0.0, Homography::translation(-10.0, 0.0)));
+        let h = predict(&track, 1.0).unwrap();
+        assert!((h.rows()[0][2] + 10.0).abs() < 1e-9, "one frame: its homography");
+        track.push_back((0.5, Homography::translation(-30.0, 2.0)));
+        let h = predict(&track, 1.0).unwrap().rows();
+        assert!((h[0][2] + 50.0).abs() < 1e-9 && (h[1][2] - 4.0).abs() < 1e-9, "{h:?}");
+        // Far ahead: at most three intervals.
+        let h = predict(&track, 10.0).unwrap().rows();
+        assert!((h[0][2] + 90.0).abs() < 1e-9, "{h:?}");
+    }
+}
