@@ -144,7 +144,12 @@ pub fn read_and_decode(
     if meta.len() != size || meta.modified().ok() != Some(mtime) || bytes.len() as u64 != size {
         return Err(DecodeOutcome::Changed);
     }
-    let img = decode_as(&bytes, role, limits).map_err(|e| DecodeOutcome::Failed(e.to_string()))?;
+    // A warning the decoder logs (an unusable colour profile, read as sRGB) names the file.
+    // At the warning's own level, so that a filter that shows the warning shows the name.
+    let span = tracing::warn_span!("decode", file = %super::watch::shown_path(path));
+    let img = span
+        .in_scope(|| decode_as(&bytes, role, limits))
+        .map_err(|e| DecodeOutcome::Failed(e.to_string()))?;
     if role != Role::Mask
         && let Some(reason) = shape_problem(img.width(), img.height())
     {
