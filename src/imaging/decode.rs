@@ -13,6 +13,9 @@ use super::colour::{Space, to_working};
 use super::convert::to_rgb;
 use super::meta::{Metadata, strip_exif_header};
 
+/// HEIC and AVIF through libheif: a backend of this module's, behind [`decode`].
+mod heif;
+
 /// What the decoder may allocate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct DecodeLimits {
@@ -83,8 +86,8 @@ fn decode_stored(bytes: &[u8], limits: &DecodeLimits) -> Result<(DynamicImage, M
     if bytes.is_empty() {
         return Err(DecodeError::Empty);
     }
-    if super::heif::is_heif(bytes) {
-        return super::heif::decode(bytes, limits);
+    if heif::is_heif(bytes) {
+        return heif::decode(bytes, limits);
     }
     let img = decode_image(bytes, limits)?;
     Ok(img)
@@ -187,8 +190,8 @@ fn tiff_exif(bytes: &[u8]) -> Option<Vec<u8>> {
 /// The metadata of an image without decoding its pixels (the service reads its keyframe's
 /// again when it writes a result); the colour space resolved as [`decode_photo`] does.
 pub fn read_metadata(bytes: &[u8]) -> Result<Metadata, DecodeError> {
-    let mut meta = if super::heif::is_heif(bytes) {
-        super::heif::read_metadata(bytes)?
+    let mut meta = if heif::is_heif(bytes) {
+        heif::read_metadata(bytes)?
     } else {
         let mut reader = ImageReader::new(Cursor::new(bytes))
             .with_guessed_format()

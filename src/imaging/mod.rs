@@ -10,7 +10,6 @@ pub mod convert;
 pub mod decode;
 pub mod encode;
 pub mod filter;
-pub mod heif;
 pub mod meta;
 pub mod metrics;
 pub mod photometric;

@@ -10,8 +10,8 @@ use libheif_rs::{
     LibHeif, RgbChroma,
 };
 
-use super::decode::{DecodeError, DecodeLimits};
-use super::meta::Metadata;
+use super::{DecodeError, DecodeLimits};
+use crate::imaging::meta::Metadata;
 
 /// Whether `bytes` start like an ISO base media file of the HEIF family (HEIC, HEIF, AVIF).
 pub fn is_heif(bytes: &[u8]) -> bool {
@@ -101,7 +101,7 @@ fn metadata(handle: &ImageHandle) -> Metadata {
         }),
     };
     let bits = if handle.luma_bits_per_pixel() > 8 { 16 } else { 8 };
-    Metadata { exif, xmp, iptc: None, icc, space: super::colour::Space::Srgb, bits }
+    Metadata { exif, xmp, iptc: None, icc, space: crate::imaging::colour::Space::Srgb, bits }
 }
 
 /// libheif's error as ours: a file cut short, a codec libheif was built without, or the
