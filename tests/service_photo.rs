@@ -191,7 +191,9 @@ fn heif_enc() -> bool {
     match std::process::Command::new("heif-enc").arg("--help").output() {
         Ok(_) => true,
         Err(e) => {
-            println!("skipped: heif-enc not found ({e}); `apt-get install libheif-examples` (as .ci/run does)");
+            println!(
+                "skipped: heif-enc not found ({e}); `apt-get install libheif-examples` (as .ci/run does)"
+            );
             false
         }
     }
@@ -213,7 +215,12 @@ fn bad_heic_views_and_a_garbage_profile_are_told_by_name_and_the_service_goes_on
     let src = f.root.join("v.png");
     to_rgb8(&scene.clear_view(1)).save(&src).unwrap();
     let heic = f.root.join("v.heic");
-    let o = std::process::Command::new("heif-enc").args(["-q", "85", "-o"]).arg(&heic).arg(&src).output().unwrap();
+    let o = std::process::Command::new("heif-enc")
+        .args(["-q", "85", "-o"])
+        .arg(&heic)
+        .arg(&src)
+        .output()
+        .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let bytes = std::fs::read(&heic).unwrap();
     let cut = bytes[..bytes.len() * 2 / 3].to_vec();
