@@ -14,21 +14,10 @@ use std::path::PathBuf;
 
 use clearview::align::{AlignParams, Frame, align};
 use clearview::geometry::Homography;
-use clearview::imaging::Mask;
 use clearview::imaging::convert::{luminance, to_rgb8};
-use clearview::imaging::metrics::masked_psnr;
+use clearview::imaging::metrics::{mask_iou, masked_psnr};
 use clearview::inpaint::{AutoMaskParams, FillParams, Source, auto_mask, fill};
 use clearview::synth::{CaseFamily, occlusion_case};
-
-fn iou(a: &Mask, b: &Mask) -> f64 {
-    let (mut inter, mut union) = (0usize, 0usize);
-    for (&p, &q) in a.as_slice().iter().zip(b.as_slice()) {
-        let (p, q) = (p > 127, q > 127);
-        inter += usize::from(p && q);
-        union += usize::from(p || q);
-    }
-    if union == 0 { 1.0 } else { inter as f64 / union as f64 }
-}
 
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -91,7 +80,7 @@ fn main() {
                     .map(|(image, &homography)| Source { image, homography })
                     .collect();
                 let auto = auto_mask(&c.key, &sources, &am);
-                let score = iou(&auto, &c.mask);
+                let score = mask_iou(&auto, &c.mask);
                 let with_true = fill(&c.key, &c.mask, &sources, &params, 1, &mut ());
                 let with_auto = fill(&c.key, &auto, &sources, &params, 1, &mut ());
                 let p_true = masked_psnr(&with_true.image, &c.truth, &c.mask);

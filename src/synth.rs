@@ -306,6 +306,17 @@ pub struct OcclusionCase {
     pub view_occluders: Vec<Mask>,
 }
 
+impl OcclusionCase {
+    /// The views with their true homographies, as the fill takes them.
+    pub fn sources(&self) -> Vec<crate::inpaint::Source<'_>> {
+        self.views
+            .iter()
+            .zip(&self.homographies)
+            .map(|(image, &homography)| crate::inpaint::Source { image, homography })
+            .collect()
+    }
+}
+
 /// Dilates a mask by a `(2r + 1)²` square (as a person paints around an object).
 pub fn dilate_mask(m: &Mask, r: usize) -> Mask {
     let (w, h) = (m.width(), m.height());

@@ -7,17 +7,11 @@
 //! honesty` (BENCHMARKS.md).
 
 use clearview::imaging::metrics::{Honesty, honesty, masked_psnr};
-use clearview::inpaint::{CONFIDENT, FillParams, Filled, Source, fill};
+use clearview::inpaint::{CONFIDENT, FillParams, Filled, fill};
 use clearview::synth::{CaseFamily, OcclusionCase, occlusion_case};
 
 fn run(c: &OcclusionCase, params: &FillParams) -> Filled {
-    let sources: Vec<Source<'_>> = c
-        .views
-        .iter()
-        .zip(&c.homographies)
-        .map(|(image, &homography)| Source { image, homography })
-        .collect();
-    fill(&c.key, &c.mask, &sources, params, 1, &mut ())
+    fill(&c.key, &c.mask, &c.sources(), params, 1, &mut ())
 }
 
 fn figures(c: &OcclusionCase, params: &FillParams) -> (f64, Honesty) {

@@ -5,6 +5,16 @@
 use super::convert::luminance;
 use super::{Mask, RgbF32};
 
+/// Intersection over union of two masks (> 127 marked); 1 when both are empty.
+pub fn mask_iou(a: &Mask, b: &Mask) -> f64 {
+    let (mut inter, mut union) = (0usize, 0usize);
+    for (&p, &q) in a.as_slice().iter().zip(b.as_slice()) {
+        inter += usize::from(p > 127 && q > 127);
+        union += usize::from(p > 127 || q > 127);
+    }
+    if union == 0 { 1.0 } else { inter as f64 / union as f64 }
+}
+
 /// PSNR in dB of `img` against `truth` over the pixels `mask` marks, all three channels,
 /// for values in 0..=1; infinite where they agree exactly, `NaN` for an empty mask.
 pub fn masked_psnr(img: &RgbF32, truth: &RgbF32, mask: &Mask) -> f64 {

@@ -396,15 +396,7 @@ impl ColourHistogram {
     }
 
     fn of(img: &RgbF32, excluded: &Plane<bool>) -> Self {
-        let mut bins = vec![1.0f32; Self::N.pow(3)];
-        let mut total = bins.len() as f32;
-        for (p, &e) in img.as_slice().iter().zip(excluded.as_slice()) {
-            if !e {
-                bins[Self::bin(*p)] += 1.0;
-                total += 1.0;
-            }
-        }
-        Self { bins, total }
+        Self::within(img, &Rect::full(img.width(), img.height()), |x, y| !excluded.get(x, y))
     }
 
     /// The histogram of the pixels of `img` inside `r` where `take` holds.
@@ -655,29 +647,14 @@ mod tests {
         assert!(erode(&d, 3).as_slice().iter().all(|&v| !v));
     }
 
-    fn iou(a: &Mask, b: &Mask) -> f64 {
-        let (mut inter, mut union) = (0usize, 0usize);
-        for (&p, &q) in a.as_slice().iter().zip(b.as_slice()) {
-            inter += usize::from(p > 127 && q > 127);
-            union += usize::from(p > 127 || q > 127);
-        }
-        inter as f64 / union.max(1) as f64
-    }
-
     /// Views with occluders of their own over the keyframe's (so that they agree with it
     /// there): the keyframe's objects are still found whole, as a person would paint them.
     #[test]
     fn finds_whole_objects_where_the_views_are_occluded_too() {
         for seed in [1001, 1002, 1003] {
             let c = crate::synth::occlusion_case(crate::synth::CaseFamily::Planar, 320, 240, 3, seed);
-            let sources: Vec<Source<'_>> = c
-                .views
-                .iter()
-                .zip(&c.homographies)
-                .map(|(image, &homography)| Source { image, homography })
-                .collect();
-            let found = auto_mask_report(&c.key, &sources, &AutoMaskParams::default());
-            let score = iou(&found.mask, &c.mask);
+            let found = auto_mask_report(&c.key, &c.sources(), &AutoMaskParams::default());
+            let score = crate::imaging::metrics::mask_iou(&found.mask, &c.mask);
             assert!(score > 0.85, "seed {seed}: IoU {score:.3} with the true mask");
             assert!(found.objects >= 1 && found.objects <= 6, "seed {seed}: {} objects", found.objects);
             assert!(
