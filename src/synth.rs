@@ -4,6 +4,8 @@
 //! The demo, the tests and the benchmarks all use these, so nobody needs a file to try
 //! clearview and every test knows the exact answer.
 
+pub mod facade;
+
 use nalgebra::Point2;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

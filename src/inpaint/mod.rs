@@ -11,6 +11,7 @@ pub mod blend;
 pub mod exemplar;
 pub mod multiview;
 pub mod occlusion;
+pub mod parallax;
 pub mod priority;
 pub mod region;
 
@@ -24,6 +25,7 @@ use automask::dilate;
 use blend::{BlendParams, guidance_rhs, solve_membrane};
 use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region};
 use occlusion::{OcclusionMap, OcclusionParams, RegionInput, occlusion_map};
+use parallax::{ParallaxParams, PlaneInput, SurfacePlane, WarpedView, choose_planes};
 
 pub use automask::{AutoMask, AutoMaskParams, auto_mask, auto_mask_report};
 pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_until};
@@ -61,6 +63,7 @@ pub struct Source<'a, P: RgbPixel = [f32; 3]> {
 pub enum Stage {
     Warp,
     Photometric,
+    Planes,
     Occlusion,
     Fill,
     Fallback,
@@ -72,6 +75,7 @@ impl Stage {
         match self {
             Self::Warp => "warp",
             Self::Photometric => "photometric",
+            Self::Planes => "planes",
             Self::Occlusion => "occlusion",
             Self::Fill => "fill",
             Self::Fallback => "fallback",
@@ -192,6 +196,9 @@ pub struct FillParams {
     /// The fallback sees this many pixels of context around what it fills (plus half the
     /// unseen area's extent).
     pub fallback_margin: usize,
+    /// Which surface each pixel shows, where [`FillExtras::planes`] gives surfaces off the
+    /// wall.
+    pub parallax: ParallaxParams,
 }
 
 impl Default for FillParams {
@@ -212,6 +219,7 @@ impl Default for FillParams {
             interpolation: Interpolation::Bilinear,
             exemplar: ExemplarParams::default(),
             fallback_margin: 32,
+            parallax: ParallaxParams::default(),
         }
     }
 }
@@ -234,12 +242,26 @@ impl FillParams {
     }
 }
 
+/// What [`fill_with`] knows besides the views' wall homographies.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct FillExtras<'a> {
+    /// Surfaces off the wall (balconies, pilasters, signs): each masked pixel takes the
+    /// plane, the wall included, under which the views agree ([`parallax`]).
+    pub planes: &'a [SurfacePlane],
+    /// Per source (or empty): view-sized masks of pixels known to show something other
+    /// than the building (an occluder found by other means); they are never copied.
+    pub occluders: &'a [Option<&'a Mask>],
+}
+
 /// A filled keyframe: the image, where each pixel came from, how sure the fill is of it,
 /// and the figures.
 #[derive(Debug, Clone)]
 pub struct Filled {
     pub image: RgbF32,
     pub provenance: Provenance,
+    /// Keyframe-sized: the surface each pixel was filled through (0 the wall, `1 + p` for
+    /// [`FillExtras::planes`]`[p]`; 0 outside the mask).
+    pub surface: Plane<u16>,
     /// Keyframe-sized: 0 outside the mask; inside, how sure the fill is that the pixel
     /// shows the building (255 · probability; see [`CONFIDENT`]).
     pub confidence: Confidence,
@@ -263,7 +285,25 @@ pub fn fill<P: RgbPixel>(
     seed: u64,
     observer: &mut dyn Observer,
 ) -> Filled {
+    fill_with(key, mask, sources, &FillExtras::default(), params, seed, observer)
+}
+
+/// [`fill`] with surfaces off the wall and known occluders (see [`FillExtras`]).
+///
+/// # Panics
+/// As [`fill`]; and if `extras` does not give one entry per source.
+pub fn fill_with<P: RgbPixel>(
+    key: &RgbF32,
+    mask: &Mask,
+    sources: &[Source<'_, P>],
+    extras: &FillExtras<'_>,
+    params: &FillParams,
+    seed: u64,
+    observer: &mut dyn Observer,
+) -> Filled {
     let (w, h) = (key.width(), key.height());
+    assert!(extras.occluders.is_empty() || extras.occluders.len() == sources.len(), "occluders per source");
+    assert!(extras.planes.iter().all(|p| p.views.len() == sources.len()), "plane homographies per source");
     assert_eq!((mask.width(), mask.height()), (w, h), "mask size");
     let nv = sources.len();
     let masked = mask.hole_count();
@@ -275,30 +315,63 @@ pub fn fill<P: RgbPixel>(
     let mut image = key.clone();
     let mut provenance = Provenance::new(w, h, KEYFRAME);
     let mut confidence = Confidence::new(w, h, 0);
+    let mut surface = Plane::new(w, h, 0u16);
     if masked == 0 {
-        return Filled { image, provenance, confidence, report };
+        return Filled { image, provenance, surface, confidence, report };
     }
     let parts = regions(mask, params.margin(), params.ring_gap, params.ring_width);
 
     // Warp: every view over every region's needed pixels.
     observer.stage(Stage::Warp);
     let mut warps: Vec<Vec<Warped>> = Vec::with_capacity(parts.len());
+    // Per part, per plane off the wall, per source (empty where the plane is not near).
+    let mut plane_warps: Vec<Vec<Vec<Option<Warped>>>> = Vec::with_capacity(parts.len());
     for (k, part) in parts.iter().enumerate() {
         let ws: Vec<Warped> = sources
             .par_iter()
-            .map(|s| warp(s.image, &s.homography, part.rect, Some(&part.need), params.interpolation))
+            .enumerate()
+            .map(|(v, s)| {
+                let mut wv = warp(s.image, &s.homography, part.rect, Some(&part.need), params.interpolation);
+                exclude(&mut wv, &s.homography, extras.occluders.get(v).copied().flatten());
+                wv
+            })
             .collect();
         for (v, wv) in ws.iter().enumerate() {
             report.sources[v].covered +=
                 part.hole.as_slice().iter().zip(wv.valid.as_slice()).filter(|&(&hh, &ok)| hh && ok).count();
         }
         warps.push(ws);
+        // The same views through each surface off the wall that may show in this part.
+        plane_warps.push(
+            extras
+                .planes
+                .iter()
+                .map(|pl| {
+                    if !overlap(pl.region, part.rect) {
+                        return Vec::new();
+                    }
+                    sources
+                        .par_iter()
+                        .zip(&pl.views)
+                        .enumerate()
+                        .map(|(v, (s, hp))| {
+                            hp.map(|hp| {
+                                let mut wv =
+                                    warp(s.image, &hp, part.rect, Some(&part.need), params.interpolation);
+                                exclude(&mut wv, &hp, extras.occluders.get(v).copied().flatten());
+                                wv
+                            })
+                        })
+                        .collect()
+                })
+                .collect(),
+        );
         observer.progress(k + 1, parts.len());
     }
 
     // Photometric: one gain per view from the rings around all regions.
     if observer.cancelled() {
-        return Filled { image, provenance, confidence, report };
+        return Filled { image, provenance, surface, confidence, report };
     }
     observer.stage(Stage::Photometric);
     if params.photometric {
@@ -318,8 +391,7 @@ pub fn fill<P: RgbPixel>(
             let gain = fit_gain(&sample, &params.gain);
             report.sources[v].gain = gain.gain;
             report.sources[v].offset = gain.offset;
-            for ws in &mut warps {
-                let wv = &mut ws[v];
+            let compensate = |wv: &mut Warped| {
                 wv.image.as_mut_slice().par_iter_mut().zip(wv.valid.as_slice().par_iter()).for_each(
                     |(p, &ok)| {
                         if ok {
@@ -327,14 +399,45 @@ pub fn fill<P: RgbPixel>(
                         }
                     },
                 );
+            };
+            for ws in &mut warps {
+                compensate(&mut ws[v]);
+            }
+            for pw in &mut plane_warps {
+                for wv in pw.iter_mut().filter_map(|p| p.get_mut(v)).flatten() {
+                    compensate(wv);
+                }
             }
             observer.progress(v + 1, nv);
         }
     }
 
+    // Planes: which surface each pixel shows; each view's warp composed accordingly.
+    if observer.cancelled() {
+        return Filled { image, provenance, surface, confidence, report };
+    }
+    if !extras.planes.is_empty() {
+        observer.stage(Stage::Planes);
+        let labels: Vec<Vec<u16>> = parts
+            .par_iter()
+            .zip(warps.par_iter_mut())
+            .zip(plane_warps.par_iter())
+            .map(|((part, ws), pw)| compose_planes(key, part, ws, pw, extras.planes, &params.parallax))
+            .collect();
+        for (part, l) in parts.iter().zip(&labels) {
+            let rw = part.rect.width;
+            for (i, &hh) in part.hole.as_slice().iter().enumerate() {
+                if hh {
+                    surface.set(part.rect.x + i % rw, part.rect.y + i / rw, l[i]);
+                }
+            }
+        }
+    }
+    drop(plane_warps);
+
     // Occlusion: who sees what, per region, view and pixel.
     if observer.cancelled() {
-        return Filled { image, provenance, confidence, report };
+        return Filled { image, provenance, surface, confidence, report };
     }
     observer.stage(Stage::Occlusion);
     let maps: Vec<OcclusionMap> = parts
@@ -345,7 +448,7 @@ pub fn fill<P: RgbPixel>(
 
     // Fill: regions in parallel, in batches so that progress can be told.
     if observer.cancelled() {
-        return Filled { image, provenance, confidence, report };
+        return Filled { image, provenance, surface, confidence, report };
     }
     observer.stage(Stage::Fill);
     let mparams = params.multiview();
@@ -381,7 +484,7 @@ pub fn fill<P: RgbPixel>(
 
     // Fallback: what no view saw, from the image itself (with the views' fill as context).
     if observer.cancelled() {
-        return Filled { image, provenance, confidence, report };
+        return Filled { image, provenance, surface, confidence, report };
     }
     observer.stage(Stage::Fallback);
     let mut pending = Mask::new(w, h, 0);
@@ -426,7 +529,7 @@ pub fn fill<P: RgbPixel>(
 
     // Blend: each region's fill into the keyframe, guided by its views' own gradients.
     if observer.cancelled() {
-        return Filled { image, provenance, confidence, report };
+        return Filled { image, provenance, surface, confidence, report };
     }
     observer.stage(Stage::Blend);
     if params.blend {
@@ -465,11 +568,98 @@ pub fn fill<P: RgbPixel>(
             }
         }
     }
-    Filled { image, provenance, confidence, report }
+    Filled { image, provenance, surface, confidence, report }
 }
 
 fn to_byte(c: f32) -> u8 {
     (c.clamp(0.0, 1.0) * 255.0).round() as u8
+}
+
+/// Marks invalid the pixels of `wv` (warped through `h`) that fall on `occluders` (view
+/// coordinates, nearest pixel).
+fn exclude(wv: &mut Warped, h: &Homography, occluders: Option<&Mask>) {
+    let Some(m) = occluders else { return };
+    let r = wv.rect;
+    for y in 0..r.height {
+        for x in 0..r.width {
+            if !wv.valid.get(x, y) {
+                continue;
+            }
+            let p = h.apply(nalgebra::Point2::new((r.x + x) as f64, (r.y + y) as f64));
+            if let Some(p) = p {
+                let (u, v) = (p.x.round(), p.y.round());
+                if u >= 0.0 && v >= 0.0 && m.get_checked(u as isize, v as isize).is_some_and(|o| o > 127) {
+                    wv.valid.set(x, y, false);
+                }
+            }
+        }
+    }
+}
+
+/// Whether two rectangles share a pixel.
+fn overlap(a: Rect, b: Rect) -> bool {
+    a.x < b.x1() && b.x < a.x1() && a.y < b.y1() && b.y < a.y1()
+}
+
+/// Chooses the surface of each pixel of a part and rewrites each view's warp `ws[v]` from
+/// its plane warps accordingly (a view without the chosen plane is invalid there). Returns
+/// the part's labels (0 the wall, `1 + p` plane `p`).
+fn compose_planes(
+    key: &RgbF32,
+    part: &Part,
+    ws: &mut [Warped],
+    pw: &[Vec<Option<Warped>>],
+    planes: &[SurfacePlane],
+    params: &ParallaxParams,
+) -> Vec<u16> {
+    let r = part.rect;
+    let n = r.area();
+    let near: Vec<usize> = (0..pw.len()).filter(|&p| !pw[p].is_empty()).collect();
+    if near.is_empty() {
+        return vec![0; n];
+    }
+    let mut pixels = Vec::with_capacity(n);
+    for y in 0..r.height {
+        pixels.extend_from_slice(&key.row(r.y + y)[r.x..r.x + r.width]);
+    }
+    let mut hyps: Vec<Vec<Option<WarpedView<'_>>>> =
+        vec![ws.iter().map(|wv| Some((wv.image.as_slice(), wv.valid.as_slice()))).collect()];
+    let mut allowed = vec![vec![true; n]];
+    for &p in &near {
+        hyps.push(
+            pw[p].iter().map(|o| o.as_ref().map(|wv| (wv.image.as_slice(), wv.valid.as_slice()))).collect(),
+        );
+        let g = planes[p].region;
+        allowed.push((0..n).map(|i| g.contains(r.x + i % r.width, r.y + i / r.width)).collect());
+    }
+    let input = PlaneInput {
+        width: r.width,
+        height: r.height,
+        key: &pixels,
+        hole: part.hole.as_slice(),
+        need: part.need.as_slice(),
+        blocked: part.blocked.as_slice(),
+        planes: &hyps,
+        allowed: &allowed,
+    };
+    let chosen = choose_planes(&input, params);
+    drop(hyps);
+    for (v, wv) in ws.iter_mut().enumerate() {
+        let (img, ok) = (wv.image.as_mut_slice(), wv.valid.as_mut_slice());
+        for (i, &l) in chosen.iter().enumerate() {
+            if l == 0 {
+                continue;
+            }
+            match &pw[near[l as usize - 1]][v] {
+                Some(src) => {
+                    img[i] = src.image.as_slice()[i];
+                    ok[i] = src.valid.as_slice()[i];
+                }
+                None => ok[i] = false,
+            }
+        }
+    }
+    chosen.iter().map(|&l| if l == 0 { 0 } else { 1 + near[l as usize - 1] as u16 }).collect()
 }
 
 /// One connected part of the hole with the margin around it that the fill reads.
