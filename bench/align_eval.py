@@ -413,8 +413,13 @@ def run(args):
                          ("within 3 px", lambda v: sum(e <= 3 for e in v)),
                          ("within 5 px", lambda v: sum(e <= 5 for e in v)),
                          ("median px", lambda v: fmt(statistics.median(v)) if v else "-"),
+                         ("false accepts (> 20 px)", None),
                          ("median process s", None)):
-            if f is None:
+            if label.startswith("false"):
+                fa_cv = sum(r["accepted"] and not r["cv_raw"] <= 20 for r in rows)
+                fa_s = sum(np.isfinite(r["sift"]) and r["sift"] > 20 for r in rows)
+                out.append(f"| **{label}** | | **{fa_cv}** | **{fa_s}** | | | |")
+            elif f is None:
                 out.append(f"| **{label}** | | **{statistics.median([r['t_cv'] for r in rows]):.2f}** | "
                            f"**{statistics.median([r['t_sift'] for r in rows]):.2f}** | | | |")
             else:
