@@ -468,3 +468,22 @@ fn an_out_folder_replaced_by_a_link_is_not_written_through() {
     let written: Vec<_> = std::fs::read_dir(&elsewhere).unwrap().flatten().map(|e| e.path()).collect();
     assert!(written.is_empty(), "written through the link: {written:?}");
 }
+
+/// A camera that makes a session folder and renames its first photo into it at once: the
+/// rename can land before the kernel watches the new folder, and its event is then lost.
+/// Every such photo is still noticed in seconds, not at the next rescan minutes later.
+#[test]
+fn photos_renamed_into_brand_new_session_folders_are_all_noticed() {
+    let f = folders("");
+    let s = Service::start(&f);
+    let scene = Scene::new(23);
+    let key = png(&scene.key);
+    let names: Vec<String> = (0..24).map(|i| format!("site{i:02}")).collect();
+    for n in &names {
+        put(&f.inbox.join(n).join("key.png"), &key);
+    }
+    wait_for(&f, "every new session folder's keyframe", 30, |ev| {
+        names.iter().all(|n| of_kind(ev, "session_started").iter().any(|e| e["session"] == n.as_str()))
+    });
+    drop(s);
+}

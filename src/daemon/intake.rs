@@ -12,7 +12,7 @@
 //! is reported to that worker (a job without an image).
 
 use std::collections::{HashMap, HashSet};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant, SystemTime};
@@ -67,6 +67,9 @@ fn inode_of(meta: &std::fs::Metadata) -> Inode {
 }
 
 /// What a `file_skipped` event says of the next try.
+/// How soon a new session folder is listed a second time (and a third, four times later).
+const RELIST_AFTER: Duration = Duration::from_millis(500);
+
 const RETRIED: &str = "when the file changes (its content, its permissions, or a new file under its name)";
 
 /// The intake task's state.
@@ -85,6 +88,9 @@ pub struct Intake {
     /// Files a worker holds a version of that are gone (a mask or a view deleted) or no
     /// longer usable (a view replaced by what cannot be decoded), still to be told to it.
     removed: Vec<(PathBuf, String, Role)>,
+    /// New session folders to list again, and when: a file renamed into a folder just made
+    /// can land before the kernel watches the folder, and its event is then lost.
+    relist: Vec<(PathBuf, Instant)>,
 }
 
 /// The watched folder's identity (device and inode), to notice it being removed and
@@ -152,6 +158,7 @@ impl Intake {
             refused: HashSet::new(),
             root,
             removed: Vec::new(),
+            relist: Vec::new(),
         }
     }
 
@@ -210,6 +217,7 @@ impl Intake {
                         self.full_scan().await;
                         last_scan = Some(Instant::now());
                     }
+                    self.relist_due();
                     self.settle();
                     self.dispatch(&cancel).await;
                 }
@@ -233,6 +241,25 @@ impl Intake {
         }
     }
 
+    /// Observes every entry of session folder `dir`.
+    fn list_folder(&mut self, dir: &Path) {
+        if let Ok(entries) = std::fs::read_dir(dir) {
+            for e in entries.flatten() {
+                self.observe(e.path());
+            }
+        }
+    }
+
+    /// Lists the new session folders whose second look is due.
+    fn relist_due(&mut self) {
+        let now = Instant::now();
+        let (due, later): (Vec<_>, Vec<_>) = self.relist.drain(..).partition(|(_, at)| *at <= now);
+        self.relist = later;
+        for (dir, _) in due {
+            self.list_folder(&dir);
+        }
+    }
+
     /// A hint that `path` may have changed.
     fn observe(&mut self, path: PathBuf) {
         if let Some(link) = self.inbox.symlink_on_path(&path) {
@@ -241,12 +268,13 @@ impl Intake {
             return;
         }
         if path.parent() == Some(self.config.watch_dir.as_path()) && path.is_dir() {
-            // A new session folder: files can land in it before the watcher watches it.
-            if let Ok(entries) = std::fs::read_dir(&path) {
-                for e in entries.flatten() {
-                    self.observe(e.path());
-                }
+            // A new session folder: files can land in it before the watcher watches it. Listed
+            // now, and again shortly, for what landed in between.
+            if !self.relist.iter().any(|(p, _)| p == &path) {
+                let now = Instant::now();
+                self.relist.extend([RELIST_AFTER, 4 * RELIST_AFTER].map(|d| (path.clone(), now + d)));
             }
+            self.list_folder(&path);
             return;
         }
         let Some(candidate) = watch::classify(&self.config.watch_dir, &path, &self.config.extensions) else {
