@@ -217,19 +217,7 @@ fn grow_by_colour(key: &RgbF32, objects: &Plane<bool>, params: &AutoMaskParams) 
                 }
             }
         }
-        while let Some((x, y)) = stack.pop() {
-            for (dx, dy) in NEIGHBOURS_8 {
-                let (nx, ny) = (x as isize + dx, y as isize + dy);
-                if nx < 0 || ny < 0 {
-                    continue;
-                }
-                let (nx, ny) = (nx as usize, ny as usize);
-                if zone.contains(nx, ny) && !out.get(nx, ny) && likely(nx, ny) {
-                    out.set(nx, ny, true);
-                    stack.push((nx, ny));
-                }
-            }
-        }
+        grow_into(&mut out, stack, |x, y| zone.contains(x, y) && likely(x, y));
     }
     out
 }
@@ -244,19 +232,16 @@ fn components(m: &Plane<bool>) -> Vec<Rect> {
         if !m.get(sx, sy) || seen.get(sx, sy) {
             continue;
         }
-        let (mut x0, mut y0, mut x1, mut y1) = (sx, sy, sx, sy);
-        let mut stack = vec![(sx, sy)];
         seen.set(sx, sy, true);
-        while let Some((x, y)) = stack.pop() {
-            (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
-            for (dx, dy) in NEIGHBOURS_8 {
-                let (nx, ny) = (x as isize + dx, y as isize + dy);
-                if m.get_checked(nx, ny) == Some(true) && !seen.get(nx as usize, ny as usize) {
-                    seen.set(nx as usize, ny as usize, true);
-                    stack.push((nx as usize, ny as usize));
-                }
+        let (mut x0, mut y0, mut x1, mut y1) = (sx, sy, sx, sy);
+        let visit = |x: usize, y: usize| (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
+        flood((w, h), vec![(sx, sy)], &NEIGHBOURS_8, visit, |x, y| {
+            let enter = m.get(x, y) && !seen.get(x, y);
+            if enter {
+                seen.set(x, y, true);
             }
-        }
+            enter
+        });
         out.push(Rect::from_corners(x0, y0, x1 + 1, y1 + 1));
     }
     out
@@ -453,18 +438,49 @@ fn box_mean(v: &Plane<f32>, on: &Plane<bool>, r: usize) -> Plane<f32> {
 fn grow_from(seeds: &Plane<bool>, reach: &Plane<bool>) -> Plane<bool> {
     let (w, h) = (seeds.width(), seeds.height());
     let mut out = seeds.clone();
-    let mut stack: Vec<(usize, usize)> =
-        (0..w * h).filter(|&i| seeds.as_slice()[i]).map(|i| (i % w, i / w)).collect();
+    let stack = (0..w * h).filter(|&i| seeds.as_slice()[i]).map(|i| (i % w, i / w)).collect();
+    grow_into(&mut out, stack, |x, y| reach.get(x, y));
+    out
+}
+
+/// Sets in `out` every pixel 8-connected to `stack` through pixels `reach` accepts.
+fn grow_into(out: &mut Plane<bool>, stack: Vec<(usize, usize)>, reach: impl Fn(usize, usize) -> bool) {
+    let size = (out.width(), out.height());
+    flood(
+        size,
+        stack,
+        &NEIGHBOURS_8,
+        |_, _| {},
+        |x, y| {
+            let enter = !out.get(x, y) && reach(x, y);
+            if enter {
+                out.set(x, y, true);
+            }
+            enter
+        },
+    );
+}
+
+/// Depth-first flood from `stack` over a `w × h` grid: each pixel popped is given to
+/// `visit`; each of its `neighbours` inside the grid to `enter`, which says whether to go
+/// there (and marks it, so that it is not entered twice).
+fn flood(
+    (w, h): (usize, usize),
+    mut stack: Vec<(usize, usize)>,
+    neighbours: &[(isize, isize)],
+    mut visit: impl FnMut(usize, usize),
+    mut enter: impl FnMut(usize, usize) -> bool,
+) {
     while let Some((x, y)) = stack.pop() {
-        for (dx, dy) in NEIGHBOURS_8 {
+        visit(x, y);
+        for &(dx, dy) in neighbours {
             let (nx, ny) = (x as isize + dx, y as isize + dy);
-            if reach.get_checked(nx, ny) == Some(true) && !out.get(nx as usize, ny as usize) {
-                out.set(nx as usize, ny as usize, true);
+            if nx >= 0 && ny >= 0 && (nx as usize) < w && (ny as usize) < h && enter(nx as usize, ny as usize)
+            {
                 stack.push((nx as usize, ny as usize));
             }
         }
     }
-    out
 }
 
 const NEIGHBOURS_8: [(isize, isize); 8] =
@@ -483,45 +499,25 @@ fn fill_holes(m: &Plane<bool>, max_hole: usize) -> (Plane<bool>, usize) {
         if m.get(sx, sy) || seen.get(sx, sy) {
             continue;
         }
+        seen.set(sx, sy, true);
         region.clear();
         let mut touches_border = false;
-        let mut stack = vec![(sx, sy)];
-        seen.set(sx, sy, true);
-        while let Some((x, y)) = stack.pop() {
+        let visit = |x: usize, y: usize| {
             region.push((x, y));
             touches_border |= x == 0 || y == 0 || x + 1 == w || y + 1 == h;
-            for (dx, dy) in NEIGHBOURS_4 {
-                let (nx, ny) = (x as isize + dx, y as isize + dy);
-                if m.get_checked(nx, ny) == Some(false) && !seen.get(nx as usize, ny as usize) {
-                    seen.set(nx as usize, ny as usize, true);
-                    stack.push((nx as usize, ny as usize));
-                }
+        };
+        flood((w, h), vec![(sx, sy)], &NEIGHBOURS_4, visit, |x, y| {
+            let enter = !m.get(x, y) && !seen.get(x, y);
+            if enter {
+                seen.set(x, y, true);
             }
-        }
+            enter
+        });
         if !touches_border && region.len() <= max_hole {
             region.iter().for_each(|&(x, y)| out.set(x, y, true));
         }
     }
-    let mut objects = 0;
-    let mut seen = Plane::new(w, h, false);
-    for start in 0..w * h {
-        let (sx, sy) = (start % w, start / w);
-        if !out.get(sx, sy) || seen.get(sx, sy) {
-            continue;
-        }
-        objects += 1;
-        let mut stack = vec![(sx, sy)];
-        seen.set(sx, sy, true);
-        while let Some((x, y)) = stack.pop() {
-            for (dx, dy) in NEIGHBOURS_8 {
-                let (nx, ny) = (x as isize + dx, y as isize + dy);
-                if out.get_checked(nx, ny) == Some(true) && !seen.get(nx as usize, ny as usize) {
-                    seen.set(nx as usize, ny as usize, true);
-                    stack.push((nx as usize, ny as usize));
-                }
-            }
-        }
-    }
+    let objects = components(&out).len();
     (out, objects)
 }
 
