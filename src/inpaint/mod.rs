@@ -618,10 +618,7 @@ fn compose_planes(
     if near.is_empty() {
         return vec![0; n];
     }
-    let mut pixels = Vec::with_capacity(n);
-    for y in 0..r.height {
-        pixels.extend_from_slice(&key.row(r.y + y)[r.x..r.x + r.width]);
-    }
+    let pixels = key.crop(r).into_vec();
     let mut hyps: Vec<Vec<Option<WarpedView<'_>>>> =
         vec![ws.iter().map(|wv| Some((wv.image.as_slice(), wv.valid.as_slice()))).collect()];
     let mut allowed = vec![vec![true; n]];
@@ -772,10 +769,7 @@ fn region_model(key: &RgbF32, part: &Part, warps: &[Warped], params: &FillParams
             independence: vec![1.0; warps.len()],
         };
     }
-    let mut pixels = Vec::with_capacity(n);
-    for y in 0..r.height {
-        pixels.extend_from_slice(&key.row(r.y + y)[r.x..r.x + r.width]);
-    }
+    let pixels = key.crop(r).into_vec();
     let refs: Vec<_> = warps.iter().map(|wv| (wv.image.as_slice(), wv.valid.as_slice())).collect();
     let input = RegionInput {
         width: r.width,
