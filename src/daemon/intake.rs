@@ -332,9 +332,12 @@ impl Intake {
         if t.status == Status::Ready {
             self.backlog.done(&t.session);
         }
-        // A deleted mask is no mask; a deleted view's pixels are no file's any more.
+        // A deleted mask is no mask; a deleted view's pixels are no file's any more. A mask
+        // is always told: the worker may hold it without the intake's delivery (its own
+        // listing of the session takes a mask the watcher had not yet seen), and one it
+        // does not use is ignored there.
         let held = match t.role {
-            Role::Mask => t.status == Status::Queued,
+            Role::Mask => true,
             Role::View => t.delivered,
             Role::Key => false,
         };
