@@ -223,7 +223,7 @@ fn swept(
     seed: u64,
     progress: &mut Progress,
 ) -> Vec<SurfacePlane> {
-    progress.begin("planes", 0);
+    progress.begin("plane sweep", 0);
     let key_gray = luminance(key);
     let grays: Vec<GrayF32> =
         aligned.iter().map(|a| luminance(&a.crop.map(|p| p.map(|c| f32::from(c) / 255.0)))).collect();

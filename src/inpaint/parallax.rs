@@ -551,8 +551,9 @@ pub fn parallax_family(
 }
 
 /// The keyframe's band around the mask that the sweep scores (sweep resolution).
-struct Band<'a> {
-    key: &'a GrayF32,
+struct Band {
+    /// The keyframe over `rect`.
+    key: Vec<f32>,
     /// Bounding box of the band grown by the window.
     rect: Rect,
     /// Band pixels (indices into `rect`).
@@ -566,10 +567,10 @@ struct Band<'a> {
     window: usize,
 }
 
-impl<'a> Band<'a> {
+impl Band {
     /// The band of `key` (already at the sweep resolution, `s` full-resolution pixels to one)
     /// around `mask`; `None` with nothing to score.
-    fn new(key: &'a GrayF32, mask: &Mask, s: usize, params: &SweepParams) -> Option<Self> {
+    fn new(key: &GrayF32, mask: &Mask, s: usize, params: &SweepParams) -> Option<Self> {
         let (w, h) = (mask.width(), mask.height());
         let (ww, hw) = (key.width(), key.height());
         let hole = Plane::from_fn(ww, hw, |x, y| {
@@ -587,13 +588,13 @@ impl<'a> Band<'a> {
         let kv: Vec<f32> = (0..n).map(|i| key.get(rect.x + i % rw, rect.y + i / rw)).collect();
         let r = params.window;
         Some(Self {
-            key,
             rect,
             pixels,
             need,
             area: box_sum(&vec![1.0; n], rw, rh, r),
             ks: box_sum(&kv, rw, rh, r),
             k2: box_sum(&kv.iter().map(|v| v * v).collect::<Vec<_>>(), rw, rh, r),
+            key: kv,
             window: r,
         })
     }
@@ -620,11 +621,11 @@ impl<'a> Band<'a> {
             }
         }
         let r = self.window;
-        let kv: Vec<f32> = (0..n).map(|i| self.key.get(self.rect.x + i % rw, self.rect.y + i / rw)).collect();
+        let kv = &self.key;
         let cnt = box_sum(&ok, rw, rh, r);
         let vs = box_sum(&img, rw, rh, r);
         let v2 = box_sum(&img.iter().map(|a| a * a).collect::<Vec<_>>(), rw, rh, r);
-        let kw = box_sum(&img.iter().zip(&kv).map(|(a, b)| a * b).collect::<Vec<_>>(), rw, rh, r);
+        let kw = box_sum(&img.iter().zip(kv).map(|(a, b)| a * b).collect::<Vec<_>>(), rw, rh, r);
         let (area, ks, k2) = (&self.area, &self.ks, &self.k2);
         self.pixels
             .iter()
