@@ -17,13 +17,16 @@ use super::load::{LoadError, load_image, load_photo};
 use super::save::{output_format, result_format, save_image, save_result};
 use crate::align::{AlignParams, Frame, align};
 use crate::geometry::{Homography, Rows};
-use crate::imaging::convert::{crop_rgb8, mask_to_luma8, to_luminance, to_mask, to_rgb};
+use crate::imaging::convert::{crop_rgb8, luminance, mask_to_luma8, to_luminance, to_mask, to_rgb};
 use crate::imaging::decode::DecodeLimits;
 use crate::imaging::encode::{EncodeOptions, OutputSpace};
 use crate::imaging::meta::{Metadata, Provenance};
-use crate::imaging::{Mask, Rect, Rgb8, RgbF32};
+use crate::imaging::{GrayF32, Mask, Rect, Rgb8, RgbF32};
+use crate::inpaint::parallax::{SurfacePlane, SweepParams, swept_planes};
 use crate::inpaint::region::{footprint, into_crop};
-use crate::inpaint::{AutoMaskParams, FillParams, Observer, Source, Stage, auto_mask_report, fill};
+use crate::inpaint::{
+    AutoMaskParams, FillExtras, FillParams, Observer, Source, Stage, auto_mask_report, fill_with,
+};
 
 /// Views decoded and aligned at the same time. JPEG decoding is sequential, so with two in
 /// flight (and the keyframe decoded beside them) both cores stay busy; the alignment inside
@@ -72,6 +75,11 @@ pub struct FillArgs {
     /// Seed for every random choice.
     #[arg(long, default_value_t = 0x00c1_ea4e)]
     pub seed: u64,
+    /// Also sweep the surfaces standing off the wall (balconies, pilasters, signs) and fill
+    /// each masked pixel through the one the views agree on. Off by default: on generated
+    /// facades it gains on some and loses on others (BENCHMARKS.md, "Parallax").
+    #[arg(long)]
+    pub planes: bool,
     /// Other photographs of the scene.
     #[arg(required = true)]
     pub views: Vec<PathBuf>,
@@ -207,6 +215,23 @@ struct Aligned {
     report: usize,
 }
 
+/// The surfaces off the wall around the mask, swept from the aligned views (`--planes`).
+fn swept(
+    key: &RgbF32,
+    aligned: &[Aligned],
+    mask: &Mask,
+    seed: u64,
+    progress: &mut Progress,
+) -> Vec<SurfacePlane> {
+    progress.begin("plane sweep", 0);
+    let key_gray = luminance(key);
+    let grays: Vec<GrayF32> =
+        aligned.iter().map(|a| luminance(&a.crop.map(|p| p.map(|c| f32::from(c) / 255.0)))).collect();
+    let refs: Vec<&GrayF32> = grays.iter().collect();
+    let walls: Vec<Homography> = aligned.iter().map(|a| a.homography).collect();
+    swept_planes(&key_gray, &refs, &walls, mask, &SweepParams::default(), seed)
+}
+
 pub fn run(args: &FillArgs) -> u8 {
     match try_run(args) {
         Ok(code) => code,
@@ -322,7 +347,11 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
             (found.mask, Some(summary))
         }
     };
-    let filled = fill(&key_rgb, &mask, &sources, &FillParams::default(), args.seed, &mut progress);
+    let planes =
+        if args.planes { swept(&key_rgb, &aligned, &mask, args.seed, &mut progress) } else { Vec::new() };
+    let extras = FillExtras { planes: &planes, ..FillExtras::default() };
+    let filled =
+        fill_with(&key_rgb, &mask, &sources, &extras, &FillParams::default(), args.seed, &mut progress);
     for (a, s) in aligned.iter().zip(&filled.report.sources) {
         let r = &mut reports[a.report];
         r.covered_pixels = s.covered;

@@ -286,6 +286,198 @@ fn well_spread(data: &[Correspondence], pick: &[usize; 4]) -> bool {
     [(0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3)].iter().all(|&(a, b, c)| cross(p[a], p[b], p[c]).abs() > 4.0)
 }
 
+/// Plane + parallax: the planes parallel to the wall, one parameter each. With the wall's
+/// homography `M_v` of view `v` and its epipole `e_v`, a point off the wall maps as
+/// `x_v ~ M_v·x + γ_v·e_v` (`x` the homogeneous keyframe pixel), where `γ_v` — the
+/// projective depth relative to the wall — is the same for all views up to a per-view
+/// scale (which [`ParallaxFamily::scaled`] fixes). A surface parallel to a near
+/// fronto-parallel wall has one `γ`: its homography in view `v` is `M_v + γ·e_v·(0, 0, 1)`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ParallaxFamily {
+    /// Per view: the wall's matrix as given (its scale fixes `γ`'s).
+    pub walls: Vec<nalgebra::Matrix3<f64>>,
+    /// Per view: the epipole, `None` where the view's matches did not give it.
+    pub epipoles: Vec<Option<nalgebra::Vector3<f64>>>,
+    /// Per view: `γ_v` of the off-wall matches that agreed with its epipole.
+    pub observed: Vec<Vec<f64>>,
+}
+
+/// Parameters of [`fit_parallax`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct ParallaxFitParams {
+    /// A match the wall explains within this many pixels says nothing about the epipole...
+    pub min_parallax_px: f64,
+    /// ...nor one it misses by more than this (a mismatch).
+    pub max_parallax_px: f64,
+    /// A match agrees with an epipole when its view point lies within this many pixels of
+    /// the line through the wall's prediction and the epipole.
+    pub line_px: f64,
+    /// A view's epipole needs at least this many agreeing matches.
+    pub min_inliers: usize,
+    /// Two-point samples drawn per view.
+    pub iterations: usize,
+}
+
+impl Default for ParallaxFitParams {
+    fn default() -> Self {
+        Self { min_parallax_px: 3.0, max_parallax_px: 80.0, line_px: 0.75, min_inliers: 6, iterations: 400 }
+    }
+}
+
+impl ParallaxFamily {
+    /// Keyframe → view `v` homography of the surface at projective depth `gamma`, in the
+    /// matches' coordinates (`None` without an epipole).
+    pub fn homography(&self, v: usize, gamma: f64) -> Option<Homography> {
+        let e = self.epipoles[v]?;
+        let mut m = self.walls[v];
+        m.set_column(2, &(m.column(2) + e * gamma));
+        Homography::from_matrix(m)
+    }
+
+    /// The family with view `v`'s epipole scaled by `scale[v]` (`None`: dropped), so that
+    /// one `γ` serves all views.
+    pub fn scaled(&self, scale: &[Option<f64>]) -> Self {
+        let epipoles = self.epipoles.iter().zip(scale).map(|(e, k)| Some(e.as_ref()? * (*k)?)).collect();
+        let observed = self
+            .observed
+            .iter()
+            .zip(scale)
+            .map(|(o, k)| k.map_or_else(Vec::new, |k| o.iter().map(|g| g / k).collect()))
+            .collect();
+        Self { walls: self.walls.clone(), epipoles, observed }
+    }
+
+    /// How many pixels per unit of `γ` a point at keyframe `p` moves in view `v` (0 without
+    /// an epipole).
+    pub fn rate(&self, v: usize, p: Point2<f64>) -> f64 {
+        let Some(e) = self.epipoles[v] else { return 0.0 };
+        let q = self.walls[v] * nalgebra::Vector3::new(p.x, p.y, 1.0);
+        if q.z.abs() < 1e-12 {
+            return 0.0;
+        }
+        // d/dγ of (q + γe)_xy / (q + γe)_z at γ = 0.
+        let dx = (e.x * q.z - q.x * e.z) / (q.z * q.z);
+        let dy = (e.y * q.z - q.y * e.z) / (q.z * q.z);
+        dx.hypot(dy)
+    }
+}
+
+/// `γ` of a match under wall matrix `m` and epipole `e` (least squares on `x_v × (m·x + γ·e) = 0`).
+fn gamma_of(c: &Correspondence, m: &nalgebra::Matrix3<f64>, e: &nalgebra::Vector3<f64>) -> f64 {
+    let p = m * nalgebra::Vector3::new(c.key.x, c.key.y, 1.0);
+    let q = nalgebra::Vector3::new(c.view.x, c.view.y, 1.0);
+    let a = q.cross(&p);
+    let b = q.cross(e);
+    -a.dot(&b) / b.norm_squared().max(1e-300)
+}
+
+/// Distance in the view from `c.view` to the line through the wall's prediction and `e`
+/// (infinite when the prediction is undefined).
+fn epipolar_distance(c: &Correspondence, m: &nalgebra::Matrix3<f64>, e: &nalgebra::Vector3<f64>) -> f64 {
+    let p = m * nalgebra::Vector3::new(c.key.x, c.key.y, 1.0);
+    if p.z.abs() < 1e-12 {
+        return f64::INFINITY;
+    }
+    let w = Point2::new(p.x / p.z, p.y / p.z);
+    // Direction from the prediction towards the epipole (homogeneous: finite or not).
+    let d = nalgebra::Vector2::new(e.x - e.z * w.x, e.y - e.z * w.y);
+    let n = d.norm();
+    if n < 1e-12 {
+        return f64::INFINITY;
+    }
+    let r = c.view - w;
+    (d.x * r.y - d.y * r.x).abs() / n
+}
+
+/// The plane + parallax family of a keyframe and its views, from putative keyframe → view
+/// matches (`matches[v]`) and the views' wall homographies: per view, the epipole is the
+/// point the off-wall matches' displacements from the wall's prediction all point at
+/// (two-point samples, the most agreeing kept, refined by least squares on the lines).
+/// Each view's `γ` has its own scale: the sparse matches a facade gives off its wall are
+/// too few to tie them together (the sweep does it densely). `None` when no view shows
+/// parallax (a flat wall, or only rotation).
+pub fn fit_parallax(
+    matches: &[Vec<Correspondence>],
+    walls: &[Homography],
+    params: &ParallaxFitParams,
+    seed: u64,
+) -> Option<ParallaxFamily> {
+    assert_eq!(matches.len(), walls.len(), "one wall per view");
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x00e9_1901);
+    let mats: Vec<nalgebra::Matrix3<f64>> = walls.iter().map(|h| *h.matrix()).collect();
+    // Per view: the epipole and its agreeing matches.
+    let mut fits: Vec<Option<(nalgebra::Vector3<f64>, Vec<usize>)>> = Vec::with_capacity(matches.len());
+    for (data, (wall, m)) in matches.iter().zip(walls.iter().zip(&mats)) {
+        let pool: Vec<usize> = (0..data.len())
+            .filter(|&i| {
+                let r = data[i].residual(wall);
+                r >= params.min_parallax_px && r <= params.max_parallax_px
+            })
+            .collect();
+        let line = |i: usize| -> Option<nalgebra::Vector3<f64>> {
+            let p = m * nalgebra::Vector3::new(data[i].key.x, data[i].key.y, 1.0);
+            let q = nalgebra::Vector3::new(data[i].view.x, data[i].view.y, 1.0);
+            let l = (p / p.z).cross(&q);
+            let n = l.xy().norm();
+            (n > 1e-9).then(|| l / n)
+        };
+        let agree = |e: &nalgebra::Vector3<f64>| -> Vec<usize> {
+            pool.iter().copied().filter(|&i| epipolar_distance(&data[i], m, e) < params.line_px).collect()
+        };
+        if pool.len() < params.min_inliers {
+            fits.push(None);
+            continue;
+        }
+        let mut best: Option<(nalgebra::Vector3<f64>, Vec<usize>)> = None;
+        for _ in 0..params.iterations {
+            let (a, b) = (pool[rng.random_range(0..pool.len())], pool[rng.random_range(0..pool.len())]);
+            if a == b {
+                continue;
+            }
+            let (Some(la), Some(lb)) = (line(a), line(b)) else { continue };
+            let e = la.cross(&lb);
+            if e.norm() < 1e-12 {
+                continue;
+            }
+            let inl = agree(&(e / e.norm()));
+            if best.as_ref().is_none_or(|b| inl.len() > b.1.len()) {
+                best = Some((e / e.norm(), inl));
+            }
+        }
+        let refined = best.filter(|b| b.1.len() >= params.min_inliers).map(|(mut e, mut inl)| {
+            for _ in 0..3 {
+                // The point nearest all lines: the least eigenvector of Σ l·lᵀ.
+                let ata: nalgebra::Matrix3<f64> =
+                    inl.iter().filter_map(|&i| line(i)).map(|l| l * l.transpose()).sum();
+                let eig = ata.symmetric_eigen();
+                let cand: nalgebra::Vector3<f64> =
+                    eig.eigenvectors.column(eig.eigenvalues.imin()).into_owned();
+                let next = agree(&cand);
+                if next.len() < inl.len() {
+                    break;
+                }
+                (e, inl) = (cand, next);
+            }
+            (e, inl)
+        });
+        fits.push(refined.filter(|f| f.1.len() >= params.min_inliers));
+    }
+    let epipoles: Vec<Option<nalgebra::Vector3<f64>>> =
+        fits.iter().map(|f| f.as_ref().map(|f| f.0)).collect();
+    let observed: Vec<Vec<f64>> = fits
+        .iter()
+        .zip(matches.iter().zip(&mats))
+        .map(|(f, (data, m))| {
+            f.as_ref()
+                .map_or_else(Vec::new, |(e, inl)| inl.iter().map(|&i| gamma_of(&data[i], m, e)).collect())
+        })
+        .collect();
+    if epipoles.iter().all(Option::is_none) {
+        return None;
+    }
+    Some(ParallaxFamily { walls: mats, epipoles, observed })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -344,5 +536,66 @@ mod tests {
         // What the mask excludes is not fitted.
         let none = fit_planes(&matches, &walls, &|p| p.x < 260.0, &PlaneParams::default(), 1);
         assert!(none.is_empty(), "{none:?}");
+    }
+
+    /// Points off the wall displaced along lines through each view's epipole (one finite,
+    /// one at infinity), among wall points and mismatches: the epipoles come back, and the
+    /// depths of the agreeing matches are the true ones up to one scale per view.
+    #[test]
+    fn the_epipole_is_where_the_parallax_points_and_depths_follow_it() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let walls = [
+            Homography::from_rows([[1.01, 0.02, 4.0], [-0.01, 0.99, -3.0], [2e-5, 1e-5, 1.0]]).unwrap(),
+            Homography::from_rows([[0.98, -0.01, -5.0], [0.01, 1.02, 2.0], [-1e-5, 0.0, 1.0]]).unwrap(),
+        ];
+        let epipoles = [nalgebra::Vector3::new(900.0, 300.0, 1.0), nalgebra::Vector3::new(1.0, -0.05, 0.0)];
+        let truth: Vec<(Point2<f64>, f64)> = (0..400)
+            .map(|i| {
+                let p = Point2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0));
+                (p, if i % 4 == 0 { rng.random_range(0.2..1.0) } else { 0.0 })
+            })
+            .collect();
+        let matches: Vec<Vec<Correspondence>> = (0..2)
+            .map(|v| {
+                let m = walls[v].matrix();
+                // The view's own scale of γ: a displacement of up to about 25 pixels.
+                let e = epipoles[v] / epipoles[v].norm() * 25.0 * m[(2, 2)];
+                let mut out: Vec<Correspondence> = truth
+                    .iter()
+                    .map(|&(p, g)| {
+                        let q: nalgebra::Vector3<f64> = m * nalgebra::Vector3::new(p.x, p.y, 1.0) + e * g;
+                        Correspondence::new(p, Point2::new(q.x / q.z, q.y / q.z))
+                    })
+                    .collect();
+                for _ in 0..40 {
+                    let p = Point2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0));
+                    let d =
+                        nalgebra::Vector2::new(rng.random_range(-20.0..20.0), rng.random_range(-20.0..20.0));
+                    out.push(Correspondence::new(p, walls[v].apply(p).unwrap() + d));
+                }
+                out
+            })
+            .collect();
+        let fam = fit_parallax(&matches, &walls, &ParallaxFitParams::default(), 3).expect("parallax");
+        for (v, &t) in epipoles.iter().enumerate() {
+            let e = fam.epipoles[v].expect("each view has its epipole");
+            assert!(e.normalize().cross(&t.normalize()).norm() < 1e-3, "view {v}: {e} vs {t}");
+            // The agreeing matches are the points off the wall, their depths in one scale.
+            assert!(fam.observed[v].len() >= 90, "view {v}: {} depths", fam.observed[v].len());
+            let off: Vec<f64> = truth.iter().filter(|t| t.1 > 0.0).map(|t| t.1).collect();
+            let (lo, hi) = fam.observed[v]
+                .iter()
+                .fold((f64::INFINITY, 0.0f64), |(a, b), g| (a.min(g.abs()), b.max(g.abs())));
+            let (tlo, thi) = off.iter().fold((f64::INFINITY, 0.0f64), |(a, b), &g| (a.min(g), b.max(g)));
+            assert!(
+                (hi / lo - thi / tlo).abs() < 0.05 * thi / tlo,
+                "view {v}: depth range {lo}..{hi} vs {tlo}..{thi}"
+            );
+        }
+        // A flat wall: no parallax.
+        let flat: Vec<Vec<Correspondence>> = (0..2)
+            .map(|v| truth.iter().map(|&(p, _)| Correspondence::new(p, walls[v].apply(p).unwrap())).collect())
+            .collect();
+        assert!(fit_parallax(&flat, &walls, &ParallaxFitParams::default(), 3).is_none());
     }
 }

@@ -23,10 +23,11 @@ use rayon::prelude::*;
 use nalgebra::Point2;
 
 use crate::features::harris::{HarrisParams, harris};
-use crate::geometry::planes::{PlaneParams, fit_planes};
+use crate::geometry::planes::{ParallaxFamily, ParallaxFitParams, PlaneParams, fit_parallax, fit_planes};
 use crate::geometry::{Correspondence, Homography};
 use crate::imaging::pyramid::half;
-use crate::imaging::{GrayF32, Mask, Rect, bilinear};
+use crate::imaging::{GrayF32, Mask, Plane, Rect, bilinear};
+use crate::inpaint::automask::dilate;
 
 /// A surface off the wall, as the fill takes it: its homography in each source (`None`
 /// where that view's matches gave none) and the keyframe rectangle it may be chosen in.
@@ -96,16 +97,70 @@ pub fn surface_planes(
     seed: u64,
 ) -> Vec<SurfacePlane> {
     let (w, h) = (key.width(), key.height());
+    let g = guided(key, views, walls, mask, params);
+    let t_inv = g.t.inverse().expect("regular");
+    fit_planes(&g.matches, &g.walls, &|_| false, &params.fit, seed)
+        .into_iter()
+        .map(|f| {
+            // Back to full resolution.
+            let a = t_inv.apply(Point2::new(f.bounds.0, f.bounds.1)).expect("affine");
+            let b = t_inv.apply(Point2::new(f.bounds.2, f.bounds.3)).expect("affine");
+            let region = grown_region(a, b, params.min_grow, w, h);
+            let views = f.views.iter().map(|o| o.map(|hv| t_inv.after(&hv).after(&g.t))).collect();
+            SurfacePlane { views, region }
+        })
+        .collect()
+}
+
+/// The box `a`–`b` (full-resolution keyframe pixels) grown by half its size and at least
+/// `min_grow` pixels, clipped to the image.
+fn grown_region(a: Point2<f64>, b: Point2<f64>, min_grow: usize, w: usize, h: usize) -> Rect {
+    let gx = (0.5 * (b.x - a.x)).max(min_grow as f64);
+    let gy = (0.5 * (b.y - a.y)).max(min_grow as f64);
+    let clip = |v: f64, hi: usize| v.clamp(0.0, hi as f64) as usize;
+    Rect::from_corners(clip(a.x - gx, w), clip(a.y - gy, h), clip(b.x + gx + 1.0, w), clip(b.y + gy + 1.0, h))
+}
+
+/// Guided matches at the matching resolution.
+#[derive(Debug, Clone)]
+pub struct Guided {
+    /// Full resolution → matching resolution.
+    pub t: Homography,
+    /// Per view: keyframe → view correspondences (matching resolution).
+    pub matches: Vec<Vec<Correspondence>>,
+    /// Per view: the wall at the matching resolution.
+    pub walls: Vec<Homography>,
+}
+
+/// Full resolution → an image halved `levels` times (pixel centres kept).
+fn shrink_map(levels: u32) -> Homography {
+    let s = f64::from(1u32 << levels);
+    let off = (s - 1.0) / (2.0 * s);
+    Homography::from_rows([[1.0 / s, 0.0, -off], [0.0, 1.0 / s, -off], [0.0, 0.0, 1.0]]).expect("regular")
+}
+
+/// How many times a `w × h` image is halved to have at most `max_pixels`.
+fn levels_for(w: usize, h: usize, max_pixels: usize) -> u32 {
     let mut levels = 0;
-    while (w >> levels) * (h >> levels) > params.max_pixels {
+    while (w >> levels) * (h >> levels) > max_pixels.max(1) {
         levels += 1;
     }
+    levels
+}
+
+/// The paper's matching again, guided: keyframe corners away from the mask matched by
+/// normalised cross-correlation in each view, searched around where the wall puts them.
+fn guided(
+    key: &GrayF32,
+    views: &[&GrayF32],
+    walls: &[Homography],
+    mask: &Mask,
+    params: &SurfaceParams,
+) -> Guided {
+    let (w, h) = (key.width(), key.height());
+    let levels = levels_for(w, h, params.max_pixels);
     let shrink = |img: &GrayF32| (0..levels).fold(img.clone(), |g, _| half(&g));
-    let s = (1u32 << levels) as f64;
-    // Full resolution → matching resolution, pixel centres kept (x_s = (x − (s − 1)/2) / s).
-    let off = (s - 1.0) / (2.0 * s);
-    let t = Homography::from_rows([[1.0 / s, 0.0, -off], [0.0, 1.0 / s, -off], [0.0, 0.0, 1.0]])
-        .expect("regular");
+    let t = shrink_map(levels);
     let t_inv = t.inverse().expect("regular");
     let key_s = shrink(key);
     let hp = HarrisParams {
@@ -127,7 +182,7 @@ pub fn surface_planes(
         .collect();
     // Coarse to fine: the search at half the matching resolution (parallax of tens of
     // pixels), then a small one around its answer.
-    let t1 = Homography::from_rows([[0.5, 0.0, -0.25], [0.0, 0.5, -0.25], [0.0, 0.0, 1.0]]).expect("regular");
+    let t1 = shrink_map(1);
     let t1_inv = t1.inverse().expect("regular");
     let key_c = half(&key_s);
     let coarse: Vec<(Point2<f64>, (f64, f64))> =
@@ -157,26 +212,475 @@ pub fn surface_planes(
                 .collect()
         })
         .collect();
-    let walls_s: Vec<Homography> = walls.iter().map(|h| t.after(h).after(&t_inv)).collect();
-    fit_planes(&matches, &walls_s, &|_| false, &params.fit, seed)
-        .into_iter()
-        .map(|f| {
-            // Back to full resolution.
-            let a = t_inv.apply(Point2::new(f.bounds.0, f.bounds.1)).expect("affine");
-            let b = t_inv.apply(Point2::new(f.bounds.2, f.bounds.3)).expect("affine");
-            let gx = (0.5 * (b.x - a.x)).max(params.min_grow as f64);
-            let gy = (0.5 * (b.y - a.y)).max(params.min_grow as f64);
-            let clip = |v: f64, hi: usize| v.clamp(0.0, hi as f64) as usize;
-            let region = Rect::from_corners(
-                clip(a.x - gx, w),
-                clip(a.y - gy, h),
-                clip(b.x + gx + 1.0, w),
-                clip(b.y + gy + 1.0, h),
-            );
-            let views = f.views.iter().map(|o| o.map(|hv| t_inv.after(&hv).after(&t))).collect();
-            SurfacePlane { views, region }
+    let walls = walls.iter().map(|h| t.after(h).after(&t_inv)).collect();
+    Guided { t, matches, walls }
+}
+
+/// Parameters of [`swept_planes`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct SweepParams {
+    /// The guided matching whose off-wall matches give the epipoles.
+    pub matching: SurfaceParams,
+    /// The epipoles' fit (thresholds in matching-resolution pixels).
+    pub epipoles: ParallaxFitParams,
+    /// The sweep runs on the images halved until they have at most this many pixels.
+    pub max_pixels: usize,
+    /// Consecutive depths move the fastest view's pixels by this much (sweep pixels)...
+    pub step_px: f64,
+    /// ...from this much beyond the nearest and farthest matched depth...
+    pub reach_px: f64,
+    /// ...but at most this share of the image's width from the wall.
+    pub max_reach: f64,
+    /// The sweep scores the keyframe's pixels from `gap` to `gap + band` (sweep pixels)
+    /// around the mask: where the keyframe itself says what is there.
+    pub gap: usize,
+    pub band: usize,
+    /// Normalised cross-correlation over `(2·r + 1)²` pixels.
+    pub window: usize,
+    /// A pixel votes for its best depth when its keyframe window has at least this standard
+    /// deviation...
+    pub min_texture: f32,
+    /// ...its cost (1 − NCC, the views' best agreeing) is at most this...
+    pub max_cost: f32,
+    /// ...the wall's is higher by this much, and any depth more than two steps away is higher
+    /// by `unique`.
+    pub margin: f32,
+    pub unique: f32,
+    /// A view's scale of `γ` relative to the reference view's is searched over this range
+    /// (both signs), in this many steps (geometric).
+    pub scale_range: (f64, f64),
+    pub scale_steps: usize,
+    /// A voting pixel counts when this many of its `(2·4 + 1)²` neighbours vote for the same
+    /// depth (±1 step): stray votes do not stretch a surface's support.
+    pub min_neighbours: f32,
+    /// A depth is a surface with at least this many voting pixels (sweep pixels).
+    pub min_votes: usize,
+    /// A surface's votes cover at least this share of the box they span.
+    pub min_density: f64,
+    /// At most this many surfaces besides the wall.
+    pub max_planes: usize,
+    /// A surface may be chosen around its support grown by half its size, and at least this
+    /// many (full-resolution) pixels.
+    pub min_grow: usize,
+}
+
+impl Default for SweepParams {
+    fn default() -> Self {
+        Self {
+            matching: SurfaceParams::default(),
+            epipoles: ParallaxFitParams::default(),
+            max_pixels: 330_000,
+            step_px: 1.0,
+            reach_px: 12.0,
+            max_reach: 0.12,
+            gap: 2,
+            band: 40,
+            window: 3,
+            min_texture: 0.02,
+            max_cost: 0.4,
+            margin: 0.1,
+            unique: 0.03,
+            scale_range: (0.05, 20.0),
+            scale_steps: 500,
+            min_neighbours: 20.0,
+            min_votes: 150,
+            min_density: 0.1,
+            max_planes: 6,
+            min_grow: 24,
+        }
+    }
+}
+
+/// The surfaces parallel to the wall that stand around the keyframe's mask, swept densely
+/// (plane + parallax). Given each view's wall homography (keyframe → view), a point off the
+/// wall maps as `x_v ~ H_v·x + γ·e_v` ([`crate::geometry::planes::ParallaxFamily`]); the epipoles `e_v` and their
+/// relative scales come from the guided matches the wall leaves out. Then every depth `γ`
+/// (a step of about one pixel in the view that moves most) is scored over a band of
+/// keyframe pixels around the mask: the normalised cross-correlation of the keyframe with
+/// each view warped through the depth's homographies, the views' best agreeing kept (a view
+/// whose passer-by stands there does not decide). Each textured pixel votes for its best
+/// depth when that is clearly better than the wall and unique (several baselines at once
+/// rule out the periodic repeats a single view has); the depths many pixels vote for are
+/// the surfaces, each allowed around where it was seen. Nothing (a flat wall, a pure
+/// rotation, no matches off the wall) gives no surfaces.
+pub fn swept_planes(
+    key: &GrayF32,
+    views: &[&GrayF32],
+    walls: &[Homography],
+    mask: &Mask,
+    params: &SweepParams,
+    seed: u64,
+) -> Vec<SurfacePlane> {
+    let (w, h) = (key.width(), key.height());
+    if mask.hole_count() == 0 || views.is_empty() {
+        return Vec::new();
+    }
+    let Some((own, g)) = parallax_family(key, views, walls, mask, params, seed) else { return Vec::new() };
+    let levels = levels_for(w, h, params.max_pixels);
+    let shrink = |img: &GrayF32| (0..levels).fold(img.clone(), |g, _| half(&g));
+    let tw = shrink_map(levels);
+    let tw_inv = tw.inverse().expect("regular");
+    let tm_inv = g.t.inverse().expect("regular");
+    // Matching resolution → sweep resolution.
+    let to_sweep = tw.after(&tm_inv);
+    let to_sweep_inv = to_sweep.inverse().expect("regular");
+    let key_w = shrink(key);
+    let Some(band) = Band::new(&key_w, mask, 1 << levels, params) else { return Vec::new() };
+    let (rect, rw) = (band.rect, band.rect.width);
+    let n = rect.area();
+    let views_w: Vec<GrayF32> = views.iter().map(|v| shrink(v)).collect();
+    // Depths a step apart move a view's pixels by `step_px`; `rate` pixels per unit of γ.
+    let centre = to_sweep_inv
+        .apply(Point2::new(rect.x as f64 + 0.5 * rw as f64, rect.y as f64 + 0.5 * rect.height as f64))
+        .expect("affine");
+    let per_px = to_sweep.area_scale(centre).sqrt();
+    let depths = |rate: f64, seen: &[f64]| -> Vec<f64> {
+        let step = params.step_px / rate;
+        let mut seen = seen.to_vec();
+        seen.sort_by(f64::total_cmp);
+        let q =
+            |f: f64| if seen.is_empty() { 0.0 } else { seen[((seen.len() - 1) as f64 * f).round() as usize] };
+        let limit = params.max_reach * key_w.width() as f64 / rate;
+        let lo = (q(0.05).min(0.0) - params.reach_px / rate).max(-limit);
+        let hi = (q(0.95).max(0.0) + params.reach_px / rate).min(limit);
+        ((lo / step).floor() as i64..=(hi / step).ceil() as i64).map(|k| k as f64 * step).collect()
+    };
+    let warp_cost = |fam: &ParallaxFamily, v: usize, gamma: f64| -> Option<Vec<f32>> {
+        let hm = fam.homography(v, gamma)?;
+        Some(band.costs(&views_w[v], &to_sweep.after(&hm).after(&to_sweep_inv)))
+    };
+    // 1. Each view on its own (its own scale of γ): its costs at its depths, and the depth
+    //    each band pixel votes for.
+    let nv = views.len();
+    type Alone = (Vec<f64>, Vec<Vec<f32>>, Vec<Option<f64>>);
+    let alone: Vec<Option<Alone>> = (0..nv)
+        .map(|v| {
+            let rate = own.rate(v, centre) * per_px;
+            if rate < 1e-9 {
+                return None;
+            }
+            let gs = depths(rate, &own.observed[v]);
+            let costs: Vec<Vec<f32>> =
+                gs.par_iter().map(|&gm| warp_cost(&own, v, gm).expect("epipole")).collect();
+            let wall = gs.iter().position(|&gm| gm == 0.0).expect("the wall is swept");
+            let votes = band.votes(&costs, wall, params).into_iter().map(|l| l.map(|l| gs[l])).collect();
+            Some((gs, costs, votes))
         })
-        .collect()
+        .collect();
+    let count = |v: usize| alone[v].as_ref().map_or(0, |a| a.2.iter().flatten().count());
+    let reference = (0..nv).max_by_key(|&v| (count(v), std::cmp::Reverse(v))).expect("views");
+    if count(reference) < params.min_votes {
+        return Vec::new();
+    }
+    // 2. The views' scales: where the reference votes for depth γ, view `v` must see the
+    //    same surface at `k·γ`; `k` is the factor under which it agrees best there, kept
+    //    when that is clearly better than the wall (a wrong epipole agrees nowhere).
+    let votes_ref: Vec<(usize, f64)> = alone[reference]
+        .as_ref()
+        .expect("voted")
+        .2
+        .iter()
+        .enumerate()
+        .filter_map(|(j, g)| Some((j, (*g)?)))
+        .collect();
+    let scale: Vec<Option<f64>> = (0..nv)
+        .map(|v| {
+            if v == reference {
+                return Some(1.0);
+            }
+            let (gs, costs, _) = alone[v].as_ref()?;
+            let step = gs[1] - gs[0];
+            let at = |g: f64, j: usize| -> f32 {
+                let l = ((g - gs[0]) / step).round();
+                if l < 0.0 || l as usize >= gs.len() {
+                    return 1.0;
+                }
+                let c = costs[l as usize][j];
+                if c.is_nan() { 1.0 } else { c }
+            };
+            let mean = |k: f64| -> f32 {
+                votes_ref.iter().map(|&(j, g)| at(k * g, j)).sum::<f32>() / votes_ref.len() as f32
+            };
+            let wall = mean(0.0);
+            let (best, k) = (0..2 * params.scale_steps)
+                .into_par_iter()
+                .map(|i| {
+                    let sign = if i % 2 == 0 { 1.0 } else { -1.0 };
+                    let t = (i / 2) as f64 / (params.scale_steps - 1) as f64;
+                    let k = sign
+                        * (params.scale_range.0.ln()
+                            + t * (params.scale_range.1 / params.scale_range.0).ln())
+                        .exp();
+                    (mean(k), k)
+                })
+                .min_by(|a, b| a.0.total_cmp(&b.0))?;
+            (wall - best >= 0.5 * params.margin).then_some(k)
+        })
+        .collect();
+    // One view alone cannot tell a surface from a repeat of the wall's texture.
+    if scale.iter().flatten().count() < 2 {
+        return Vec::new();
+    }
+    let family = own.scaled(&scale);
+    // 3. All views together, one γ: the depths many pixels vote for are the surfaces.
+    let rate = (0..nv).map(|v| family.rate(v, centre) * per_px).fold(0.0f64, f64::max);
+    let seen: Vec<f64> = family.observed.concat();
+    let gs = depths(rate, &seen);
+    let labels: Vec<f64> = gs;
+    let wall = labels.iter().position(|&gm| gm == 0.0).expect("the wall is swept");
+    let costs: Vec<Vec<f32>> = labels
+        .par_iter()
+        .map(|&gamma| {
+            let per_view: Vec<Vec<f32>> = (0..nv).filter_map(|v| warp_cost(&family, v, gamma)).collect();
+            (0..band.len())
+                .map(|j| {
+                    let mut c: Vec<f32> = per_view.iter().map(|p| p[j]).filter(|c| !c.is_nan()).collect();
+                    if c.is_empty() {
+                        return f32::NAN;
+                    }
+                    c.sort_unstable_by(f32::total_cmp);
+                    // All views of up to three; of more, three in four (a passer-by in one
+                    // of many does not decide, a repeat seen by one of few does not either).
+                    let keep = (3 * c.len()).div_ceil(4).max(c.len().min(3));
+                    c[..keep].iter().sum::<f32>() / keep as f32
+                })
+                .collect()
+        })
+        .collect();
+    let nl = labels.len();
+    let vote = band.votes(&costs, wall, params);
+    let band_px = &band.pixels;
+    // Stray votes out: a vote stands with enough neighbours voting alike.
+    let mut label_at = vec![usize::MAX; n];
+    let (rh, rw) = (rect.height, rect.width);
+    for (j, &i) in band_px.iter().enumerate() {
+        if let Some(l) = vote[j] {
+            label_at[i] = l;
+        }
+    }
+    let mut histogram = vec![0usize; nl];
+    let mut kept: Vec<(usize, usize)> = Vec::new();
+    for (l, count) in histogram.iter_mut().enumerate() {
+        let near: Vec<f32> =
+            label_at.iter().map(|&a| if a != usize::MAX && a.abs_diff(l) <= 1 { 1.0 } else { 0.0 }).collect();
+        let support = box_sum(&near, rw, rh, 4);
+        for (i, &a) in label_at.iter().enumerate() {
+            if a == l && support[i] >= params.min_neighbours {
+                *count += 1;
+                kept.push((i, l));
+            }
+        }
+    }
+    // Peaks of the histogram, strongest first.
+    let smooth: Vec<usize> = (0..nl)
+        .map(|l| {
+            histogram[l] * 2
+                + if l > 0 { histogram[l - 1] } else { 0 }
+                + histogram.get(l + 1).copied().unwrap_or(0)
+        })
+        .collect();
+    let mut taken = vec![false; nl];
+    let mut planes = Vec::new();
+    while planes.len() < params.max_planes {
+        let Some(l) = (0..nl).filter(|&l| !taken[l]).max_by_key(|&l| (smooth[l], std::cmp::Reverse(l)))
+        else {
+            break;
+        };
+        let support: Vec<usize> = kept.iter().filter(|(_, a)| a.abs_diff(l) <= 1).map(|&(i, _)| i).collect();
+        if support.len() < params.min_votes {
+            break;
+        }
+        taken[l.saturating_sub(3)..(l + 4).min(nl)].iter_mut().for_each(|t| *t = true);
+        // The depth to a fraction of a step: a parabola through the support's summed costs.
+        let mut mine = vec![false; n];
+        for &i in &support {
+            mine[i] = true;
+        }
+        let total = |l: usize| -> f64 {
+            band_px
+                .iter()
+                .enumerate()
+                .filter(|&(_, &i)| mine[i])
+                .map(|(j, _)| f64::from(if costs[l][j].is_nan() { 1.0 } else { costs[l][j] }))
+                .sum()
+        };
+        let frac = if l > 0 && l + 1 < nl {
+            let (a, b, c) = (total(l - 1), total(l), total(l + 1));
+            let d = a - 2.0 * b + c;
+            if d > 1e-9 { (0.5 * (a - c) / d).clamp(-0.5, 0.5) } else { 0.0 }
+        } else {
+            0.0
+        };
+        let step = if l + 1 < nl { labels[l + 1] - labels[l] } else { labels[l] - labels[l - 1] };
+        let gamma = labels[l] + frac * step;
+        // Where it was seen: the support's extent, its outlying 5 % on each side left out.
+        let mut xs: Vec<usize> = support.iter().map(|&i| rect.x + i % rw).collect();
+        let mut ys: Vec<usize> = support.iter().map(|&i| rect.y + i / rw).collect();
+        xs.sort_unstable();
+        ys.sort_unstable();
+        let at = |v: &[usize], f: f64| v[((v.len() - 1) as f64 * f).round() as usize] as f64;
+        let (x0, y0, x1, y1) = (at(&xs, 0.05), at(&ys, 0.05), at(&xs, 0.95), at(&ys, 0.95));
+        // Votes scattered over a wide area are repeats of texture, not a surface.
+        if (support.len() as f64) < params.min_density * (x1 - x0 + 1.0) * (y1 - y0 + 1.0) {
+            continue;
+        }
+        let a = tw_inv.apply(Point2::new(x0 - 0.5, y0 - 0.5)).expect("affine");
+        let b = tw_inv.apply(Point2::new(x1 + 0.5, y1 + 0.5)).expect("affine");
+        let region = grown_region(a, b, params.min_grow, w, h);
+        let hv = (0..views.len())
+            .map(|v| family.homography(v, gamma).map(|hm| tm_inv.after(&hm).after(&g.t)))
+            .collect();
+        planes.push(SurfacePlane { views: hv, region });
+    }
+    planes
+}
+
+/// The plane + parallax family of [`swept_planes`] (at the matching resolution) and the map
+/// from full resolution to it; `None` when no view shows parallax.
+pub fn parallax_family(
+    key: &GrayF32,
+    views: &[&GrayF32],
+    walls: &[Homography],
+    mask: &Mask,
+    params: &SweepParams,
+    seed: u64,
+) -> Option<(ParallaxFamily, Guided)> {
+    let g = guided(key, views, walls, mask, &params.matching);
+    let family = fit_parallax(&g.matches, &g.walls, &params.epipoles, seed)?;
+    Some((family, g))
+}
+
+/// The keyframe's band around the mask that the sweep scores (sweep resolution).
+struct Band {
+    /// The keyframe over `rect`.
+    key: Vec<f32>,
+    /// Bounding box of the band grown by the window.
+    rect: Rect,
+    /// Band pixels (indices into `rect`).
+    pixels: Vec<usize>,
+    /// `rect`-sized: where views are sampled (the band and its windows).
+    need: Plane<bool>,
+    /// Window sums over `rect`: pixel count, keyframe values, their squares.
+    area: Vec<f32>,
+    ks: Vec<f32>,
+    k2: Vec<f32>,
+    window: usize,
+}
+
+impl Band {
+    /// The band of `key` (already at the sweep resolution, `s` full-resolution pixels to one)
+    /// around `mask`; `None` with nothing to score.
+    fn new(key: &GrayF32, mask: &Mask, s: usize, params: &SweepParams) -> Option<Self> {
+        let (w, h) = (mask.width(), mask.height());
+        let (ww, hw) = (key.width(), key.height());
+        let hole = Plane::from_fn(ww, hw, |x, y| {
+            (y * s..((y + 1) * s).min(h))
+                .any(|yy| (x * s..((x + 1) * s).min(w)).any(|xx| mask.is_hole(xx, yy)))
+        });
+        let outer = dilate(&hole, params.gap + params.band);
+        let inner = dilate(&hole, params.gap);
+        let in_band = Plane::from_fn(ww, hw, |x, y| outer.get(x, y) && !inner.get(x, y));
+        let rect = bool_bounds(&in_band)?.grown(params.window, ww, hw);
+        let (rw, rh) = (rect.width, rect.height);
+        let n = rect.area();
+        let pixels: Vec<usize> = (0..n).filter(|&i| in_band.get(rect.x + i % rw, rect.y + i / rw)).collect();
+        let need = dilate(&Plane::from_fn(rw, rh, |x, y| in_band.get(rect.x + x, rect.y + y)), params.window);
+        let kv: Vec<f32> = (0..n).map(|i| key.get(rect.x + i % rw, rect.y + i / rw)).collect();
+        let r = params.window;
+        Some(Self {
+            rect,
+            pixels,
+            need,
+            area: box_sum(&vec![1.0; n], rw, rh, r),
+            ks: box_sum(&kv, rw, rh, r),
+            k2: box_sum(&kv.iter().map(|v| v * v).collect::<Vec<_>>(), rw, rh, r),
+            key: kv,
+            window: r,
+        })
+    }
+
+    fn len(&self) -> usize {
+        self.pixels.len()
+    }
+
+    /// Per band pixel: 1 − the normalised cross-correlation of the keyframe's window with
+    /// `view` warped through `hs` (keyframe → view, sweep resolution); NaN where the view
+    /// does not cover the window.
+    fn costs(&self, view: &GrayF32, hs: &Homography) -> Vec<f32> {
+        let (rw, rh) = (self.rect.width, self.rect.height);
+        let n = self.rect.area();
+        let (mut img, mut ok) = (vec![0.0f32; n], vec![0.0f32; n]);
+        for i in 0..n {
+            if !self.need.as_slice()[i] {
+                continue;
+            }
+            let p = Point2::new((self.rect.x + i % rw) as f64, (self.rect.y + i / rw) as f64);
+            if let Some(val) = hs.apply(p).and_then(|q| bilinear(view, q.x as f32, q.y as f32)) {
+                img[i] = val;
+                ok[i] = 1.0;
+            }
+        }
+        let r = self.window;
+        let kv = &self.key;
+        let cnt = box_sum(&ok, rw, rh, r);
+        let vs = box_sum(&img, rw, rh, r);
+        let v2 = box_sum(&img.iter().map(|a| a * a).collect::<Vec<_>>(), rw, rh, r);
+        let kw = box_sum(&img.iter().zip(kv).map(|(a, b)| a * b).collect::<Vec<_>>(), rw, rh, r);
+        let (area, ks, k2) = (&self.area, &self.ks, &self.k2);
+        self.pixels
+            .iter()
+            .map(|&i| {
+                if cnt[i] < area[i] - 0.5 {
+                    return f32::NAN;
+                }
+                let a = area[i];
+                let vk = (k2[i] - ks[i] * ks[i] / a).max(0.0);
+                let vv = (v2[i] - vs[i] * vs[i] / a).max(0.0);
+                let den = (vk * vv).sqrt();
+                if den < 1e-9 {
+                    return 1.0;
+                }
+                (1.0 - (kw[i] - ks[i] * vs[i] / a) / den).clamp(0.0, 1.0)
+            })
+            .collect()
+    }
+
+    /// Per band pixel: the depth (index into `costs`) it votes for, if any: a textured
+    /// window whose best depth is good, clearly better than the wall (`wall`), and unique.
+    fn votes(&self, costs: &[Vec<f32>], wall: usize, params: &SweepParams) -> Vec<Option<usize>> {
+        let nl = costs.len();
+        let min_var = params.min_texture * params.min_texture;
+        self.pixels
+            .iter()
+            .enumerate()
+            .map(|(j, &i)| {
+                if (self.k2[i] - self.ks[i] * self.ks[i] / self.area[i]) / self.area[i] < min_var {
+                    return None;
+                }
+                let c = |l: usize| if costs[l][j].is_nan() { f32::INFINITY } else { costs[l][j] };
+                let best = (0..nl).min_by(|&a, &b| c(a).total_cmp(&c(b)))?;
+                let second = (0..nl).filter(|&l| l.abs_diff(best) > 2).map(c).fold(f32::INFINITY, f32::min);
+                (best.abs_diff(wall) > 2
+                    && c(best) <= params.max_cost
+                    && c(wall) - c(best) >= params.margin
+                    && second - c(best) >= params.unique)
+                    .then_some(best)
+            })
+            .collect()
+    }
+}
+
+/// Bounding box of the `true` pixels.
+fn bool_bounds(m: &Plane<bool>) -> Option<Rect> {
+    let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
+    for y in 0..m.height() {
+        for (x, &b) in m.row(y).iter().enumerate() {
+            if b {
+                (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x + 1), y1.max(y + 1));
+            }
+        }
+    }
+    (x1 > x0).then(|| Rect::from_corners(x0, y0, x1, y1))
 }
 
 /// Keyframe `points` matched in `view`, each searched `radius` pixels around where `wall`
