@@ -142,7 +142,8 @@ def run_case(args, work, video, truths, covers, key, flag):
          "mask_share": float((mask > 127).mean()), "accepted": accepted, "rejected": rejected,
          "psnr": masked_psnr(result, truth, mask), "telea": masked_psnr(telea, truth, mask),
          "keyframe_psnr": masked_psnr(keyimg, truth, mask),
-         "fallback_share": report.get("fallback_share", report.get("from_fallback")), "wall_s": wall}
+         "from_fallback": report.get("from_fallback", float("nan")), "doubtful": report.get("doubtful", float("nan")),
+         "result_number": report.get("number"), "wall_s": wall}
     r["target"] = max(27.0, r["telea"] + 6.0)
     r["met"] = r["psnr"] >= r["target"]
     return r
@@ -162,15 +163,15 @@ def main():
     video, truths, covers = render(work, args.frames, args.seed, args.occluders)
     rows = [run_case(args, work, video, truths, covers, 0, False),
             run_case(args, work, video, truths, covers, 30, True)]
-    print("| case | keyframe | masked px (share) | views accepted / rejected | keyframe as is dB | Telea dB "
-          "| clearview dB | target dB | met | wall s |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---|---:|")
+    print("| case | keyframe | masked px (share) | views accepted / rejected | fallback / doubtful share "
+          "| keyframe as is dB | Telea dB | clearview dB | target dB | met | wall s |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|")
     for r in rows:
         if "error" in r:
             print(f"| {r['case']} | error: {r['error']} |")
             continue
         print(f"| {r['case']} | {r['keyframe']} | {r['masked_px']} ({r['mask_share']:.0%}) | "
-              f"{r['accepted']} / {r['rejected']} | {r['keyframe_psnr']:.2f} | {r['telea']:.2f} | "
+              f"{r['accepted']} / {r['rejected']} | {r['from_fallback']:.0%} / {r['doubtful']:.0%} | {r['keyframe_psnr']:.2f} | {r['telea']:.2f} | "
               f"**{r['psnr']:.2f}** | {r['target']:.2f} | {'yes' if r['met'] else 'no'} | {r['wall_s']:.1f} |")
     (work / "results.json").write_text(json.dumps(rows, indent=1))
 

@@ -497,8 +497,9 @@ impl Frame {
     }
 }
 
-/// Whether any hole of `mask` lies within `radius` of the keypoint (sampled on a grid of
-/// about a pixel, at most 9 × 9 samples over the disc's bounding square).
+/// Whether any hole of `mask` lies within `radius` of the keypoint, sampled on a grid over
+/// the disc: a pixel apart for small radii, at most 9 × 9 points (a step of radius / 4)
+/// for large ones, enough for a painted mask's blobs.
 fn touches_hole(mask: &Mask, kp: &Keypoint, radius: f32) -> bool {
     let steps = (radius.ceil() as isize).clamp(1, 4);
     let step = radius / steps as f32;
@@ -631,8 +632,8 @@ pub fn align_from_matches(
     let best = fitted.swap_remove(best);
     // Judged on what the view can see: a descriptor match whose keyframe point the model
     // sends outside the view cannot be right under any model, so it does not count against
-    // this one (a view that sees 41 % of the keyframe had 25 % of all its matches agreeing,
-    // 15 of 61, and most of the rest from keyframe points it does not show).
+    // this one (a walk's frame that sees 41 % of the keyframe: 15 of its 61 matches agree,
+    // and 15 others are of keyframe points it does not show).
     let in_view: Vec<&Correspondence> =
         putative.iter().filter(|c| lands_inside(&best.h, c.key, view)).collect();
     let agreement =
