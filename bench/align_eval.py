@@ -36,8 +36,11 @@ Both methods run as whole processes, one per pair, decoding included:
 The wall time of each process is recorded; `speed` times the 12 MP pairs several times.
 
 Usage:
-  bench/.venv/bin/python bench/align_eval.py prepare [--work DIR] [--data DIR]
+  bench/.venv/bin/python bench/align_eval.py prepare [--work DIR] [--data DIR] [--sets mv12,occl]
   bench/.venv/bin/python bench/align_eval.py run [--work DIR] [--sets mv12,occl,clean] [--only SUBSTR]
+      [--no-peer | --peer-from TABLES.md] [--mask]
+  (--mask: clearview is given the keyframe's mask over the pasted occluders, key.mask.png,
+  as `fill` would give it; --peer-from: the peer's errors from an earlier run's tables.)
   bench/.venv/bin/python bench/align_eval.py speed [--work DIR] [--runs N] [--pairs a,b]
 """
 
@@ -254,7 +257,7 @@ def paste_occluders(img, seed, share):
         size = rng.uniform(0.15, 0.35) * short
         x0, y0 = rng.uniform(0.05 * w, 0.95 * w), rng.uniform(0.2 * hgt, 0.9 * hgt)
         kind(rng, out, cover, x0, y0, size)
-    return out, float(cover.mean())
+    return out, float(cover.mean()), cover
 
 
 # ---------------------------------------------------------------- prepare
@@ -268,7 +271,7 @@ def prepare(args):
             pairs.append((data / "multiview" / folder, a, b))
     for folder, a, b in TRANSIENT:
         pairs.append((data / "transient" / folder, a, b))
-    for folder, a, b in pairs:
+    for folder, a, b in (pairs if "mv12" in args.sets.split(",") else []):
         name = f"{Path(a).stem}-{Path(b).stem}"
         d = work / "mv12" / name
         d.mkdir(parents=True, exist_ok=True)
@@ -300,7 +303,7 @@ def prepare(args):
                 "seen": seen_share(ref, g1.shape[::-1], g2.shape[::-1])}
         (d / "meta.json").write_text(json.dumps(meta))
         print(f"mv12/{name}: {meta}", file=sys.stderr)
-    for seq in OXFORD:
+    for seq in (OXFORD if "occl" in args.sets.split(",") else []):
         sdir = data / "oxford" / seq
         key = cv2.imread(str(image_path(sdir, 1)))
         for n in range(2, 7):
@@ -309,9 +312,13 @@ def prepare(args):
             d = work / "occl" / name
             d.mkdir(parents=True, exist_ok=True)
             seed = 1000 * OXFORD.index(seq) + n
-            k_occ, kc = paste_occluders(key, seed, 0.30)
-            v_occ, vc = paste_occluders(view, seed + 500, 0.08)
+            k_occ, kc, k_cover = paste_occluders(key, seed, 0.30)
+            v_occ, vc, _ = paste_occluders(view, seed + 500, 0.08)
             cv2.imwrite(str(d / "key.png"), k_occ)
+            # The mask a user would paint over the keyframe's occluders: their cover, grown
+            # by 6 px (a generous brush); `run --mask` gives it to `clearview align --mask`.
+            grown = cv2.dilate(k_cover.astype(np.uint8) * 255, np.ones((13, 13), np.uint8))
+            cv2.imwrite(str(d / "key.mask.png"), grown)
             cv2.imwrite(str(d / "view.png"), v_occ)
             refined = sdir / f"H1to{n}p.refined"
             write_h(d / "H", read_h(refined if refined.exists() else sdir / f"H1to{n}p"))
@@ -337,7 +344,7 @@ def set_pairs(work, data, which):
         return clean_pairs(data)
     out = []
     for d in sorted((work / which).iterdir()):
-        key = next(d.glob("key.*"))
+        key = next(p for p in d.glob("key.*") if ".mask." not in p.name)
         view = next(d.glob("view.*"))
         out.append((d.name, key, view, d / "H"))
     return out
@@ -346,9 +353,10 @@ def set_pairs(work, data, which):
 # ---------------------------------------------------------------- run
 
 
-def run_clearview(binary, key, view):
+def run_clearview(binary, key, view, mask=None):
     start = time.perf_counter()
-    p = subprocess.run([str(binary), "align", "--json", str(key), str(view)], capture_output=True, text=True)
+    extra = ["--mask", str(mask)] if mask else []
+    p = subprocess.run([str(binary), "align", "--json", *extra, str(key), str(view)], capture_output=True, text=True)
     wall = time.perf_counter() - start
     if p.returncode not in (0, 3):
         return None, False, f"exit {p.returncode}: {p.stderr.strip()}", wall, {}
@@ -373,8 +381,27 @@ def fmt(e):
     return f"{e:.2f}" if e < 100 else f"{e:.0f}"
 
 
+def read_peer(path):
+    """The SIFT + MAGSAC errors of an earlier run's tables (the peer is deterministic,
+    `cv2.setRNGSeed(0)`, and slow at 12 MP): {(set, pair): px}, from the column headed
+    "SIFT + MAGSAC px"; "none" is a refusal (infinite)."""
+    out, which, col = {}, None, None
+    for line in path.read_text().splitlines():
+        if line.startswith("#### "):
+            which, col = line.split()[1], None
+        elif line.startswith("| pair |"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            col = cells.index("SIFT + MAGSAC px")
+        elif which and col is not None and line.startswith("| ") and not line.startswith("| **"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            v = cells[col].split()[0]
+            out[(which, cells[0])] = float("inf") if v == "none" else float(v)
+    return out
+
+
 def run(args):
     work, data, binary = Path(args.work), Path(args.data), Path(args.binary)
+    peer = read_peer(Path(args.peer_from)) if args.peer_from else {}
     results = {}
     out = []
     for which in args.sets.split(","):
@@ -385,10 +412,14 @@ def run(args):
             truth = read_h(hfile)
             ks = cv2.imread(str(key), cv2.IMREAD_UNCHANGED).shape[:2][::-1]
             vs = cv2.imread(str(view), cv2.IMREAD_UNCHANGED).shape[:2][::-1]
-            h_cv, acc, reason, t_cv, rep = run_clearview(binary, key, view)
+            mask = key.parent / "key.mask.png" if args.mask else None
+            h_cv, acc, reason, t_cv, rep = run_clearview(binary, key, view,
+                                                         mask if mask and mask.exists() else None)
             e_cv = transfer_error(h_cv, truth, ks, vs)
             e_cv_acc = e_cv if acc else float("inf")
-            if args.no_peer:
+            if (which, name) in peer:
+                e_s, t_s = peer[(which, name)], float("nan")
+            elif args.no_peer:
                 e_s, t_s = float("nan"), float("nan")
             else:
                 h_s, _, _, t_s, _ = run_sift(key, view)
@@ -464,6 +495,8 @@ def main():
     ap.add_argument("--sets", default="mv12,occl,clean")
     ap.add_argument("--only", default="")
     ap.add_argument("--no-peer", action="store_true")
+    ap.add_argument("--peer-from", default="", help="take SIFT + MAGSAC's errors from an earlier run's tables (.md)")
+    ap.add_argument("--mask", action="store_true", help="give clearview the keyframe's mask where the set has one (occl)")
     ap.add_argument("--json-out", default="")
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--pairs", default="hunt3-hunt4,roofs1-roofs2")

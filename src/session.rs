@@ -335,7 +335,7 @@ impl Session {
     /// dropped (alignments stay): the caller offers the returned ids again with their
     /// pixels. The result restarts from the buffered views.
     pub fn set_mask(&mut self, id: String, mask: Mask) -> Result<Vec<String>, SessionError> {
-        let key = self.key.as_ref().ok_or(SessionError::NoKey)?;
+        let key = self.key.as_mut().ok_or(SessionError::NoKey)?;
         let (kw, kh) = (key.rgb.width(), key.rgb.height());
         if (mask.width(), mask.height()) != (kw, kh) {
             return Err(SessionError::MaskSize {
@@ -345,6 +345,8 @@ impl Session {
                 key_h: kh,
             });
         }
+        // What is under the mask is to be removed: its corners are not matched.
+        key.frame.set_mask(Some(&mask));
         let region = mask.hole_bounds().map(|r| r.grown(self.params.margin_px, kw, kh));
         self.mask = Some(MaskInfo { id, mask, region });
         self.mask_changed();
@@ -490,6 +492,9 @@ impl Session {
     /// Forgets the mask (its file was deleted): no fill until a new one is set; buffered
     /// views keep their alignments but lose their crops, as when a mask changes.
     pub fn clear_mask(&mut self) {
+        if let Some(key) = &mut self.key {
+            key.frame.set_mask(None);
+        }
         self.mask = None;
         self.mask_changed();
         self.dirty = false;

@@ -11,7 +11,7 @@ use super::exit;
 use super::load::load_image;
 use crate::align::{AlignParams, Frame, align};
 use crate::geometry::{Method, Rows};
-use crate::imaging::convert::to_luminance;
+use crate::imaging::convert::{to_luminance, to_mask};
 use crate::imaging::decode::DecodeLimits;
 
 #[derive(Debug, Args)]
@@ -28,6 +28,10 @@ pub struct AlignArgs {
     /// Seed for the random sampling.
     #[arg(long)]
     pub seed: Option<u64>,
+    /// The keyframe's mask, as `fill` takes it (white = to remove): corners under it
+    /// belong to what is to be removed and are not matched.
+    #[arg(long)]
+    pub mask: Option<PathBuf>,
     /// The keyframe.
     pub key: PathBuf,
     /// The view to align to it.
@@ -56,6 +60,8 @@ struct Report<'a> {
     /// The pyramid octave the final estimate was made at (0 = full resolution; a soft
     /// high-resolution image stops at a coarser one).
     octave: usize,
+    /// Keyframe corners used for matching (those under `--mask` left out).
+    key_corners: usize,
     key_size: [usize; 2],
     view_size: [usize; 2],
     /// Alignment time, decoding excluded.
@@ -76,8 +82,30 @@ pub fn run(args: &AlignArgs) -> u8 {
     if let Some(seed) = args.seed {
         params.seed = seed;
     }
+    let mask = match &args.mask {
+        None => None,
+        Some(path) => match load_image(path, &limits) {
+            Ok(m) if (m.width(), m.height()) == (key.width(), key.height()) => Some(to_mask(&m)),
+            Ok(m) => {
+                eprintln!(
+                    "clearview align: {}: the mask is {}x{} but the keyframe is {}x{}",
+                    path.display(),
+                    m.width(),
+                    m.height(),
+                    key.width(),
+                    key.height()
+                );
+                return exit::USAGE;
+            }
+            Err(e) => {
+                eprintln!("clearview align: {e}");
+                return exit::FAILURE;
+            }
+        },
+    };
     let start = Instant::now();
-    let key_frame = Frame::new(to_luminance(&key), &params);
+    let mut key_frame = Frame::new(to_luminance(&key), &params);
+    key_frame.set_mask(mask.as_ref());
     let view_frame = Frame::new(to_luminance(&view), &params);
     let result = align(&key_frame, &view_frame, &params, None);
     let time_ms = start.elapsed().as_secs_f64() * 1e3;
@@ -100,6 +128,7 @@ pub fn run(args: &AlignArgs) -> u8 {
         median_residual_px: result.median_residual_px.is_finite().then_some(result.median_residual_px),
         coverage: result.coverage,
         octave: result.octave,
+        key_corners: key_frame.keypoints().len(),
         key_size: [key_frame.width(), key_frame.height()],
         view_size: [view_frame.width(), view_frame.height()],
         time_ms,

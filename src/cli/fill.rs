@@ -459,7 +459,9 @@ fn load_key(
         Some(m) => m.hole_bounds().map(|r| r.grown(MARGIN, kw, kh)),
         None => Some(Rect::full(kw, kh)),
     };
-    let frame = Frame::new(to_luminance(&key_img), params);
+    let mut frame = Frame::new(to_luminance(&key_img), params);
+    // What is under the mask is to be removed: its corners are not matched.
+    frame.set_mask(given_mask.as_ref());
     Ok((key_rgb, given_mask, KeyInfo { frame, region }, key.meta))
 }
 
