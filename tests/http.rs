@@ -167,8 +167,21 @@ fn every_endpoint_on_a_live_session() {
         let hole = scene.mask.is_hole(x as usize, y as usize);
         assert_eq!(p.0[3] == 255, hole, "provenance opaque exactly on the mask at ({x}, {y})");
     }
-    let legend = get(&format!("{api}/provenance.json")).json();
-    assert_eq!(legend["result"], session["result"]["number"]);
+    // A later fill (the second view's) may publish between the session's snapshot and this
+    // read: the legend must be the one of the result the session lists at the same moment.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let legend = loop {
+        let legend = get(&format!("{api}/provenance.json")).json();
+        let now = get(&api).json();
+        if legend["result"] == now["result"]["number"] {
+            break legend;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the legend's result never matched the session's: {legend} / {now}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
     let entries = legend["legend"].as_array().unwrap();
     let total: u64 = entries.iter().map(|e| e["pixels"].as_u64().unwrap()).sum();
     assert_eq!(total as usize, W * H);
