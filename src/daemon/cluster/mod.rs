@@ -38,29 +38,31 @@
 //!   made from the object store entry by entry, and runs the folder source
 //!   ([`super::folder`]) and the session engine ([`super::engine`]) on it unchanged.
 //!
-//!   **State and takeover.** After each step the worker saves the session's **record**
+//!   **State and takeover.** A step ends by saving the session's **record**
 //!   (`state.<session>`: how many listing entries are applied, the engine's saved state —
 //!   keyframe, alignments by view id, the published result's input digest, score and
-//!   number — and where that result is) with compare-and-set on its revision. A worker whose
-//!   copy of a session is not at that revision (another worker touched it since, or it has
-//!   never seen it) rebuilds it: the result files of the record from the object store, then
-//!   the applied entries replayed with their saved alignments (nothing is aligned again, no
-//!   event is said again), then the fill, which finds the inputs unchanged and writes
-//!   nothing. Files are materialised with the modification time ingest saw, so view ids —
-//!   and the alignments keyed by them — are the same on every worker.
+//!   number —, where that result is, and the step's events) with compare-and-set on its
+//!   revision. The record is the step's commit: its result message and events are
+//!   published after it is saved, each with a message id of its own, and any worker that
+//!   finds a record it has not seen publishes them again (the stream drops what it already
+//!   has), so a worker that dies between saving and publishing loses nothing, and one that
+//!   dies before saving leaves nothing behind (its message is delivered again, its
+//!   numbers are used again). A worker whose copy of a session is not at the record's
+//!   revision (another worker touched it since, or it never saw it) rebuilds it: the result
+//!   files of the record from the object store, then the applied entries replayed with
+//!   their saved alignments (nothing aligned again, nothing said again); the fill then
+//!   finds the inputs unchanged and writes nothing. Files are materialised with the
+//!   modification time ingest saw, so view ids — and the alignments keyed by them — are the
+//!   same on every worker.
 //!
 //!   **Results** are keyed by the digest of their inputs (the session's inputs digest):
 //!   `result/<session>/<inputs>/{result.<ext>, result.json, history/…, confidence.png,
-//!   provenance.png, mask.png}`, then a [`ResultMsg`] on `clearview.out.<session>` with
-//!   `Nats-Msg-Id` = session + inputs. A replay (a worker died after publishing, before
-//!   saving the record) makes the same result from the same inputs: the objects are there
-//!   already and nothing is uploaded, the message id is a duplicate and is dropped.
+//!   provenance.png, mask.png}` (not uploaded again when there), and a [`ResultMsg`] on
+//!   `clearview.out.<session>` with `Nats-Msg-Id` = session + inputs.
 //!
-//!   **Events** are the service's own ([`super::event::Event`]), collected during a step and
-//!   published to `clearview.events.<session>` after its result (a step that dies publishes
-//!   none; its replay says them). `result_updated` carries the message id
-//!   session + inputs, so it is said once per result. Delivery of other events is at least
-//!   once.
+//!   **Events** are the service's own ([`super::event::Event`]) on
+//!   `clearview.events.<session>`, with ids session + record revision + place: exactly
+//!   once within the stream's duplicate window.
 //!
 //!   **Poison.** A file that does not decode is not poison: it is a `file_skipped` event, as
 //!   in `run`. A message whose step fails `max_deliver` times (the object store lost a file,
@@ -142,6 +144,14 @@ pub fn token(session: &str) -> String {
     }
 }
 
+/// The session a [`token`] stands for.
+pub fn untoken(tok: &str) -> String {
+    let Some(h) = tok.strip_prefix('=') else { return tok.to_owned() };
+    let bytes: Vec<u8> =
+        (0..h.len() / 2).filter_map(|i| u8::from_str_radix(h.get(2 * i..2 * i + 2)?, 16).ok()).collect();
+    String::from_utf8_lossy(&bytes).into_owned()
+}
+
 pub fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
@@ -218,8 +228,18 @@ pub struct Record {
     pub state: Option<String>,
     /// The latest result published.
     pub result: Option<ResultRef>,
+    /// The events of the step that saved it (event log lines), published after it.
+    #[serde(default)]
+    pub events: Vec<Said>,
     /// The worker that saved it.
     pub worker: String,
+}
+
+/// An event line of a step and the session it is of.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Said {
+    pub session: Option<String>,
+    pub line: String,
 }
 
 /// The message on `clearview.out.<session>`: a result's files are in the object store.
@@ -247,6 +267,8 @@ pub struct Nats {
     pub client: async_nats::Client,
     pub js: jetstream::Context,
     pub objects: object_store::ObjectStore,
+    /// The object store's stream (its chunks are read from it directly).
+    pub object_stream: stream::Stream,
     pub sessions: kv::Store,
     pub leases: kv::Store,
     pub config: NatsConfig,
@@ -306,7 +328,10 @@ impl Nats {
                 }
             }
         };
-        Ok(Self { client, js, objects, sessions, leases, config: config.clone() })
+        let object_stream = js.get_stream(format!("OBJ_{}", config.objects)).await.map_err(|e| {
+            ClusterError::Setup { what: format!("object store {}", config.objects), reason: e.to_string() }
+        })?;
+        Ok(Self { client, js, objects, object_stream, sessions, leases, config: config.clone() })
     }
 
     /// Whether object `name` is in the store.
@@ -324,21 +349,44 @@ impl Nats {
         if self.has_object(name).await? {
             return Ok(false);
         }
-        let mut reader = bytes;
-        self.objects.put(name, &mut reader).await.ctx(&format!("put {name}"))?;
+        // On a task of its own: a panic of the client (see `get_object`) is an error here.
+        let (objects, owned, data) = (self.objects.clone(), name.to_owned(), bytes.to_vec());
+        let put = tokio::spawn(async move {
+            let mut reader = data.as_slice();
+            objects.put(owned.as_str(), &mut reader).await.map(|_| ()).ctx(&format!("put {owned}"))
+        });
+        put.await.map_err(|e| OpError(format!("put {name}: the client failed ({e})")))??;
         Ok(true)
     }
 
     /// The bytes of object `name`; `Ok(None)` when it is not in the store.
+    ///
+    /// Its chunks are read with direct gets (any replica answers), not with the client's
+    /// object reader: that one makes an ordered consumer per object, whose creation kept
+    /// timing out for a minute after a server of the cluster died (and `async_nats` 0.50
+    /// unwraps that error, a panic).
     pub async fn get_object(&self, name: &str) -> Result<Option<Vec<u8>>, OpError> {
-        use tokio::io::AsyncReadExt;
-        let mut obj = match self.objects.get(name).await {
-            Ok(o) => o,
-            Err(e) if e.kind() == object_store::GetErrorKind::NotFound => return Ok(None),
-            Err(e) => return Err(OpError(format!("get {name}: {e}"))),
+        let info = match self.objects.info(name).await {
+            Ok(i) if !i.deleted => i,
+            Ok(_) => return Ok(None),
+            Err(e) if e.kind() == object_store::InfoErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(OpError(format!("object {name}: {e}"))),
         };
-        let mut bytes = Vec::new();
-        obj.read_to_end(&mut bytes).await.ctx(&format!("read {name}"))?;
+        let subject = format!("$O.{}.C.{}", self.config.objects, info.nuid);
+        let mut bytes = Vec::with_capacity(info.size);
+        let mut seq = 1;
+        for _ in 0..info.chunks {
+            let m = self
+                .object_stream
+                .direct_get_next_for_subject(subject.as_str(), Some(seq))
+                .await
+                .ctx(&format!("read {name}"))?;
+            bytes.extend_from_slice(&m.payload);
+            seq = m.sequence + 1;
+        }
+        if bytes.len() != info.size {
+            return Err(OpError(format!("read {name}: {} bytes of {}", bytes.len(), info.size)));
+        }
         Ok(Some(bytes))
     }
 
@@ -487,6 +535,9 @@ mod tests {
         assert_eq!(token("rue de la paix"), format!("={}", hex(b"rue de la paix")));
         assert_eq!(token("a.b"), "=612e62");
         assert_eq!(token(""), "=");
+        for s in ["rue de la paix", "façade", "a.b", "plain_1"] {
+            assert_eq!(untoken(&token(s)), s);
+        }
         let long = "x".repeat(65);
         assert!(token(&long).starts_with('='));
         // Every token is one subject token and a valid key part.

@@ -390,14 +390,19 @@ impl Worker {
             let (record, rev) = self.nats.record(tok).await?;
             self.metrics.stage(0, t);
             let n = listing.entries.len();
-            if record.applied >= n {
-                return Ok(());
-            }
             if self.local.get(session).is_none_or(|l| l.revision != rev) {
                 if !record.worker.is_empty() && record.worker != self.id {
                     self.metrics.takeovers.fetch_add(1, Ordering::Relaxed);
                 }
+                // The worker that saved the record may have died before publishing what it
+                // says: published again (the stream drops what it already has).
+                self.flush(tok, &record, rev).await?;
+                if record.applied >= n {
+                    return Ok(());
+                }
                 self.rebuild(session, &listing.entries[..record.applied.min(n)], &record, rev).await?;
+            } else if record.applied >= n {
+                return Ok(());
             }
             let t = Instant::now();
             let dir = self.local[session].slot.dir.clone();
@@ -418,24 +423,45 @@ impl Worker {
             }
             let t = Instant::now();
             let result = match filled.written() {
-                Some(number) => Some(self.publish_result(session, tok, number).await?),
+                Some(number) => Some(self.upload_result(session, tok, number).await?),
                 None => record.result.clone(),
             };
-            self.publish_events(tok, result.as_ref()).await?;
+            // The record is the step's commit: its result and events are published after
+            // it is saved, by this worker or, if it dies first, by the next one.
+            let events = std::mem::take(&mut *self.said.lock().expect("events lock"))
+                .into_iter()
+                .map(|(session, line)| super::Said { session, line })
+                .collect();
             let state_text = std::fs::read_to_string(state::path(&self.ctx.config.state_dir, session)).ok();
-            let new = Record { applied: n, state: state_text, result, worker: self.id.clone() };
+            let new = Record { applied: n, state: state_text, result, events, worker: self.id.clone() };
             let bytes = serde_json::to_vec(&new).ctx("record")?;
             let saved = Nats::kv_swap(&self.nats.sessions, &format!("state.{tok}"), bytes, rev).await?;
+            let Some(new_rev) = saved else { return Err(StepError::TakenOver) };
+            let local = self.local.get_mut(session).expect("rebuilt above");
+            local.revision = new_rev;
+            local.used = Instant::now();
+            self.flush(tok, &new, new_rev).await?;
             self.metrics.stage(4, t);
-            match saved {
-                Some(r) => {
-                    let local = self.local.get_mut(session).expect("rebuilt above");
-                    local.revision = r;
-                    local.used = Instant::now();
-                }
-                None => return Err(StepError::TakenOver),
-            }
         }
+    }
+
+    /// Publishes what record `rev` says: its result's message and its step's events, each
+    /// with a message id of its own (result: session and inputs; event: session, record
+    /// revision and place), so that publishing a record twice adds nothing.
+    async fn flush(&self, tok: &str, record: &Record, rev: u64) -> Result<(), OpError> {
+        if let Some(r) = &record.result {
+            let session = super::untoken(tok);
+            let msg = serde_json::to_vec(&ResultMsg { session, result: r.clone() }).ctx("result")?;
+            self.nats
+                .publish(format!("{OUT_PREFIX}.{tok}"), Some(&format!("result:{tok}:{}", r.inputs)), msg)
+                .await?;
+        }
+        for (i, e) in record.events.iter().enumerate() {
+            let t = e.session.as_deref().map_or_else(|| NO_SESSION.to_owned(), super::token);
+            let id = format!("event:{tok}:{rev}:{i}");
+            self.nats.publish(format!("{EVENTS_PREFIX}.{t}"), Some(&id), e.line.clone().into_bytes()).await?;
+        }
+        Ok(())
     }
 
     /// Makes this worker's copy of the session the one its record describes: the result
@@ -509,13 +535,8 @@ impl Worker {
     }
 
     /// Uploads result `number`'s files under the digest of its inputs (unless they are
-    /// there: a replay) and publishes its message.
-    async fn publish_result(
-        &mut self,
-        session: &str,
-        tok: &str,
-        number: u64,
-    ) -> Result<ResultRef, StepError> {
+    /// there: the same inputs made the same result before).
+    async fn upload_result(&mut self, session: &str, tok: &str, number: u64) -> Result<ResultRef, StepError> {
         let local = &self.local[session];
         let inputs = local
             .slot
@@ -538,7 +559,7 @@ impl Worker {
         let marker = super::result_object(tok, &inputs, "result.json");
         if self.nats.has_object(&marker).await? {
             self.metrics.replays.fetch_add(1, Ordering::Relaxed);
-            tracing::info!(number, %inputs, "result of these inputs already published: nothing uploaded");
+            tracing::info!(number, %inputs, "result of these inputs already uploaded: nothing uploaded");
         } else {
             // result.json last: its presence says the others are there.
             for rel in &files {
@@ -546,28 +567,8 @@ impl Worker {
                 self.nats.put_object(&super::result_object(tok, &inputs, rel), &bytes).await?;
             }
         }
-        let r = ResultRef { number, inputs: inputs.clone(), files };
-        let msg = serde_json::to_vec(&ResultMsg { session: session.to_owned(), result: r.clone() })
-            .ctx("result")?;
-        self.nats
-            .publish(format!("{OUT_PREFIX}.{tok}"), Some(&format!("result:{tok}:{inputs}")), msg)
-            .await?;
         self.metrics.results.fetch_add(1, Ordering::Relaxed);
-        Ok(r)
-    }
-
-    /// Publishes the events of the step (`result_updated` once per result: its message id
-    /// is the result's).
-    async fn publish_events(&self, tok: &str, result: Option<&ResultRef>) -> Result<(), OpError> {
-        let lines = std::mem::take(&mut *self.said.lock().expect("events lock"));
-        for (session, line) in lines {
-            let t = session.as_deref().map_or_else(|| NO_SESSION.to_owned(), super::token);
-            let id = (line.contains("\"event\":\"result_updated\"") && t == tok)
-                .then(|| result.map(|r| format!("event:result_updated:{tok}:{}", r.inputs)))
-                .flatten();
-            self.nats.publish(format!("{EVENTS_PREFIX}.{t}"), id.as_deref(), line.into_bytes()).await?;
-        }
-        Ok(())
+        Ok(ResultRef { number, inputs, files })
     }
 
     /// Sends a message that will never be processed to the dead-letter subject, says so,
@@ -617,7 +618,13 @@ impl Worker {
             deliveries,
         };
         self.ctx.emitter.emit(session, &e);
-        let _ = self.publish_events(&tok, None).await;
+        let lines = std::mem::take(&mut *self.said.lock().expect("events lock"));
+        for (s, line) in lines {
+            let t = s.as_deref().map_or_else(|| NO_SESSION.to_owned(), super::token);
+            if let Err(e) = self.nats.publish(format!("{EVENTS_PREFIX}.{t}"), None, line.into_bytes()).await {
+                tracing::error!(error = %e, "cannot publish the dead letter's event");
+            }
+        }
     }
 }
 
