@@ -279,6 +279,28 @@ fn a_three_server_cluster_survives_a_dead_worker_and_a_dead_server() {
     let last = format!("site{}", SESSIONS - 1);
     dropped.insert(last.clone(), drop_session(&inbox, &last, 700 + SESSIONS as u64 - 1));
 
+    // A poison message (not a file message at all): dead-lettered with its reason, once.
+    {
+        let urls = urls.clone();
+        let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+        rt.block_on(async move {
+            let servers: Vec<async_nats::ServerAddr> =
+                urls.split(',').skip(1).map(|u| u.parse().unwrap()).collect();
+            let js = async_nats::jetstream::new(async_nats::connect(servers).await.unwrap());
+            // Acknowledged by the stream (a leader may be being elected: tried again).
+            for tries in 0.. {
+                let sent = match js.publish("clearview.in.junk", "not a file message".into()).await {
+                    Ok(ack) => ack.await.is_ok(),
+                    Err(_) => false,
+                };
+                if sent {
+                    break;
+                }
+                assert!(tries < 20, "the stream never took the poison message");
+                tokio::time::sleep(Duration::from_millis(500)).await;
+            }
+        });
+    }
     // Every session's view files named by an event, and a result after the last one.
     let deadline = Instant::now() + Duration::from_secs(60);
     let named = |ev: &[Value], session: &str, file: &str| {
@@ -339,6 +361,10 @@ fn a_three_server_cluster_survives_a_dead_worker_and_a_dead_server() {
         let key = (e["session"].as_str().unwrap().to_owned(), e["number"].as_u64().unwrap());
         assert!(said.insert(key.clone()), "result_updated said twice: {key:?}");
     }
+
+    let dead: Vec<&Value> = ev.iter().filter(|e| e["event"] == "message_dead_lettered").collect();
+    assert_eq!(dead.len(), 1, "the poison message is dead-lettered once: {dead:?}");
+    assert!(dead[0]["reason"].as_str().unwrap().contains("malformed"), "{:?}", dead[0]);
 
     // Each session's result, against `clearview fill` on the same files.
     for (s, d) in &dropped {

@@ -440,7 +440,13 @@ impl Worker {
             let local = self.local.get_mut(session).expect("rebuilt above");
             local.revision = new_rev;
             local.used = Instant::now();
-            self.flush(tok, &new, new_rev).await?;
+            let cancel = self.ctx.cancel.clone();
+            if let Err(e) = super::ingest::retry(&cancel, 5, || self.flush(tok, &new, new_rev)).await {
+                // Committed but not published: the copy here is dropped, so whoever handles
+                // the session next (this worker too) publishes the record again.
+                self.local.remove(session);
+                return Err(e.into());
+            }
             self.metrics.stage(4, t);
         }
     }
@@ -609,7 +615,11 @@ impl Worker {
             payload: String::from_utf8_lossy(payload).chars().take(4096).collect(),
         };
         let bytes = serde_json::to_vec(&letter).unwrap_or_default();
-        if let Err(e) = self.nats.publish(format!("{DEAD_PREFIX}.{tok}"), None, bytes).await {
+        let never = CancellationToken::new();
+        let subject = format!("{DEAD_PREFIX}.{tok}");
+        if let Err(e) =
+            super::ingest::retry(&never, 5, || self.nats.publish(subject.clone(), None, bytes.clone())).await
+        {
             tracing::error!(error = %e, "cannot publish the dead letter");
         }
         let e = Event::MessageDeadLettered {
@@ -621,7 +631,12 @@ impl Worker {
         let lines = std::mem::take(&mut *self.said.lock().expect("events lock"));
         for (s, line) in lines {
             let t = s.as_deref().map_or_else(|| NO_SESSION.to_owned(), super::token);
-            if let Err(e) = self.nats.publish(format!("{EVENTS_PREFIX}.{t}"), None, line.into_bytes()).await {
+            let subject = format!("{EVENTS_PREFIX}.{t}");
+            let line = line.into_bytes();
+            if let Err(e) =
+                super::ingest::retry(&never, 5, || self.nats.publish(subject.clone(), None, line.clone()))
+                    .await
+            {
                 tracing::error!(error = %e, "cannot publish the dead letter's event");
             }
         }
