@@ -34,6 +34,8 @@ pub struct RawConfig {
     pub session: RawSession,
     pub compute: RawCompute,
     pub http: RawHttp,
+    /// `[nats]`: the NATS JetStream scale-out (`clearview ingest/worker/collect`).
+    pub nats: RawNats,
     /// `[[video]]` tables: video stream sources (see [`RawVideo`]).
     pub video: Vec<RawVideo>,
 }
@@ -158,6 +160,180 @@ impl Default for RawHttp {
     }
 }
 
+/// `[nats]` as written (see `config/clearview.toml`).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RawNats {
+    pub servers: Vec<String>,
+    pub stream: String,
+    pub results_stream: String,
+    pub consumer: String,
+    pub objects: String,
+    pub sessions: String,
+    pub leases: String,
+    pub replicas: usize,
+    pub credentials: PathBuf,
+    pub tls_ca: PathBuf,
+    pub tls_cert: PathBuf,
+    pub tls_key: PathBuf,
+    pub max_deliver: i64,
+    pub ack_wait_ms: u64,
+    pub lease_ttl_ms: u64,
+    pub duplicate_window_s: u64,
+}
+
+impl Default for RawNats {
+    fn default() -> Self {
+        Self {
+            servers: Vec::new(),
+            stream: "CLEARVIEW_IN".into(),
+            results_stream: "CLEARVIEW_OUT".into(),
+            consumer: "clearview-workers".into(),
+            objects: "clearview-files".into(),
+            sessions: "clearview-sessions".into(),
+            leases: "clearview-leases".into(),
+            replicas: 1,
+            credentials: PathBuf::new(),
+            tls_ca: PathBuf::new(),
+            tls_cert: PathBuf::new(),
+            tls_key: PathBuf::new(),
+            max_deliver: 5,
+            ack_wait_ms: 30_000,
+            lease_ttl_ms: 10_000,
+            duplicate_window_s: 600,
+        }
+    }
+}
+
+/// The checked `[nats]` section: where the cluster is and what its streams and buckets are
+/// called (see [`crate::daemon::cluster`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct NatsConfig {
+    /// Server URLs (`nats://host:4222`, `tls://…`); empty until `--nats` gives some.
+    pub servers: Vec<String>,
+    /// The work-queue stream of files (`clearview.in.<session>`).
+    pub stream: String,
+    /// The stream of results, events and dead letters (`clearview.out|events|dead.<session>`).
+    pub results_stream: String,
+    /// The workers' durable pull consumer.
+    pub consumer: String,
+    /// Object store bucket: files by content digest, results by input digest.
+    pub objects: String,
+    /// Key-value bucket: each session's listing and state.
+    pub sessions: String,
+    /// Key-value bucket of session leases (its max age is the lease's time to live).
+    pub leases: String,
+    /// Replicas of every stream and bucket (3 on a 3-server cluster; 1 on one server).
+    pub replicas: usize,
+    pub credentials: Option<PathBuf>,
+    pub tls_ca: Option<PathBuf>,
+    /// Client certificate and key (mutual TLS), both or neither.
+    pub tls_client: Option<(PathBuf, PathBuf)>,
+    /// Deliveries of a message before it is a poison message (dead-lettered).
+    pub max_deliver: i64,
+    pub ack_wait: Duration,
+    pub lease_ttl: Duration,
+    pub duplicate_window: Duration,
+}
+
+impl Default for NatsConfig {
+    fn default() -> Self {
+        RawNats::default().validate().expect("the built-in [nats] section is valid")
+    }
+}
+
+impl NatsConfig {
+    /// Replaces the servers by a comma-separated list (`--nats URLS`).
+    pub fn set_servers(&mut self, urls: &str) -> Result<(), ConfigError> {
+        self.servers = parse_servers(urls.split(','))?;
+        if self.servers.is_empty() {
+            return Err(invalid("nats.servers", "--nats names no server"));
+        }
+        Ok(())
+    }
+}
+
+fn parse_servers<'a>(urls: impl Iterator<Item = &'a str>) -> Result<Vec<String>, ConfigError> {
+    let mut out = Vec::new();
+    for u in urls.map(str::trim).filter(|u| !u.is_empty()) {
+        let rest = u.split_once("://").map_or(u, |(scheme, rest)| {
+            if matches!(scheme, "nats" | "tls" | "ws" | "wss") { rest } else { "" }
+        });
+        if rest.is_empty() || rest.contains(char::is_whitespace) {
+            return Err(invalid("nats.servers", format!("{u:?} is not a server URL (nats://host:4222)")));
+        }
+        out.push(u.to_owned());
+    }
+    Ok(out)
+}
+
+impl RawNats {
+    pub fn validate(self) -> Result<NatsConfig, ConfigError> {
+        let servers = parse_servers(self.servers.iter().map(String::as_str))?;
+        for (key, name) in [("nats.stream", &self.stream), ("nats.results_stream", &self.results_stream)] {
+            if name.is_empty() || name.contains(['.', '*', '>', ' ', '\t', '/', '\\']) {
+                return Err(invalid(key, format!("{name:?}: a stream name, without . * > / or spaces")));
+            }
+        }
+        if self.stream == self.results_stream {
+            return Err(invalid("nats.results_stream", "must differ from nats.stream"));
+        }
+        let bucket_ok =
+            |b: &str| !b.is_empty() && b.bytes().all(|c| c.is_ascii_alphanumeric() || c == b'-' || c == b'_');
+        for (key, name) in [
+            ("nats.consumer", &self.consumer),
+            ("nats.objects", &self.objects),
+            ("nats.sessions", &self.sessions),
+            ("nats.leases", &self.leases),
+        ] {
+            if !bucket_ok(name) {
+                return Err(invalid(key, format!("{name:?}: letters, digits, - and _ only")));
+            }
+        }
+        if self.sessions == self.leases {
+            return Err(invalid("nats.leases", "must differ from nats.sessions"));
+        }
+        if !(1..=5).contains(&self.replicas) {
+            return Err(invalid("nats.replicas", "must be within 1..=5 (JetStream's limit)"));
+        }
+        if self.max_deliver < 1 {
+            return Err(invalid("nats.max_deliver", "must be at least 1"));
+        }
+        if self.ack_wait_ms < 1000 {
+            return Err(invalid("nats.ack_wait_ms", "must be at least 1000"));
+        }
+        if self.lease_ttl_ms < 1000 {
+            return Err(invalid("nats.lease_ttl_ms", "must be at least 1000"));
+        }
+        if self.duplicate_window_s == 0 {
+            return Err(invalid("nats.duplicate_window_s", "must be at least 1"));
+        }
+        let path = |p: PathBuf| (!p.as_os_str().is_empty()).then_some(p);
+        let tls_client = match (path(self.tls_cert), path(self.tls_key)) {
+            (Some(c), Some(k)) => Some((c, k)),
+            (None, None) => None,
+            _ => return Err(invalid("nats.tls_cert", "tls_cert and tls_key go together")),
+        };
+        Ok(NatsConfig {
+            servers,
+            stream: self.stream,
+            results_stream: self.results_stream,
+            consumer: self.consumer,
+            objects: self.objects,
+            sessions: self.sessions,
+            leases: self.leases,
+            replicas: self.replicas,
+            credentials: path(self.credentials),
+            tls_ca: path(self.tls_ca),
+            tls_client,
+            max_deliver: self.max_deliver,
+            ack_wait: Duration::from_millis(self.ack_wait_ms),
+            lease_ttl: Duration::from_millis(self.lease_ttl_ms),
+            duplicate_window: Duration::from_secs(self.duplicate_window_s),
+        })
+    }
+}
+
 /// The status API and preview page (`[http]`), when on.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct HttpConfig {
@@ -273,6 +449,8 @@ pub struct Config {
     pub http: Option<HttpConfig>,
     /// Video stream sources, each one session.
     pub videos: Vec<VideoSource>,
+    /// The NATS JetStream scale-out (`[nats]`).
+    pub nats: NatsConfig,
     /// Sessions each worker keeps in memory; the least recently used idle one beyond this
     /// is put to sleep (saved state, no pixels) and rebuilt from disk when a file arrives.
     pub resident_sessions: NonZeroUsize,
@@ -417,6 +595,7 @@ impl RawConfig {
             Some(HttpConfig::new(&h.listen, Some(h.token), h.max_body_bytes)?)
         };
         let videos = self.video.into_iter().map(RawVideo::validate).collect::<Result<Vec<_>, _>>()?;
+        let nats = self.nats.validate()?;
         Ok(Config {
             watch_enabled: w.enabled,
             watch_dir: w.dir,
@@ -442,6 +621,7 @@ impl RawConfig {
                 .ok_or_else(|| invalid("compute.resident_sessions", "must be at least 1"))?,
             http,
             videos,
+            nats,
         })
     }
 }

@@ -5,7 +5,7 @@
 use std::process::ExitCode;
 
 use clap::Parser;
-use clearview::cli::{Cli, Command, align, check_config, demo, exit, fill, run};
+use clearview::cli::{Cli, Command, align, check_config, cluster, demo, exit, fill, run};
 
 fn main() -> ExitCode {
     let cli = match Cli::try_parse() {
@@ -17,12 +17,19 @@ fn main() -> ExitCode {
         }
     };
     // The service logs its lifecycle (INFO); one-shot commands only what went wrong.
-    let default = if matches!(cli.command, Command::Run(_)) { "info" } else { "warn" };
+    let service = matches!(
+        cli.command,
+        Command::Run(_) | Command::Ingest(_) | Command::Worker(_) | Command::Collect(_)
+    );
+    let default = if service { "info" } else { "warn" };
     init_logging(cli.log_json, default);
     let code = match &cli.command {
         Command::Align(args) => align::run(args),
         Command::Fill(args) => fill::run(args),
         Command::Run(args) => run::run(args),
+        Command::Ingest(args) => cluster::ingest(args),
+        Command::Worker(args) => cluster::worker(args),
+        Command::Collect(args) => cluster::collect(args),
         Command::CheckConfig(args) => check_config::run(args),
         Command::Demo { dir } => demo::run(dir),
     };

@@ -306,7 +306,14 @@ fn the_systemd_units_score_ok_or_better() {
     let tmp = tempfile::tempdir().unwrap();
     // The template is analysed as an instance, as systemd would run it.
     std::fs::copy(units.join("clearview@.service"), tmp.path().join("clearview@site.service")).unwrap();
-    for unit in [units.join("clearview.service"), tmp.path().join("clearview@site.service")] {
+    let mut all = vec![units.join("clearview.service"), tmp.path().join("clearview@site.service")];
+    // The NATS scale-out's roles.
+    for role in ["worker", "ingest", "collect"] {
+        let instance = tmp.path().join(format!("clearview-{role}@site.service"));
+        std::fs::copy(units.join(format!("clearview-{role}@.service")), &instance).unwrap();
+        all.push(instance);
+    }
+    for unit in all {
         let Some((level, word)) = exposure(&unit) else { return };
         println!("{}: {level} {word}", unit.display());
         // systemd's scale: < 1 SAFE, < 5 OK, < 7.5 MEDIUM, < 9 EXPOSED, < 10 UNSAFE.

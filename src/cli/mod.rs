@@ -3,6 +3,7 @@
 
 pub mod align;
 pub mod check_config;
+pub mod cluster;
 pub mod demo;
 pub mod fill;
 pub mod load;
@@ -43,6 +44,14 @@ pub enum Command {
     /// Run the capture service: watch a folder of sessions, align each new view and
     /// re-inpaint the keyframe whenever it can improve the result.
     Run(run::RunArgs),
+    /// NATS JetStream scale-out: watch a folder and send each complete file to the cluster.
+    Ingest(cluster::IngestArgs),
+    /// NATS JetStream scale-out: take files from the cluster, one session at a time, and
+    /// publish results and events.
+    Worker(cluster::WorkerArgs),
+    /// NATS JetStream scale-out: write the cluster's results and events to a folder, with
+    /// the layout of `clearview run`.
+    Collect(cluster::CollectArgs),
     /// Validate a service configuration file: exit 0 when valid, 64 when not.
     CheckConfig(check_config::CheckConfigArgs),
     /// Play a capture session of a rendered facade into the service, running in-process,

@@ -105,8 +105,13 @@ pub fn fnv64_hex(bytes: &[u8]) -> String {
     format!("{:016x}", h.finish())
 }
 
+/// A second destination for every event line (the NATS roles publish them): called with
+/// the session and the whole line, after it is appended to the log.
+pub type Tee = std::sync::Arc<dyn Fn(Option<&str>, &str) + Send + Sync>;
+
 /// Where results and events go.
 pub struct Emitter {
+    tee: Option<Tee>,
     out: PathBuf,
     format: OutputFormat,
     history: usize,
@@ -201,12 +206,19 @@ impl Emitter {
         let events =
             open_log(&path).map_err(|source| DaemonError::EventLog { path: path.clone(), source })?;
         Ok(Self {
+            tee: None,
             out: config.out_dir.clone(),
             format: config.format,
             history: config.history,
             events: Mutex::new(Some(events)),
             closed: RwLock::new(false),
         })
+    }
+
+    /// Also hands every event line to `tee` (after the log has it).
+    pub fn with_tee(mut self, tee: Tee) -> Self {
+        self.tee = Some(tee);
+        self
     }
 
     /// The folder of a session's results: always one plain folder directly in the out
@@ -232,6 +244,9 @@ impl Emitter {
             return;
         }
         self.append(kind, &line);
+        if let Some(tee) = &self.tee {
+            tee(session, &line);
+        }
     }
 
     /// Writes the run's last event, `service_stopped`, once every write in progress has
@@ -399,7 +414,7 @@ fn cut_partial_line(file: &File) -> std::io::Result<u64> {
 }
 
 /// Keeps the `keep` highest-numbered `result-NNNN.*` files.
-fn prune_history(dir: &Path, keep: usize) {
+pub(crate) fn prune_history(dir: &Path, keep: usize) {
     let Ok(entries) = std::fs::read_dir(dir) else { return };
     let mut numbered: Vec<(u64, PathBuf)> = entries
         .flatten()

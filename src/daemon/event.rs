@@ -103,6 +103,13 @@ pub enum Event {
         input: String,
         reason: String,
     },
+    /// A work message of the NATS scale-out whose step failed on every delivery: it went
+    /// to the dead-letter subject (`clearview.dead.<session>`) and is not tried again.
+    MessageDeadLettered {
+        file: Option<String>,
+        reason: String,
+        deliveries: i64,
+    },
     VideoEnded {
         #[serde(flatten)]
         counters: VideoCounters,

@@ -39,6 +39,34 @@ fn key_now(slot: &Slot) -> (Option<String>, Option<KeySource>, Option<String>) {
     (slot.key_name(), slot.key_source, slot.state.key_file.clone())
 }
 
+/// What a decoded file of role `role` does to its session, or its deletion (`image`
+/// `None`: a mask deleted, a view deleted or replaced by what cannot be used). The one
+/// dispatch of the folder's worker threads and the NATS workers.
+pub(super) fn apply(
+    ctx: &Ctx,
+    slot: &mut Slot,
+    role: Role,
+    file: &FileId,
+    path: &Path,
+    image: Option<&DynamicImage>,
+) {
+    let Some(image) = image else {
+        match role {
+            Role::Mask => mask_removed(ctx, slot, file),
+            _ => view_gone(ctx, slot, &file.name, path),
+        }
+        return;
+    };
+    if role == Role::View {
+        ctx.registry.metrics.views_received.fetch_add(1, Ordering::Relaxed);
+    }
+    match role {
+        Role::Key => take_key(ctx, slot, file, path, image, KeySource::NamedKey),
+        Role::Mask => take_mask(ctx, slot, file, image),
+        Role::View => take_image(ctx, slot, file, path, image),
+    }
+}
+
 /// A new image (not a mask) of the session: the keyframe, a view, or a view that waits
 /// for the keyframe.
 pub(super) fn take_image(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &DynamicImage) {

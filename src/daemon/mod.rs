@@ -29,6 +29,7 @@
 //! files) and exits; jobs still queued are left to the next start (their files are on
 //! disk). The whole is bounded by the grace period.
 
+pub mod cluster;
 pub mod emit;
 pub(crate) mod engine;
 pub mod event;

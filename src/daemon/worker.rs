@@ -10,7 +10,6 @@
 
 use std::collections::HashMap;
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -231,23 +230,7 @@ impl Worker {
         let Job { session, path, role, file, image } = job;
         let Self { ctx, sessions, .. } = self;
         let slot = Self::slot(ctx, sessions, &session);
-        let Some(image) = image else {
-            match role {
-                Role::Mask => folder::mask_removed(ctx, slot, &file),
-                _ => folder::view_gone(ctx, slot, &file.name, &path),
-            }
-            slot.save_state(ctx);
-            slot.publish(ctx, None);
-            return;
-        };
-        if role == Role::View {
-            ctx.registry.metrics.views_received.fetch_add(1, Ordering::Relaxed);
-        }
-        match role {
-            Role::Key => folder::take_key(ctx, slot, &file, &path, &image, policy::KeySource::NamedKey),
-            Role::Mask => folder::take_mask(ctx, slot, &file, &image),
-            Role::View => folder::take_image(ctx, slot, &file, &path, &image),
-        }
+        folder::apply(ctx, slot, role, &file, &path, image.as_ref());
         slot.save_state(ctx);
         slot.publish(ctx, None);
     }

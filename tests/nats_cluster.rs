@@ -1,0 +1,404 @@
+//! The NATS JetStream scale-out end to end (issue 17), with the release binary: a
+//! three-server JetStream cluster on the loopback (streams and buckets with three
+//! replicas), `clearview ingest`, two `clearview worker`s and `clearview collect`. Sessions
+//! are dropped into the watched folder; one worker is SIGKILLed and one server killed while
+//! they are processed. Every session must still get its result (within 0.5 dB masked PSNR
+//! of `clearview fill` on the same files), every view file must be named by an event, no
+//! result may be written twice for the same inputs, and the survivors exit 0 on SIGTERM.
+//!
+//! Needs `nats-server` (Debian's package; `.ci/setup` installs it).
+
+mod daemon_common;
+
+use std::collections::{HashMap, HashSet};
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use clearview::imaging::convert::to_rgb;
+use clearview::imaging::metrics::masked_psnr;
+use daemon_common::{Scene, bin, mask_png, png, put};
+use serde_json::Value;
+
+/// A child process killed when dropped (a failing test leaves nothing running).
+struct Proc {
+    name: String,
+    child: Child,
+    log: PathBuf,
+}
+
+impl Proc {
+    fn start(name: &str, program: &Path, args: &[&str], dir: &Path) -> Self {
+        let log = dir.join(format!("{name}.log"));
+        let child = Command::new(program)
+            .args(args)
+            .env("CLEARVIEW_LOG", "clearview=debug,async_nats=warn")
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap_or_else(|e| panic!("{name}: cannot start {}: {e}", program.display()));
+        Self { name: name.to_owned(), child, log }
+    }
+
+    fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    fn signal(&self, sig: &str) {
+        let ok = Command::new("kill").args([sig, &self.child.id().to_string()]).status().unwrap();
+        assert!(ok.success(), "kill {sig} {}", self.name);
+    }
+
+    /// SIGTERM, then the exit code (within 30 s).
+    fn terminate(mut self) -> Option<i32> {
+        self.signal("-TERM");
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return status.code();
+            }
+            assert!(
+                Instant::now() < deadline,
+                "{} did not stop within 30 s of SIGTERM:\n{}",
+                self.name,
+                self.log()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// Fails the test (with its log) if the process has ended.
+    fn check_alive(&mut self) {
+        if let Some(status) = self.child.try_wait().unwrap() {
+            panic!("{} ended ({status}) during the run:\n{}", self.name, self.log());
+        }
+    }
+
+    /// SIGKILL, and reaped.
+    fn kill(mut self) {
+        self.child.kill().unwrap();
+        self.child.wait().unwrap();
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn nats_server() -> PathBuf {
+    let on_path = std::env::var_os("PATH")
+        .into_iter()
+        .flat_map(|p| std::env::split_paths(&p).collect::<Vec<_>>())
+        .map(|d| d.join("nats-server"))
+        .chain([PathBuf::from("/usr/sbin/nats-server"), PathBuf::from("/usr/bin/nats-server")])
+        .find(|p| p.is_file());
+    on_path.unwrap_or_else(|| {
+        panic!("nats-server is not installed: run .ci/setup (it installs Debian's nats-server package)")
+    })
+}
+
+fn free_ports(n: usize) -> Vec<u16> {
+    let held: Vec<TcpListener> = (0..n).map(|_| TcpListener::bind("127.0.0.1:0").unwrap()).collect();
+    held.iter().map(|l| l.local_addr().unwrap().port()).collect()
+}
+
+fn wait_port(port: u16, secs: u64) {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(Instant::now() < deadline, "nats-server on port {port} did not start");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Reads `events.jsonl` (lines may be added while it is read: only whole ones count).
+fn events(out: &Path) -> Vec<Value> {
+    std::fs::read_to_string(out.join("events.jsonl"))
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect()
+}
+
+const SESSIONS: usize = 5;
+const VIEWS: u64 = 3;
+
+struct Dropped {
+    scene: Scene,
+    views: Vec<String>,
+}
+
+/// A session: the keyframe's mask, the keyframe, and views with a person each, written
+/// the way a careful uploader writes (hidden name, then renamed).
+fn drop_session(inbox: &Path, name: &str, seed: u64) -> Dropped {
+    let mut scene = Scene::new(seed);
+    let dir = inbox.join(name);
+    put(&dir.join("key.mask.png"), &mask_png(&scene.mask));
+    put(&dir.join("key.png"), &png(&scene.key));
+    let mut views = Vec::new();
+    for i in 0..VIEWS {
+        let v = scene.view(i, 60.0 + 120.0 * i as f32, 40.0);
+        let file = format!("view{i}.png");
+        put(&dir.join(&file), &png(&v));
+        views.push(file);
+    }
+    Dropped { scene, views }
+}
+
+#[test]
+fn a_three_server_cluster_survives_a_dead_worker_and_a_dead_server() {
+    let server = nats_server();
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let (inbox, out) = (root.join("inbox"), root.join("out"));
+    std::fs::create_dir_all(&inbox).unwrap();
+
+    // Three JetStream servers in one cluster on the loopback.
+    let ports = free_ports(6);
+    let (client, route) = (&ports[..3], &ports[3..]);
+    let mut servers: Vec<Option<Proc>> = Vec::new();
+    for i in 0..3 {
+        let routes: Vec<String> =
+            (0..3).filter(|&j| j != i).map(|j| format!("nats-route://127.0.0.1:{}", route[j])).collect();
+        let conf = root.join(format!("n{i}.conf"));
+        std::fs::write(
+            &conf,
+            format!(
+                "server_name: n{i}\nlisten: 127.0.0.1:{}\njetstream {{ store_dir: {:?} }}\n\
+                 cluster {{ name: clearview\n listen: 127.0.0.1:{}\n routes: [{}] }}\n",
+                client[i],
+                root.join(format!("store{i}")),
+                route[i],
+                routes.join(", ")
+            ),
+        )
+        .unwrap();
+        servers.push(Some(Proc::start(&format!("nats{i}"), &server, &["-c", conf.to_str().unwrap()], root)));
+    }
+    for &p in client {
+        wait_port(p, 20);
+    }
+    let urls: Vec<String> = client.iter().map(|p| format!("nats://127.0.0.1:{p}")).collect();
+    let urls = urls.join(",");
+    let config = root.join("clearview.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[watch]\nquiet_period_ms = 300\n[output]\nhistory = 10\n[state]\ndir = {:?}\n\
+             [nats]\nreplicas = 3\nlease_ttl_ms = 3000\nack_wait_ms = 4000\nmax_deliver = 5\n",
+            root.join("state")
+        ),
+    )
+    .unwrap();
+    let c = config.to_str().unwrap();
+    let started = Instant::now();
+    let mut collect = Proc::start(
+        "collect",
+        Path::new(bin()),
+        &["collect", "-c", c, "--nats", &urls, "--out", out.to_str().unwrap()],
+        root,
+    );
+    let worker = |id: &str| {
+        let scratch = root.join(format!("scratch-{id}"));
+        Proc::start(
+            id,
+            Path::new(bin()),
+            &["worker", "-c", c, "--nats", &urls, "--id", id, "--scratch", scratch.to_str().unwrap()],
+            root,
+        )
+    };
+    let w1 = worker("w1");
+    let mut w2 = worker("w2");
+    let mut ingest = Proc::start(
+        "ingest",
+        Path::new(bin()),
+        &[
+            "ingest",
+            "-c",
+            c,
+            "--nats",
+            &urls,
+            "--watch",
+            inbox.to_str().unwrap(),
+            "--state",
+            root.join("ingest").to_str().unwrap(),
+        ],
+        root,
+    );
+    let all = [&collect, &w1, &w2, &ingest];
+    // Every role up (streams and buckets made, consumers ready).
+    let deadline = Instant::now() + Duration::from_secs(40);
+    for p in all {
+        while !p.log().contains(" started") {
+            assert!(Instant::now() < deadline, "{} did not start:\n{}", p.name, p.log());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
+    // Half the sessions; once results flow, the other half, and while those are being
+    // handled a worker and a server die.
+    let mut dropped: HashMap<String, Dropped> = HashMap::new();
+    for s in 0..SESSIONS / 2 {
+        let name = format!("site{s}");
+        dropped.insert(name.clone(), drop_session(&inbox, &name, 700 + s as u64));
+    }
+    let deadline = Instant::now() + Duration::from_secs(40);
+    while !events(&out).iter().any(|e| e["event"] == "result_updated") {
+        assert!(Instant::now() < deadline, "no result at all:\n{}\n{}", w1.log(), w2.log());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    for s in SESSIONS / 2..SESSIONS - 1 {
+        let name = format!("site{s}");
+        dropped.insert(name.clone(), drop_session(&inbox, &name, 700 + s as u64));
+    }
+    // Worker 1 dies in the middle of one of the new sessions (its first log line about
+    // one: it holds the lease and the message, and has saved nothing of the step yet),
+    // and a server with it.
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let busy = loop {
+        let log = w1.log();
+        if let Some(s) = (SESSIONS / 2..SESSIONS - 1)
+            .map(|s| format!("site{s}"))
+            .find(|s| log.contains(&format!("session={s}}}")))
+        {
+            break Some(s);
+        }
+        if Instant::now() > deadline {
+            break None;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    w1.kill();
+    servers[0].take().unwrap().kill();
+    let killed_at = started.elapsed();
+    println!("worker 1 killed at {killed_at:.1?} while on {busy:?}; server 0 killed");
+    // A session that arrives with a server and a worker down.
+    let last = format!("site{}", SESSIONS - 1);
+    dropped.insert(last.clone(), drop_session(&inbox, &last, 700 + SESSIONS as u64 - 1));
+
+    // A poison message (not a file message at all): dead-lettered with its reason, once.
+    {
+        let urls = urls.clone();
+        let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+        rt.block_on(async move {
+            let servers: Vec<async_nats::ServerAddr> =
+                urls.split(',').skip(1).map(|u| u.parse().unwrap()).collect();
+            let js = async_nats::jetstream::new(async_nats::connect(servers).await.unwrap());
+            // Acknowledged by the stream (a leader may be being elected: tried again).
+            for tries in 0.. {
+                let sent = match js.publish("clearview.in.junk", "not a file message".into()).await {
+                    Ok(ack) => ack.await.is_ok(),
+                    Err(_) => false,
+                };
+                if sent {
+                    break;
+                }
+                assert!(tries < 20, "the stream never took the poison message");
+                tokio::time::sleep(Duration::from_millis(500)).await;
+            }
+        });
+    }
+    // Every session's view files named by an event, and a result after the last one.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let named = |ev: &[Value], session: &str, file: &str| {
+        ev.iter().any(|e| e["session"] == session && e["file"] == file && e["event"] != "view_waiting")
+    };
+    loop {
+        let ev = events(&out);
+        let done = dropped.iter().all(|(s, d)| {
+            d.views.iter().all(|v| named(&ev, s, v)) && out.join(s).join("result.json").is_file()
+        });
+        if done {
+            break;
+        }
+        for p in [&mut ingest, &mut w2, &mut collect] {
+            p.check_alive();
+        }
+        assert!(
+            Instant::now() < deadline,
+            "not every session finished within 60 s of the kills:\nworker 2:\n{}\ncollect:\n{}\ningest:\n{}",
+            w2.log(),
+            collect.log(),
+            ingest.log()
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    // The last result of a session follows its last view; give the fills a moment.
+    std::thread::sleep(Duration::from_secs(2));
+    let finished = started.elapsed();
+
+    // Survivors stop cleanly.
+    for p in [ingest, w2, collect] {
+        let name = p.name.clone();
+        let log_path = p.log.clone();
+        let code = p.terminate();
+        assert_eq!(code, Some(0), "{name} exited {code:?}:\n{}", std::fs::read_to_string(log_path).unwrap());
+    }
+    let collect_log = std::fs::read_to_string(root.join("collect.log")).unwrap();
+    for s in servers.into_iter().flatten() {
+        s.terminate();
+    }
+
+    let ev = events(&out);
+    // No result written twice for the same inputs: collect writes each (session, inputs)
+    // once, and each result number is said once.
+    let mut collected = HashSet::new();
+    for line in collect_log.lines().filter(|l| l.contains("result collected")) {
+        let field = |k: &str| {
+            line.split(&format!("{k}=")).nth(1).unwrap().split_whitespace().next().unwrap().to_owned()
+        };
+        let key = (field("session"), field("inputs"));
+        assert!(
+            collected.insert(key.clone()),
+            "result written twice for the same inputs: {key:?}\n{collect_log}"
+        );
+    }
+    let mut said = HashSet::new();
+    for e in ev.iter().filter(|e| e["event"] == "result_updated") {
+        let key = (e["session"].as_str().unwrap().to_owned(), e["number"].as_u64().unwrap());
+        assert!(said.insert(key.clone()), "result_updated said twice: {key:?}");
+    }
+
+    let dead: Vec<&Value> = ev.iter().filter(|e| e["event"] == "message_dead_lettered").collect();
+    assert_eq!(dead.len(), 1, "the poison message is dead-lettered once: {dead:?}");
+    assert!(dead[0]["reason"].as_str().unwrap().contains("malformed"), "{:?}", dead[0]);
+
+    // Each session's result, against `clearview fill` on the same files.
+    for (s, d) in &dropped {
+        let dir = inbox.join(s);
+        let res = out.join(s);
+        let report: Value = serde_json::from_slice(&std::fs::read(res.join("result.json")).unwrap()).unwrap();
+        daemon_common::no_temporaries(&res);
+        let result = to_rgb(&image::open(res.join("result.png")).unwrap());
+        let fill_out = root.join(format!("fill-{s}.png"));
+        let mut fill = Command::new(bin());
+        fill.arg("fill")
+            .arg("--keyframe")
+            .arg(dir.join("key.png"))
+            .arg("--mask")
+            .arg(dir.join("key.mask.png"));
+        fill.arg("--out").arg(&fill_out);
+        for v in &d.views {
+            fill.arg(dir.join(v));
+        }
+        let status = fill.status().unwrap();
+        assert!(status.success(), "clearview fill failed on {s}");
+        let reference = to_rgb(&image::open(&fill_out).unwrap());
+        let (ours, theirs) = (
+            masked_psnr(&result, &d.scene.truth, &d.scene.mask),
+            masked_psnr(&reference, &d.scene.truth, &d.scene.mask),
+        );
+        println!("{s}: result {} masked PSNR {ours:.2} dB, clearview fill {theirs:.2} dB", report["number"]);
+        assert!(ours >= theirs - 0.5, "{s}: {ours:.2} dB against fill's {theirs:.2} dB\n{report:#}");
+        assert!(res.join("history").is_dir() && res.join("confidence.png").is_file(), "{s}: run's layout");
+    }
+    println!("kills at {killed_at:.1?}, every session finished at {finished:.1?}");
+    if let Some(s) = busy {
+        // The session worker 1 died in was finished by worker 2.
+        let log = std::fs::read_to_string(root.join("w2.log")).unwrap();
+        assert!(log.contains(&format!("session={s}}}")), "worker 2 never took {s} over:\n{log}");
+    }
+}
