@@ -932,7 +932,13 @@ fn fill_one(
             }
             let p = pick[i];
             let at = (i as isize + p.dy as isize * r.width as isize + p.dx as isize) as usize;
-            occlusion::confidence(map, &refs, p.view as usize, at, i, r.width, pixels[i])
+            // As sure as the view is of the keyframe around the hole: a view that reproduces
+            // it with a gross error (parallax, misregistration) fills the hole the same way,
+            // however well it agrees with itself or with views as far off.
+            let fit = errors
+                .get(p.view as usize)
+                .map_or(1.0, |&e| if e.is_finite() { occlusion::closeness(e.sqrt()) } else { 1.0 });
+            fit * occlusion::confidence(map, &refs, p.view as usize, at, i, r.width, pixels[i])
         })
         .collect();
     RegionFill { pixels, state, pick, confidence }
