@@ -474,7 +474,7 @@ fn every_bad_file_is_refused_or_used_with_a_reason_and_no_result_is_damaged() {
     let ev = wait_for(&f, "every case to be handled", 120, |e| {
         let e = &e[first_results..];
         cases.iter().all(|c| !outcome(e, c.session, &c.shown()).is_empty())
-            && healthy_filled_with_v2(e)
+            && of_kind(e, "result_updated").iter().any(|r| r["session"] == "healthy" && r["views"] == 2)
             && ["mask_size", "mask_black", "mask_white"].iter().all(|s| {
                 e.iter()
                     .any(|x| x["session"] == *s && (x["event"] == "mask_set" || x["event"] == "file_skipped"))
@@ -665,7 +665,10 @@ fn a_growing_file_is_read_once_whole(secs: u64) {
     let got = about(&ev, "slow.png");
     assert_eq!(got.len(), 1, "{got:#?}");
     assert_eq!(got[0]["event"], "view_accepted", "{got:#?}");
-    assert!(healthy_filled_with_v2(&ev), "the healthy session did not go on");
+    assert!(
+        of_kind(&ev, "result_updated").iter().any(|r| r["session"] == "healthy" && r["views"] == 2),
+        "the healthy session did not go on"
+    );
     eprintln!("grew for {grown:?}; read once, whole, after it stopped");
     assert_eq!(service.terminate(), 0);
 }
@@ -730,7 +733,9 @@ fn five_thousand_files_at_once_are_each_reported_with_bounded_memory_and_descrip
             .filter(|e| e["session"] == "flood")
             .filter_map(|e| e["file"].as_str().or(e["keyframe"].as_str()))
             .collect();
-        if names.iter().all(|n| named.contains(n.as_str())) && healthy_filled_with_v2(&ev) {
+        if names.iter().all(|n| named.contains(n.as_str()))
+            && of_kind(&ev, "result_updated").iter().any(|r| r["session"] == "healthy" && r["views"] == 2)
+        {
             break ev;
         }
         assert!(
@@ -756,20 +761,4 @@ fn five_thousand_files_at_once_are_each_reported_with_bounded_memory_and_descrip
     assert!(peak_fds < fds0 + 64, "descriptors grew from {fds0} to {peak_fds}");
     assert!(top_rss < rss0 + (300 << 20), "memory grew from {} MB to {} MB", rss0 >> 20, top_rss >> 20);
     assert_eq!(service.terminate(), 0);
-}
-
-/// The healthy session went on: after its v2.png was accepted it filled with both views,
-/// whether the fill was published or judged no better than the result it had (the publish
-/// rule, `session::JUDGE_MARGIN`).
-fn healthy_filled_with_v2(ev: &[serde_json::Value]) -> bool {
-    let Some(at) = ev
-        .iter()
-        .position(|e| e["session"] == "healthy" && e["file"] == "v2.png" && e["event"] == "view_accepted")
-    else {
-        return false;
-    };
-    ev[at..].iter().any(|e| {
-        e["session"] == "healthy"
-            && ((e["event"] == "result_updated" && e["views"] == 2) || e["event"] == "result_not_better")
-    })
 }
