@@ -136,14 +136,7 @@ fn fill(ctx: &Ctx, slot: &mut Slot) -> FillStep {
     let r = &outcome.report;
     let fallback_share = if r.masked == 0 { 0.0 } else { r.fallback as f64 / r.masked as f64 };
     if outcome.image.is_none() {
-        let (new, current) = outcome.judged.unzip();
-        tracing::info!(
-            score = outcome.score,
-            best = outcome.previous,
-            judged_new = new,
-            judged_current = current,
-            "the new fill is not expected to be better: result kept"
-        );
+        tracing::info!(score = outcome.score, best = outcome.previous, "new fill scores lower: result kept");
         let e =
             Event::ResultNotBetter { score: outcome.score, best: outcome.previous, fill_ms: fill_ms.round() };
         ctx.emitter.emit(Some(&slot.name), &e);
@@ -201,12 +194,9 @@ fn write_result(ctx: &Ctx, slot: &mut Slot, mut p: Pending) -> FillStep {
             let (masked, views, score, previous) =
                 (r.masked, outcome.views.len(), outcome.score, outcome.previous);
             after_result(ctx, slot, &outcome, number, report);
-            let (judged_new, judged_current) = outcome.judged.unzip();
             tracing::info!(
                 number,
                 score,
-                judged_new,
-                judged_current,
                 confident = r.confident_share(),
                 fallback = fallback_share,
                 fill_ms = fill_ms.round(),
@@ -311,7 +301,7 @@ fn result_json(
         "doubtful": r.doubtful_share(),
         "confidence": "confidence.png",
         "score": outcome.score,
-        "score_rule": "expected quality: the mean over the mask of the confidence that each pixel shows the building (confidence.png); a result is replaced by a new fill only when, with every view so far as witnesses, the new fill agrees with the views better than the result does (by 0.01 of the mean agreement)",
+        "score_rule": "expected quality: the mean over the mask of the confidence that each pixel shows the building (confidence.png); a result is replaced by a new fill only when, with every view so far as witnesses, the new fill agrees with the views at least as well as the result does",
         "views": views,
     })
 }
