@@ -169,7 +169,15 @@ fn main() {
             "--prior" => on.occlusion_model.prior = args[i + 1].parse().expect("--prior X"),
             "--cut" => on.occlusion_model.cut = args[i + 1].parse().expect("--cut X"),
             "--weight" => on.occlusion_weight = args[i + 1].parse().expect("--weight X"),
+            "--view-error" => on.view_error_weight = args[i + 1].parse().expect("--view-error X"),
             "--dump" => dump = Some(PathBuf::from(&args[i + 1])),
+            "--interpolation" => {
+                on.interpolation = match args[i + 1].as_str() {
+                    "bilinear" => clearview::imaging::warp::Interpolation::Bilinear,
+                    "bicubic" => clearview::imaging::warp::Interpolation::Bicubic,
+                    other => panic!("--interpolation bilinear|bicubic, not {other}"),
+                }
+            }
             "--views" => n = args[i + 1].parse().expect("--views N"),
             "--size" => {
                 let (a, b) = args[i + 1].split_once('x').expect("--size WxH");
@@ -202,7 +210,7 @@ fn main() {
     } else {
         dirs.iter().map(|d| load_dir(d)).collect()
     };
-    let off = FillParams { occlusion: false, ..FillParams::default() };
+    let off = FillParams { occlusion: false, view_error_weight: 0.0, ..on.clone() };
     println!(
         "| case | views | PSNR model | PSNR bypassed | confident | confident wrong | flagged recall | bypassed: confident wrong / recall | fill ms |"
     );

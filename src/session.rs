@@ -22,14 +22,20 @@
 //! A view that improves nothing is still buffered (it joins the next fill as a witness)
 //! but does not cost a fill of its own. Every buffered view takes part in every fill.
 //!
-//! # Score: expected quality, not coverage
+//! # Publishing: expected quality on the same evidence, not coverage
 //! A result's score is its expected quality: the mean, over the mask, of the occlusion
 //! model's confidence that each pixel shows the building ([`FillReport::expected_quality`];
-//! invented pixels count little, doubtful ones by how doubtful they are). A new fill is
-//! published only when its score is at least the best result's (since the keyframe or mask
-//! last changed): a view that adds only disagreement lowers the confidences and its fill
-//! is kept back, while a view that shows what was doubtful or invented raises them. The
-//! share filled from views is reported, never used to decide.
+//! invented pixels count little, doubtful ones by how doubtful they are). Scores of fills
+//! from different views are not comparable, though: one view alone has no witness to
+//! contradict it, and a new view can show that the current result was wrong. So a new fill
+//! is published when, with every buffered view (the new ones included) as witnesses, it
+//! agrees with what the views show at least as well as the current result does
+//! ([`FillReport::witnessed_quality`]; both judged by the same fill, on the same warps and
+//! occlusion probabilities, see [`inpaint::FillExtras::rival`]). A view that adds only
+//! disagreement leaves the current result in place; a view that shows what was doubtful,
+//! invented or wrong replaces it. After a restart, before the session has a result image
+//! of its own, the saved score is compared with the new fill's. The share filled from
+//! views is reported, never used to decide.
 
 use nalgebra::Point2;
 use serde::{Deserialize, Serialize};
@@ -38,7 +44,7 @@ use thiserror::Error;
 use crate::align::{AlignParams, Alignment, Frame, align};
 use crate::geometry::Homography;
 use crate::imaging::convert::luminance;
-use crate::imaging::{GrayF32, Mask, Rect, RgbF32};
+use crate::imaging::{GrayF32, Mask, Rect, RgbF32, RgbPixel};
 use crate::inpaint::region::{footprint, into_crop};
 use crate::inpaint::{
     self, AutoMaskParams, CONFIDENT, Confidence, FALLBACK, FillParams, FillReport, Observer, Provenance,
@@ -245,6 +251,9 @@ pub struct Session {
     provenance: Option<Provenance>,
     /// Confidence of the current result over the mask's region.
     confidence: Option<Confidence>,
+    /// The current result over the mask's region, as published (8-bit): the next fill
+    /// judges it on its own views.
+    result: Option<Rgb8>,
     best: Option<f64>,
     dirty: bool,
     admitted_since_fill: usize,
@@ -260,6 +269,7 @@ impl Session {
             buffer: Vec::new(),
             provenance: None,
             confidence: None,
+            result: None,
             best: None,
             dirty: false,
             admitted_since_fill: 0,
@@ -325,6 +335,7 @@ impl Session {
         self.mask = None;
         self.provenance = None;
         self.confidence = None;
+        self.result = None;
         self.best = None;
         self.dirty = false;
         self.admitted_since_fill = 0;
@@ -359,6 +370,7 @@ impl Session {
     fn mask_changed(&mut self) {
         self.provenance = None;
         self.confidence = None;
+        self.result = None;
         self.best = None;
         self.admitted_since_fill = 0;
         for b in &mut self.buffer {
@@ -680,8 +692,18 @@ impl Session {
                 Source { image: &crop.image, homography: crop.homography.after(&into_region) }
             })
             .collect();
-        let filled =
-            inpaint::fill(&key_region, &mask_region, &sources, &self.params.fill, self.params.seed, observer);
+        let rival =
+            self.result.as_ref().map(|r| RgbF32::from_fn(r.width(), r.height(), |x, y| r.get(x, y).to_f32()));
+        let extras = inpaint::FillExtras { rival: rival.as_ref(), ..inpaint::FillExtras::default() };
+        let filled = inpaint::fill_with(
+            &key_region,
+            &mask_region,
+            &sources,
+            &extras,
+            &self.params.fill,
+            self.params.seed,
+            observer,
+        );
         drop(sources);
         if observer.cancelled() {
             // Unfinished: thrown away, and the session still wants its fill.
@@ -693,7 +715,14 @@ impl Session {
         }
         let views = used.iter().map(|&i| self.buffer[i].id.clone()).collect();
         let score = filled.report.expected_quality();
-        let better = previous.is_none_or(|b| score >= b - 1e-9);
+        // The current result and the new fill judged on the same views (the new ones
+        // included): the current one's score was earned before they arrived. Without the
+        // current image (a result from before a restart) the scores are compared.
+        let better = match (previous, filled.rival_quality) {
+            (None, _) => true,
+            (Some(_), Some(rival)) => filled.report.witnessed_quality >= rival - 1e-9,
+            (Some(b), None) => score >= b - 1e-9,
+        };
         let mut confidence = Confidence::new(key.rgb.width(), key.rgb.height(), 0);
         confidence.paste(&filled.confidence, region);
         let image = if better {
@@ -702,6 +731,9 @@ impl Session {
             self.confidence = Some(filled.confidence);
             let mut full = key.rgb.clone();
             full.paste(&filled.image, region);
+            self.result = Some(Rgb8::from_fn(region.width, region.height, |x, y| {
+                filled.image.get(x, y).map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+            }));
             Some(full)
         } else {
             None
@@ -1004,10 +1036,45 @@ mod tests {
         let image = first.image.expect("the first result is always emitted");
         // Outside the mask the keyframe is untouched.
         assert_eq!(image.get(5, 5), s.key.as_ref().unwrap().rgb.get(5, 5));
+        // After a restart (a saved score, no result image): the scores decide.
+        s.result = None;
         s.best = Some(first.score + 0.5);
         s.dirty = true;
         let second = s.fill(&mut ()).unwrap();
         assert!(second.image.is_none(), "a lower score replaced the result");
+    }
+
+    #[test]
+    fn the_current_result_is_judged_on_the_views_that_arrived_since() {
+        let mut s = session_with_key();
+        s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+        let view = to8(&synth::facade(W, H, 9));
+        for id in ["a", "b", "c"] {
+            s.admit(id.into(), record(&Homography::identity()), Some(&view)).unwrap();
+        }
+        let first = s.fill(&mut ()).unwrap();
+        assert!(first.image.is_some());
+        let good = s.result.clone().expect("the result is kept");
+        assert_eq!(
+            (good.width(), good.height()),
+            (s.mask.as_ref().unwrap().region.unwrap().width, s.mask.as_ref().unwrap().region.unwrap().height)
+        );
+        // The same inputs again: as good as the result, so published.
+        s.dirty = true;
+        let again = s.fill(&mut ()).unwrap();
+        assert!(again.image.is_some(), "an equally good fill was kept back");
+        // A current result that the views contradict (grey where they show the facade) is
+        // replaced, even though its saved score is higher than any fill can reach.
+        let mut wrong = good;
+        for p in wrong.as_mut_slice() {
+            *p = [128, 128, 128];
+        }
+        s.result = Some(wrong);
+        s.best = Some(2.0);
+        s.dirty = true;
+        let third = s.fill(&mut ()).unwrap();
+        assert!(third.image.is_some(), "a result the views contradict was kept");
+        assert!(third.score < 2.0);
     }
 
     #[test]

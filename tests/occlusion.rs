@@ -19,8 +19,11 @@ fn figures(c: &OcclusionCase, params: &FillParams) -> (f64, Honesty) {
     (masked_psnr(&f.image, &c.truth, &c.mask), honesty(&f.image, &c.truth, &c.mask, &f.confidence))
 }
 
+/// Every view taken at its word: no model, and no view doubted for how it reproduces the
+/// keyframe around the hole either (that alone keeps a view whose occluder crosses the hole's
+/// edge out).
 fn bypassed() -> FillParams {
-    FillParams { occlusion: false, ..FillParams::default() }
+    FillParams { occlusion: false, view_error_weight: 0.0, ..FillParams::default() }
 }
 
 #[test]
@@ -87,4 +90,19 @@ fn confidence_is_zero_outside_the_mask_and_the_report_adds_up() {
             assert!(f.confidence.as_slice()[i] < CONFIDENT);
         }
     }
+}
+
+#[test]
+fn a_sole_view_that_does_not_fit_around_the_hole_is_not_called_confident() {
+    // One view, registered 5 px off (beyond the local search): nothing witnesses against it,
+    // but around the hole it does not reproduce the keyframe, and neither does its fill.
+    let mut c = occlusion_case(CaseFamily::Planar, 320, 240, 1, 5);
+    c.homographies[0] = clearview::geometry::Homography::translation(5.0, -4.0).after(&c.homographies[0]);
+    let (p, h) = figures(&c, &FillParams::default());
+    eprintln!("misregistered sole view: {p:.2} dB, {h:?}");
+    assert!(h.confident_error_rate() <= 0.08, "{h:?}");
+    // Registered, the same view is trusted.
+    let good = occlusion_case(CaseFamily::Planar, 320, 240, 1, 5);
+    let (_, h_good) = figures(&good, &FillParams::default());
+    assert!(h_good.confident_share() > h.confident_share() + 0.3, "{h_good:?} vs {h:?}");
 }

@@ -127,6 +127,10 @@ pub struct FillReport {
     /// Sum of the masked pixels' confidences (0..=1 each): with `masked`, the result's
     /// expected share of pixels that show the building.
     pub confidence_sum: f64,
+    /// Mean over the mask of how well the result's pixels agree with what the views show
+    /// there ([`witnessed`]): the measure on which two results of the same keyframe and
+    /// mask are compared with the same views as witnesses (1 for an empty mask).
+    pub witnessed_quality: f64,
 }
 
 impl FillReport {
@@ -191,6 +195,9 @@ pub struct FillParams {
     pub blend_params: BlendParams,
     /// How views are sampled between pixel centres.
     pub interpolation: Interpolation,
+    /// Weight of a view's expected error ([`view_errors`]) in the choice between views
+    /// (0: every view is as good as its patch's SSD says).
+    pub view_error_weight: f32,
     /// The single-image fallback for pixels no view saw.
     pub exemplar: ExemplarParams,
     /// The fallback sees this many pixels of context around what it fills (plus half the
@@ -217,6 +224,7 @@ impl Default for FillParams {
             blend: true,
             blend_params: BlendParams::default(),
             interpolation: Interpolation::Bilinear,
+            view_error_weight: 30.0,
             exemplar: ExemplarParams::default(),
             fallback_margin: 32,
             parallax: ParallaxParams::default(),
@@ -251,6 +259,9 @@ pub struct FillExtras<'a> {
     /// Per source (or empty): view-sized masks of pixels known to show something other
     /// than the building (an occluder found by other means); they are never copied.
     pub occluders: &'a [Option<&'a Mask>],
+    /// Another result of the same keyframe and mask (keyframe-sized), to be judged on the
+    /// same evidence as this fill ([`Filled::rival_quality`]).
+    pub rival: Option<&'a RgbF32>,
 }
 
 /// A filled keyframe: the image, where each pixel came from, how sure the fill is of it,
@@ -266,6 +277,9 @@ pub struct Filled {
     /// shows the building (255 · probability; see [`CONFIDENT`]).
     pub confidence: Confidence,
     pub report: FillReport,
+    /// How well [`FillExtras::rival`] agrees with these views, as
+    /// [`FillReport::witnessed_quality`] says of this fill.
+    pub rival_quality: Option<f64>,
 }
 
 /// Fills the pixels of `key` that `mask` marks from `sources`, then what they could not
@@ -310,6 +324,7 @@ pub fn fill_with<P: RgbPixel>(
     let mut report = FillReport {
         masked,
         sources: vec![SourceReport { gain: [1.0; 3], ..SourceReport::default() }; nv],
+        witnessed_quality: 1.0,
         ..FillReport::default()
     };
     let mut image = key.clone();
@@ -317,7 +332,7 @@ pub fn fill_with<P: RgbPixel>(
     let mut confidence = Confidence::new(w, h, 0);
     let mut surface = Plane::new(w, h, 0u16);
     if masked == 0 {
-        return Filled { image, provenance, surface, confidence, report };
+        return Filled { image, provenance, surface, confidence, report, rival_quality: None };
     }
     let parts = regions(mask, params.margin(), params.ring_gap, params.ring_width);
 
@@ -371,7 +386,7 @@ pub fn fill_with<P: RgbPixel>(
 
     // Photometric: one gain per view from the rings around all regions.
     if observer.cancelled() {
-        return Filled { image, provenance, surface, confidence, report };
+        return Filled { image, provenance, surface, confidence, report, rival_quality: None };
     }
     observer.stage(Stage::Photometric);
     if params.photometric {
@@ -414,7 +429,7 @@ pub fn fill_with<P: RgbPixel>(
 
     // Planes: which surface each pixel shows; each view's warp composed accordingly.
     if observer.cancelled() {
-        return Filled { image, provenance, surface, confidence, report };
+        return Filled { image, provenance, surface, confidence, report, rival_quality: None };
     }
     if !extras.planes.is_empty() {
         observer.stage(Stage::Planes);
@@ -437,7 +452,7 @@ pub fn fill_with<P: RgbPixel>(
 
     // Occlusion: who sees what, per region, view and pixel.
     if observer.cancelled() {
-        return Filled { image, provenance, surface, confidence, report };
+        return Filled { image, provenance, surface, confidence, report, rival_quality: None };
     }
     observer.stage(Stage::Occlusion);
     let maps: Vec<OcclusionMap> = parts
@@ -446,16 +461,21 @@ pub fn fill_with<P: RgbPixel>(
         .map(|(part, ws)| region_model(key, part, ws, params))
         .collect();
 
+    let errors: Vec<Vec<f32>> =
+        parts.par_iter().zip(warps.par_iter()).map(|(part, ws)| view_errors(key, part, ws)).collect();
+
     // Fill: regions in parallel, in batches so that progress can be told.
     if observer.cancelled() {
-        return Filled { image, provenance, surface, confidence, report };
+        return Filled { image, provenance, surface, confidence, report, rival_quality: None };
     }
     observer.stage(Stage::Fill);
     let mparams = params.multiview();
     let mut results: Vec<RegionFill> = Vec::with_capacity(parts.len());
     let batch = rayon::current_num_threads().max(1);
     let mut done = 0;
-    for ((pb, wb), mb) in parts.chunks(batch).zip(warps.chunks(batch)).zip(maps.chunks(batch)) {
+    for (((pb, wb), mb), eb) in
+        parts.chunks(batch).zip(warps.chunks(batch)).zip(maps.chunks(batch)).zip(errors.chunks(batch))
+    {
         if observer.cancelled() {
             break;
         }
@@ -463,7 +483,8 @@ pub fn fill_with<P: RgbPixel>(
             .par_iter()
             .zip(wb.par_iter())
             .zip(mb.par_iter())
-            .map(|((part, ws), map)| fill_one(key, part, ws, map, &mparams, params))
+            .zip(eb.par_iter())
+            .map(|(((part, ws), map), errs)| fill_one(key, part, ws, map, errs, &mparams, params))
             .collect();
         done += pb.iter().map(|p| p.holes).sum::<usize>();
         results.extend(out);
@@ -484,7 +505,7 @@ pub fn fill_with<P: RgbPixel>(
 
     // Fallback: what no view saw, from the image itself (with the views' fill as context).
     if observer.cancelled() {
-        return Filled { image, provenance, surface, confidence, report };
+        return Filled { image, provenance, surface, confidence, report, rival_quality: None };
     }
     observer.stage(Stage::Fallback);
     let mut pending = Mask::new(w, h, 0);
@@ -529,7 +550,7 @@ pub fn fill_with<P: RgbPixel>(
 
     // Blend: each region's fill into the keyframe, guided by its views' own gradients.
     if observer.cancelled() {
-        return Filled { image, provenance, surface, confidence, report };
+        return Filled { image, provenance, surface, confidence, report, rival_quality: None };
     }
     observer.stage(Stage::Blend);
     if params.blend {
@@ -568,8 +589,60 @@ pub fn fill_with<P: RgbPixel>(
             }
         }
     }
-    Filled { image, provenance, surface, confidence, report }
+    // Judge: this fill and the rival, on the same views as witnesses.
+    let judge = |img: &RgbF32| {
+        let sum: f64 = parts
+            .par_iter()
+            .zip(warps.par_iter())
+            .zip(maps.par_iter())
+            .zip(errors.par_iter())
+            .map(|(((part, ws), map), errs)| witnessed(img, part, ws, map, errs))
+            .sum();
+        sum / masked as f64
+    };
+    let rival_quality = extras.rival.filter(|r| (r.width(), r.height()) == (w, h)).map(judge);
+    report.witnessed_quality = judge(&image);
+    Filled { image, provenance, surface, confidence, report, rival_quality }
 }
+
+/// Sums, over a part's hole, how well `img`'s pixels agree with the views there (0..=1
+/// each): each view a witness as far as the model thinks it shows the building, weighted by
+/// its precision (the inverse of its expected error, [`view_errors`]: a blurred or shifted
+/// view is a poor judge of a sharp edge); where the witnesses are weak (every view occluded
+/// there) the rest of the pixel counts as invented, and a pixel no view sees is invented.
+fn witnessed(img: &RgbF32, part: &Part, ws: &[Warped], map: &OcclusionMap, errors: &[f32]) -> f64 {
+    let r = part.rect;
+    let mut sum = 0.0f64;
+    for (i, &hole) in part.hole.as_slice().iter().enumerate() {
+        if !hole {
+            continue;
+        }
+        let value = img.get(r.x + i % r.width, r.y + i / r.width);
+        let (mut trust, mut wsum, mut agree) = (0.0f32, 0.0f32, 0.0f32);
+        for (v, wv) in ws.iter().enumerate() {
+            if !wv.valid.as_slice()[i] {
+                continue;
+            }
+            let t = map.independence[v] * (1.0 - map.occluded[v][i]);
+            let precision = 1.0 / (errors[v].min(1.0) + ERROR_FLOOR);
+            trust += t;
+            wsum += t * precision;
+            agree +=
+                t * precision * occlusion::closeness(occlusion::max_channel(wv.image.as_slice()[i], value));
+        }
+        let sure = (trust / WITNESS_TRUST).min(1.0);
+        let q = if wsum > 0.0 { sure * agree / wsum } else { 0.0 };
+        sum += f64::from(q + (1.0 - sure) * INVENTED);
+    }
+    sum
+}
+
+/// The expected error (squared RGB per pixel) below which views are equally precise
+/// witnesses: noise and the resampling every view shares.
+const ERROR_FLOOR: f32 = 1e-4;
+/// Witness trust (views' sum of `1 - occlusion probability`) from which a pixel is fully
+/// judged by its witnesses.
+const WITNESS_TRUST: f32 = 0.5;
 
 fn to_byte(c: f32) -> u8 {
     (c.clamp(0.0, 1.0) * 255.0).round() as u8
@@ -788,6 +861,7 @@ fn fill_one(
     part: &Part,
     warps: &[Warped],
     map: &OcclusionMap,
+    errors: &[f32],
     params: &MultiviewParams,
     fill_params: &FillParams,
 ) -> RegionFill {
@@ -834,11 +908,18 @@ fn fill_one(
                 .collect()
         })
         .collect();
+    let best = errors.iter().copied().fold(f32::INFINITY, f32::min);
     let views: Vec<ViewData<'_>> = warps
         .iter()
         .zip(&map.occluded)
         .zip(&seen)
-        .map(|((wv, o), s)| ViewData { image: wv.image.as_slice(), valid: s, occlusion: o })
+        .zip(errors)
+        .map(|(((wv, o), s), &e)| ViewData {
+            image: wv.image.as_slice(),
+            valid: s,
+            occlusion: o,
+            expected_error: if e.is_finite() { fill_params.view_error_weight * (e - best) } else { 0.0 },
+        })
         .collect();
     let mut region =
         Region { width: r.width, height: r.height, pixels: &mut pixels, state: &mut state, pick: &mut pick };
@@ -851,11 +932,55 @@ fn fill_one(
             }
             let p = pick[i];
             let at = (i as isize + p.dy as isize * r.width as isize + p.dx as isize) as usize;
-            occlusion::confidence(map, &refs, p.view as usize, at, i, r.width, pixels[i])
+            // As sure as the view is of the keyframe around the hole: a view that reproduces
+            // it with a gross error (parallax, misregistration) fills the hole the same way,
+            // however well it agrees with itself or with views as far off.
+            let fit = errors
+                .get(p.view as usize)
+                .map_or(1.0, |&e| if e.is_finite() { occlusion::closeness(e.sqrt()) } else { 1.0 });
+            fit * occlusion::confidence(map, &refs, p.view as usize, at, i, r.width, pixels[i])
         })
         .collect();
     RegionFill { pixels, state, pick, confidence }
 }
+
+/// Per view, the error it is expected to make where it fills this part: how far its warped,
+/// compensated pixels are from the keyframe's on the ring around the hole (squared RGB
+/// distance per pixel, the mean of the best [`RING_TRUST`] of the ring, so that the view's
+/// own occluders over part of the ring do not count). The ring is the nearest truth there is:
+/// a view that reproduces it blurred (a warp that magnifies it) or shifted (misregistration)
+/// will fill the hole the same way. Infinity for a view that sees too little of the ring.
+fn view_errors(key: &RgbF32, part: &Part, warps: &[Warped]) -> Vec<f32> {
+    let r = part.rect;
+    let ring = part.ring.as_slice();
+    warps
+        .iter()
+        .map(|wv| {
+            let (img, ok) = (wv.image.as_slice(), wv.valid.as_slice());
+            let mut d: Vec<f32> = ring
+                .iter()
+                .enumerate()
+                .filter(|&(i, &on)| on && ok[i])
+                .map(|(i, _)| {
+                    let k = key.get(r.x + i % r.width, r.y + i / r.width);
+                    let p = img[i];
+                    (0..3).map(|c| (p[c] - k[c]).powi(2)).sum::<f32>()
+                })
+                .collect();
+            if d.len() < RING_MIN {
+                return f32::INFINITY;
+            }
+            let keep = ((d.len() as f32 * RING_TRUST) as usize).max(1);
+            d.select_nth_unstable_by(keep - 1, f32::total_cmp);
+            d[..keep].iter().sum::<f32>() / keep as f32
+        })
+        .collect()
+}
+
+/// The share of a view's ring pixels its expected error is taken over (the closest ones).
+const RING_TRUST: f32 = 0.7;
+/// Ring pixels a view must see for its expected error to be measured.
+const RING_MIN: usize = 32;
 
 /// The gain fit sees at most about this many ring pixels per view (evenly spread).
 const GAIN_SAMPLES: usize = 12_000;

@@ -88,6 +88,11 @@ pub struct ViewData<'a> {
     pub image: &'a [[f32; 3]],
     pub valid: &'a [bool],
     pub occlusion: &'a [f32],
+    /// What every candidate of this view costs besides its SSD: the error the view is
+    /// expected to make beyond the best view's (squared RGB per pixel, as the SSD), from how
+    /// well it reproduces the keyframe around the hole (blur of a magnifying warp,
+    /// misregistration). 0 for the best view.
+    pub expected_error: f32,
 }
 
 /// A region being filled: `pixels` (hole pixels are overwritten), `state` (one of the
@@ -254,7 +259,7 @@ pub fn fill_region(region: &mut Region<'_>, views: &[ViewData<'_>], params: &Mul
             if !v.valid[at(i)] {
                 return f32::INFINITY;
             }
-            let mut cost = params.shift_penalty * (dx * dx + dy * dy) as f32;
+            let mut cost = params.shift_penalty * (dx * dx + dy * dy) as f32 + v.expected_error;
             if params.occlusion_weight > 0.0 {
                 let occ: f32 =
                     hole_list.iter().map(|&j| if v.valid[at(j)] { v.occlusion[at(j)] } else { 0.0 }).sum();
@@ -392,8 +397,11 @@ mod tests {
         let need = vec![true; 900];
         let refs: Vec<_> = views.iter().map(|(i, v)| (i.as_slice(), v.as_slice())).collect();
         let occ = occlusion_costs(&refs, &need, 30, 0.1);
-        let data: Vec<_> =
-            views.iter().zip(&occ).map(|((i, v), o)| ViewData { image: i, valid: v, occlusion: o }).collect();
+        let data: Vec<_> = views
+            .iter()
+            .zip(&occ)
+            .map(|((i, v), o)| ViewData { image: i, valid: v, occlusion: o, expected_error: 0.0 })
+            .collect();
         let mut region =
             Region { width: 30, height: 30, pixels: &mut pixels, state: &mut state, pick: &mut pick };
         fill_region(&mut region, &data, params);

@@ -509,13 +509,13 @@ const EDGE_SHARE: f32 = 0.25;
 
 /// The largest per-channel difference.
 #[inline]
-fn max_channel(a: [f32; 3], b: [f32; 3]) -> f32 {
+pub(crate) fn max_channel(a: [f32; 3], b: [f32; 3]) -> f32 {
     (a[0] - b[0]).abs().max((a[1] - b[1]).abs()).max((a[2] - b[2]).abs())
 }
 
 /// 1 for a difference within [`CLOSE`], falling to 0 at [`FAR`] (8-bit levels / 255).
 #[inline]
-fn closeness(d: f32) -> f32 {
+pub(crate) fn closeness(d: f32) -> f32 {
     ((FAR - d) / (FAR - CLOSE)).clamp(0.0, 1.0)
 }
 

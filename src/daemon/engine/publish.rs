@@ -301,7 +301,7 @@ fn result_json(
         "doubtful": r.doubtful_share(),
         "confidence": "confidence.png",
         "score": outcome.score,
-        "score_rule": "expected quality: the mean over the mask of the confidence that each pixel shows the building (confidence.png); a result is replaced only by one expected to be at least as good",
+        "score_rule": "expected quality: the mean over the mask of the confidence that each pixel shows the building (confidence.png); a result is replaced by a new fill only when, with every view so far as witnesses, the new fill agrees with the views at least as well as the result does",
         "views": views,
     })
 }
