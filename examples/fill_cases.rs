@@ -17,16 +17,9 @@ use clearview::synth::{self, CaseFamily, Occluder};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-fn save_case(dir: &Path, key: &RgbF32, mask: &Mask, truth: &RgbF32, views: &[RgbF32]) {
-    std::fs::create_dir_all(dir).unwrap();
-    to_rgb8(key).save(dir.join("key.png")).unwrap();
-    mask_to_luma8(mask).save(dir.join("mask.png")).unwrap();
-    to_rgb8(truth).save(dir.join("truth.png")).unwrap();
-    for (i, v) in views.iter().enumerate() {
-        to_rgb8(v).save(dir.join(format!("view-{}.png", i + 1))).unwrap();
-    }
-    println!("{}: {} masked pixels, {} views", dir.display(), mask.hole_count(), views.len());
-}
+#[path = "common/case_dir.rs"]
+mod case_dir;
+use case_dir::save_case;
 
 /// A rendered facade seen from `n` places; the keyframe has a tree and a car in front,
 /// every view its own occluders and exposure, and noise.

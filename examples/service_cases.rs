@@ -14,22 +14,15 @@
 
 use std::path::{Path, PathBuf};
 
-use clearview::imaging::convert::{mask_to_luma8, to_rgb, to_rgb8};
+use clearview::imaging::convert::to_rgb;
 use clearview::imaging::{Mask, RgbF32};
 use clearview::synth::{self, CaseFamily, Occluder};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-fn save_case(dir: &Path, key: &RgbF32, mask: &Mask, truth: &RgbF32, views: &[RgbF32]) {
-    std::fs::create_dir_all(dir).unwrap();
-    to_rgb8(key).save(dir.join("key.png")).unwrap();
-    mask_to_luma8(mask).save(dir.join("mask.png")).unwrap();
-    to_rgb8(truth).save(dir.join("truth.png")).unwrap();
-    for (i, v) in views.iter().enumerate() {
-        to_rgb8(v).save(dir.join(format!("view-{}.png", i + 1))).unwrap();
-    }
-    println!("{}: {} masked pixels, {} views", dir.display(), mask.hole_count(), views.len());
-}
+#[path = "common/case_dir.rs"]
+mod case_dir;
+use case_dir::save_case;
 
 /// The photograph `key` of `set` with two or three occluders pasted at places drawn from
 /// `seed` (the central part of the frame, where a wall is), and `views` as they are.
