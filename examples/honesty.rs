@@ -27,7 +27,7 @@ use clearview::imaging::photometric::{GainParams, fit_gain};
 use clearview::imaging::warp::{Interpolation, Rect, warp};
 use clearview::imaging::{Mask, RgbF32};
 use clearview::inpaint::automask::dilate;
-use clearview::inpaint::occlusion::{OcclusionParams, RegionInput, occlusion_map};
+use clearview::inpaint::occlusion::{KeyRegion, OcclusionParams, RegionInput, occlusion_map};
 use clearview::inpaint::{FillParams, Source, fill};
 use clearview::synth::{CaseFamily, occlusion_case};
 
@@ -130,15 +130,15 @@ fn model_accuracy(case: &Case, params: &OcclusionParams) -> Option<(usize, usize
     }
     let refs: Vec<_> = warps.iter().map(|wv| (wv.image.as_slice(), wv.valid.as_slice())).collect();
     let blocked = vec![false; w * h];
-    let input = RegionInput {
+    let region = KeyRegion {
         width: w,
         height: h,
         key: case.key.as_slice(),
         hole: hole.as_slice(),
         need: need.as_slice(),
         blocked: &blocked,
-        views: &refs,
     };
+    let input = RegionInput { region, views: &refs };
     let map = occlusion_map(&input, params);
     let (mut tp, mut fp, mut fneg) = (0, 0, 0);
     for (v, t) in truth.iter().enumerate() {

@@ -24,7 +24,7 @@ use crate::imaging::{Mask, Plane, RgbF32, RgbPixel};
 use automask::dilate;
 use blend::{BlendParams, guidance_rhs, solve_membrane};
 use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region};
-use occlusion::{OcclusionMap, OcclusionParams, RegionInput, occlusion_map};
+use occlusion::{KeyRegion, OcclusionMap, OcclusionParams, RegionInput, occlusion_map};
 use parallax::{ParallaxParams, PlaneInput, SurfacePlane, WarpedView, choose_planes};
 
 pub use automask::{AutoMask, AutoMaskParams, auto_mask, auto_mask_report};
@@ -702,16 +702,7 @@ fn compose_planes(
         let g = planes[p].region;
         allowed.push((0..n).map(|i| g.contains(r.x + i % r.width, r.y + i / r.width)).collect());
     }
-    let input = PlaneInput {
-        width: r.width,
-        height: r.height,
-        key: &pixels,
-        hole: part.hole.as_slice(),
-        need: part.need.as_slice(),
-        blocked: part.blocked.as_slice(),
-        planes: &hyps,
-        allowed: &allowed,
-    };
+    let input = PlaneInput { region: part.region(&pixels), planes: &hyps, allowed: &allowed };
     let chosen = choose_planes(&input, params);
     drop(hyps);
     for (v, wv) in ws.iter_mut().enumerate() {
@@ -745,6 +736,21 @@ struct Part {
     /// `rect`-sized: hole pixels of other parts inside `rect`.
     blocked: Plane<bool>,
     holes: usize,
+}
+
+impl Part {
+    /// The part as the occlusion model and the plane choice read it, over `pixels` (the
+    /// keyframe cropped to `rect`).
+    fn region<'a>(&'a self, pixels: &'a [[f32; 3]]) -> KeyRegion<'a> {
+        KeyRegion {
+            width: self.rect.width,
+            height: self.rect.height,
+            key: pixels,
+            hole: self.hole.as_slice(),
+            need: self.need.as_slice(),
+            blocked: self.blocked.as_slice(),
+        }
+    }
 }
 
 /// Cuts the mask into parts: 8-connected components of the hole grown by `margin`.
@@ -844,15 +850,7 @@ fn region_model(key: &RgbF32, part: &Part, warps: &[Warped], params: &FillParams
     }
     let pixels = key.crop(r).into_vec();
     let refs: Vec<_> = warps.iter().map(|wv| (wv.image.as_slice(), wv.valid.as_slice())).collect();
-    let input = RegionInput {
-        width: r.width,
-        height: r.height,
-        key: &pixels,
-        hole: part.hole.as_slice(),
-        need: part.need.as_slice(),
-        blocked: part.blocked.as_slice(),
-        views: &refs,
-    };
+    let input = RegionInput { region: part.region(&pixels), views: &refs };
     occlusion_map(&input, &params.occlusion_model)
 }
 

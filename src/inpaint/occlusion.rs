@@ -143,10 +143,11 @@ impl Histogram {
     }
 }
 
-/// One region's inputs: the keyframe's pixels and the region's masks (all `width × height`),
-/// the views warped and compensated over it.
+/// A region's keyframe side: its pixels and masks, all `width × height`. What the
+/// occlusion model ([`RegionInput`]) and the plane choice (`parallax::PlaneInput`) read of
+/// the keyframe.
 #[derive(Debug, Clone, Copy)]
-pub struct RegionInput<'a> {
+pub struct KeyRegion<'a> {
     pub width: usize,
     pub height: usize,
     pub key: &'a [[f32; 3]],
@@ -156,6 +157,12 @@ pub struct RegionInput<'a> {
     pub need: &'a [bool],
     /// Other regions' hole pixels (neither building nor ours).
     pub blocked: &'a [bool],
+}
+
+/// One region's inputs: the keyframe's side, the views warped and compensated over it.
+#[derive(Debug, Clone, Copy)]
+pub struct RegionInput<'a> {
+    pub region: KeyRegion<'a>,
     pub views: &'a [(&'a [[f32; 3]], &'a [bool])],
 }
 
@@ -324,16 +331,16 @@ fn grow(from: &[bool], allowed: &[bool], w: usize, h: usize) -> Vec<bool> {
 
 /// The model over one region (see the module docs).
 pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> OcclusionMap {
-    let (w, h) = (input.width, input.height);
+    let (w, h) = (input.region.width, input.region.height);
     let n = w * h;
     let nv = input.views.len();
     let r = params.blur_radius;
     let all = vec![true; n];
-    let key_b = box_blur(input.key, &all, w, h, r);
+    let key_b = box_blur(input.region.key, &all, w, h, r);
     let valid: Vec<&[bool]> = input.views.iter().map(|v| v.1).collect();
     let views_b: Vec<Vec<[f32; 3]>> =
         input.views.par_iter().map(|(img, ok)| box_blur(img, ok, w, h, r)).collect();
-    let ind = independence(&views_b, &valid, input.need, params.agree);
+    let ind = independence(&views_b, &valid, input.region.need, params.agree);
     // Per pixel, each view's support among the others (weighted share agreeing with it),
     // and the best support any view has there: a view is an outlier only where others
     // agree among themselves; where nobody agrees with anybody (an edge off, parallax) the
@@ -343,7 +350,7 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
         .map(|v| {
             (0..n)
                 .map(|i| {
-                    if !valid[v][i] || !input.need[i] {
+                    if !valid[v][i] || !input.region.need[i] {
                         return 0.0;
                     }
                     let (mut wsum, mut agree) = (0.0f32, 0.0f32);
@@ -365,10 +372,11 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
     let best: Vec<f32> = (0..n).map(|i| (0..nv).map(|v| support[v][i]).fold(0.0, f32::max)).collect();
 
     // The building: the keyframe around the hole. The occluder: the keyframe inside it.
-    let around: Vec<bool> = (0..n).map(|i| input.need[i] && !input.hole[i] && !input.blocked[i]).collect();
-    let building = Histogram::new((0..n).filter(|&i| around[i]).map(|i| input.key[i]));
-    let inner = super::automask::erode(&crate::imaging::Plane::from_vec(w, h, input.hole.to_vec()), 2);
-    let occluder = Histogram::new((0..n).filter(|&i| inner.as_slice()[i]).map(|i| input.key[i]));
+    let around: Vec<bool> =
+        (0..n).map(|i| input.region.need[i] && !input.region.hole[i] && !input.region.blocked[i]).collect();
+    let building = Histogram::new((0..n).filter(|&i| around[i]).map(|i| input.region.key[i]));
+    let inner = super::automask::erode(&crate::imaging::Plane::from_vec(w, h, input.region.hole.to_vec()), 2);
+    let occluder = Histogram::new((0..n).filter(|&i| inner.as_slice()[i]).map(|i| input.region.key[i]));
     // How much a colour belongs to the keyframe's occluder rather than to its building.
     let occluder_like = |c: [f32; 3]| -> f32 {
         let (o, b) = (occluder.prob(c), building.prob(c));
@@ -412,7 +420,7 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
                 let object = Histogram::new((0..n).filter(|&i| seeds[i]).map(|i| input.views[v].0[i]));
                 let allowed: Vec<bool> = (0..n)
                     .map(|i| {
-                        input.hole[i] && ok[i] && {
+                        input.region.hole[i] && ok[i] && {
                             let c = input.views[v].0[i];
                             object.prob(c) > 2.0 * building.prob(c) + 1e-4
                         }
@@ -424,7 +432,7 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
             };
             (0..n)
                 .map(|i| {
-                    if !ok[i] || !input.need[i] {
+                    if !ok[i] || !input.region.need[i] {
                         return 0.0;
                     }
                     let c = img_b[i];
@@ -435,7 +443,7 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
                     let others = witnesses[i] - ind[v];
                     let trust = ((others - 0.5) / 2.5).clamp(0.0, 1.0);
                     l += params.w_consensus * trust * (best[i] - support[v][i] - 0.5 * best[i]) * 2.0;
-                    if input.hole[i] {
+                    if input.region.hole[i] {
                         // The keyframe's own occluder, seen again.
                         // At the same place, or anywhere: colours the keyframe's occluder has
                         // and its building has not (a tree shifted by parallax is still green).
@@ -561,15 +569,9 @@ mod tests {
         let same = key.clone();
         let ok = vec![true; w * h];
         let views = [(clean.as_slice(), ok.as_slice()), (same.as_slice(), ok.as_slice())];
-        let input = RegionInput {
-            width: w,
-            height: h,
-            key: &key,
-            hole: &hole,
-            need: &need,
-            blocked: &blocked,
-            views: &views,
-        };
+        let region =
+            KeyRegion { width: w, height: h, key: &key, hole: &hole, need: &need, blocked: &blocked };
+        let input = RegionInput { region, views: &views };
         let m = occlusion_map(&input, &OcclusionParams::default());
         let c = 20 * w + 20;
         assert!(m.occluded[0][c] < 0.3, "clean view {}", m.occluded[0][c]);

@@ -28,6 +28,7 @@ use crate::geometry::{Correspondence, Homography};
 use crate::imaging::pyramid::half;
 use crate::imaging::{GrayF32, Mask, Plane, Rect, bilinear};
 use crate::inpaint::automask::dilate;
+use crate::inpaint::occlusion::KeyRegion;
 
 /// A surface off the wall, as the fill takes it: its homography in each source (`None`
 /// where that view's matches gave none) and the keyframe rectangle it may be chosen in.
@@ -795,12 +796,7 @@ pub type WarpedView<'a> = (&'a [[f32; 3]], &'a [bool]);
 /// through plane `p` (0 the wall) with its valid pixels, `None` where the view has no
 /// such plane; `allowed[p]` where plane `p` may be chosen.
 pub struct PlaneInput<'a> {
-    pub width: usize,
-    pub height: usize,
-    pub key: &'a [[f32; 3]],
-    pub hole: &'a [bool],
-    pub need: &'a [bool],
-    pub blocked: &'a [bool],
+    pub region: KeyRegion<'a>,
     pub planes: &'a [Vec<Option<WarpedView<'a>>>],
     pub allowed: &'a [Vec<bool>],
 }
@@ -813,7 +809,7 @@ fn sq(a: [f32; 3], b: [f32; 3]) -> f32 {
 
 /// The plane index of every pixel of the region (0 where nothing says otherwise).
 pub fn choose_planes(input: &PlaneInput<'_>, params: &ParallaxParams) -> Vec<u16> {
-    let (w, h) = (input.width, input.height);
+    let (w, h) = (input.region.width, input.region.height);
     let n = w * h;
     let np = input.planes.len();
     if np <= 1 {
@@ -829,14 +825,14 @@ pub fn choose_planes(input: &PlaneInput<'_>, params: &ParallaxParams) -> Vec<u16
             let mut cost = vec![0.0f32; n];
             let mut weight = vec![0.0f32; n];
             for i in 0..n {
-                if !input.need[i] || input.blocked[i] {
+                if !input.region.need[i] || input.region.blocked[i] {
                     continue;
                 }
                 let seen = views.iter().flatten().filter(|(_, ok)| ok[i]);
-                if !input.hole[i] {
+                if !input.region.hole[i] {
                     let (mut s, mut c) = (0.0f32, 0usize);
                     for (img, _) in seen {
-                        s += sq(img[i], input.key[i]).min(t);
+                        s += sq(img[i], input.region.key[i]).min(t);
                         c += 1;
                     }
                     // A plane no view shows here is as bad as a disagreement.
@@ -1029,16 +1025,9 @@ mod tests {
             vec![Some((a1.as_slice(), ok.as_slice())), Some((b1.as_slice(), ok.as_slice()))],
         ];
         let allowed = vec![vec![true; n], vec![true; n]];
-        let input = PlaneInput {
-            width: w,
-            height: h,
-            key: &key,
-            hole: &hole,
-            need: &ok,
-            blocked: &vec![false; n],
-            planes: &planes,
-            allowed: &allowed,
-        };
+        let blocked = vec![false; n];
+        let region = KeyRegion { width: w, height: h, key: &key, hole: &hole, need: &ok, blocked: &blocked };
+        let input = PlaneInput { region, planes: &planes, allowed: &allowed };
         let labels = choose_planes(&input, &ParallaxParams::default());
         let wrong = (0..n).filter(|&i| labels[i] != u16::from(slab(i % w))).count();
         assert!(wrong * 50 < n, "{wrong} of {n} pixels wrong");
