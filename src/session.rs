@@ -31,9 +31,10 @@
 //! is published when, with every buffered view (the new ones included) as witnesses, it
 //! agrees with what the views show at least as well as the current result does
 //! ([`FillReport::witnessed_quality`]; both judged by the same fill, on the same warps and
-//! occlusion probabilities, see [`inpaint::FillExtras::rival`]). A view that adds only
-//! disagreement leaves the current result in place; a view that shows what was doubtful,
-//! invented or wrong replaces it. After a restart, before the session has a result image
+//! occlusion probabilities, see [`inpaint::FillExtras::rival`]), or nearly
+//! ([`KEEP_MARGIN`]: the new fill has the evidence as it now is). A view that adds gross
+//! disagreement (an occluder copied in) leaves the current result in place; a view that
+//! shows what was doubtful, invented or wrong replaces it. After a restart, before the session has a result image
 //! of its own, the saved score is compared with the new fill's. The share filled from
 //! views is reported, never used to decide.
 
@@ -59,6 +60,14 @@ pub use crate::imaging::Rgb8;
 /// same file again, or a shot from the same spot with the occluder where it was. It adds
 /// nothing and would paint the occluder back in, so it is rejected.
 pub const SAME_AS_KEY: f64 = 0.02;
+
+/// The current result stays against a new fill only when the views back it on at least
+/// this share of the mask more than the new fill ([`FillReport::witnessed_quality`]). The
+/// judge cannot see the blur and sub-pixel placement that separate two good fills, and the
+/// new fill is the one `clearview fill` makes of the same views: on a near tie it is
+/// published, so that where views arrive one by one or in batches the session ends with
+/// the same result.
+pub const KEEP_MARGIN: f64 = 0.005;
 
 /// Goes into [`Session::inputs_digest`]: a result saved under another score rule (the share
 /// from views, before the occlusion model) is not taken as this rule's score after an
@@ -716,11 +725,13 @@ impl Session {
         let views = used.iter().map(|&i| self.buffer[i].id.clone()).collect();
         let score = filled.report.expected_quality();
         // The current result and the new fill judged on the same views (the new ones
-        // included): the current one's score was earned before they arrived. Without the
-        // current image (a result from before a restart) the scores are compared.
+        // included): the current one's score was earned before they arrived. The new fill
+        // has the evidence as it is now, so the current result stays only when the views
+        // show it clearly better (see the module docs). Without the current image (a result
+        // from before a restart) the scores are compared.
         let better = match (previous, filled.rival_quality) {
             (None, _) => true,
-            (Some(_), Some(rival)) => filled.report.witnessed_quality >= rival - 1e-9,
+            (Some(_), Some(rival)) => filled.report.witnessed_quality >= rival - KEEP_MARGIN,
             (Some(b), None) => score >= b - 1e-9,
         };
         let mut confidence = Confidence::new(key.rgb.width(), key.rgb.height(), 0);
@@ -1062,7 +1073,12 @@ mod tests {
         // The same inputs again: as good as the result, so published.
         s.dirty = true;
         let again = s.fill(&mut ()).unwrap();
-        assert!(again.image.is_some(), "an equally good fill was kept back");
+        assert!(
+            again.image.is_some(),
+            "an equally good fill was kept back: {} {:?}",
+            again.report.witnessed_quality,
+            again.previous
+        );
         // A current result that the views contradict (grey where they show the facade) is
         // replaced, even though its saved score is higher than any fill can reach.
         let mut wrong = good;

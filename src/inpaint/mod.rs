@@ -608,8 +608,15 @@ pub fn fill_with<P: RgbPixel>(
 /// Sums, over a part's hole, how well `img`'s pixels agree with the views there (0..=1
 /// each): each view a witness as far as the model thinks it shows the building, weighted by
 /// its precision (the inverse of its expected error, [`view_errors`]: a blurred or shifted
-/// view is a poor judge of a sharp edge); where the witnesses are weak (every view occluded
-/// there) the rest of the pixel counts as invented, and a pixel no view sees is invented.
+/// view is a poor judge of a sharp edge), and a witness backs the pixel or not ([`backs`]:
+/// the step is at a gross difference); where the witnesses are weak (every view occluded there) the rest of
+/// the pixel counts as invented, and a pixel no view sees is invented.
+///
+/// Agreement is (nearly) all or nothing on purpose: two fills of the same wall from different views
+/// differ by resampling blur and sub-pixel shifts along every edge, which a graded
+/// closeness counts over thousands of pixels and which says nothing of which fill is right;
+/// what decides is where a fill shows what the views do not (an occluder copied, a wrong
+/// surface), and that is a gross error.
 fn witnessed(img: &RgbF32, part: &Part, ws: &[Warped], map: &OcclusionMap, errors: &[f32]) -> f64 {
     let r = part.rect;
     let mut sum = 0.0f64;
@@ -627,8 +634,7 @@ fn witnessed(img: &RgbF32, part: &Part, ws: &[Warped], map: &OcclusionMap, error
             let precision = 1.0 / (errors[v].min(1.0) + ERROR_FLOOR);
             trust += t;
             wsum += t * precision;
-            agree +=
-                t * precision * occlusion::closeness(occlusion::max_channel(wv.image.as_slice()[i], value));
+            agree += t * precision * backs(occlusion::max_channel(wv.image.as_slice()[i], value));
         }
         let sure = (trust / WITNESS_TRUST).min(1.0);
         let q = if wsum > 0.0 { sure * agree / wsum } else { 0.0 };
@@ -636,6 +642,23 @@ fn witnessed(img: &RgbF32, part: &Part, ws: &[Warped], map: &OcclusionMap, error
     }
     sum
 }
+
+/// Whether a witness backs a pixel it differs from by `d` (the largest channel difference):
+/// fully below [`GROSS`] less [`GROSS_STEP`], not at all from [`GROSS`] plus it, linearly
+/// between (a step, not a cliff: two fills that agree to the level do not part on a pixel
+/// that rounding moves across the line).
+#[inline]
+fn backs(d: f32) -> f32 {
+    ((GROSS + GROSS_STEP - d) / (2.0 * GROSS_STEP)).clamp(0.0, 1.0)
+}
+
+/// A gross difference: 30 levels of 255, past noise, exposure residue and the blur of
+/// resampling on brick and render, short of another material (a strong edge moved by a
+/// pixel still counts against, on the edge's few pixels rather than as a graded penalty on
+/// every joint).
+const GROSS: f32 = 30.0 / 255.0;
+/// Half the width of the step around [`GROSS`].
+const GROSS_STEP: f32 = 6.0 / 255.0;
 
 /// The expected error (squared RGB per pixel) below which views are equally precise
 /// witnesses: noise and the resampling every view shares.
