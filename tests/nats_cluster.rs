@@ -392,16 +392,11 @@ fn a_three_server_cluster_survives_a_dead_worker_and_a_dead_server() {
             masked_psnr(&reference, &d.scene.truth, &d.scene.mask),
         );
         println!("{s}: result {} masked PSNR {ours:.2} dB, clearview fill {theirs:.2} dB", report["number"]);
-        // KNOWN GAP (issues 12 and 17, in the closing note of 2026-11-24): the session a
-        // killed worker was on, once taken over, can keep a result judged on fewer views
-        // (seen: 23.30 dB against fill's 24.20 in about one run in three). Until the
-        // publish rule after a takeover is fixed, that session is held to 1.5 dB and the
-        // gap is printed; every other session to the issue's 0.5 dB.
-        let slack = if busy.as_deref() == Some(s.as_str()) { 1.5 } else { 0.5 };
-        if ours < theirs - 0.5 {
-            println!("KNOWN GAP: {s} (taken over) {ours:.2} dB against fill's {theirs:.2} dB");
-        }
-        assert!(ours >= theirs - slack, "{s}: {ours:.2} dB against fill's {theirs:.2} dB\n{report:#}");
+        // Whether the views came in one batch or in several (which the timing of ingest,
+        // kills and redeliveries decides), the session ends within the issue's 0.5 dB of
+        // `clearview fill` on all its files (the publish rule's near tie goes to the fill
+        // with all the evidence: `session::KEEP_MARGIN`).
+        assert!(ours >= theirs - 0.5, "{s}: {ours:.2} dB against fill's {theirs:.2} dB\n{report:#}");
         assert!(res.join("history").is_dir() && res.join("confidence.png").is_file(), "{s}: run's layout");
     }
     println!("kills at {killed_at:.1?}, every session finished at {finished:.1?}");
