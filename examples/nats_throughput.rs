@@ -1,10 +1,13 @@
 //! Throughput of the NATS scale-out against `clearview run` on the same files (issue 17):
 //! views per minute from "every file is in the watched folder" to "every view is named by
 //! an event and every session has its result", for `run` with 1 and 2 worker threads and
-//! for ingest + N workers + collect on one local `nats-server` (JetStream, 1 replica).
+//! for ingest + N workers + collect on one local `nats-server` (JetStream, 1 replica:
+//! `nats N`) or on a cluster of three local servers with every stream and bucket on three
+//! replicas (`nats3 N`, as the issue's deployment: each write is acknowledged by a quorum).
 //!
-//! `cargo run --release --example nats_throughput -- [SESSIONS] [VIEWS] [WIDTHxHEIGHT]`
-//! (default 8 sessions of 4 views, 640x480). Needs `nats-server` (`.ci/setup`).
+//! `cargo run --release --example nats_throughput -- [SESSIONS] [VIEWS] [WIDTHxHEIGHT] [MODES]`
+//! (default 8 sessions of 4 views, 640x480, modes `run 1,run 2,nats 1,nats 2,nats 4`;
+//! e.g. `"run 1,nats 1,nats3 1,nats3 2"`). Needs `nats-server` (`.ci/setup`).
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -34,7 +37,8 @@ fn main() {
     println!("{sessions} sessions x {views} views, {w}x{h}; views per minute (median of 3 runs):");
     let total = (sessions * views) as f64;
     let mut base = None;
-    for mode in ["run 1", "run 2", "nats 1", "nats 2", "nats 4"] {
+    let modes = args.get(4).map_or("run 1,run 2,nats 1,nats 2,nats 4", String::as_str);
+    for mode in modes.split(',').map(str::trim) {
         let mut times: Vec<f64> =
             (0..3).map(|i| once(&bin, tmp.path(), &src, mode, i, sessions, views)).collect();
         times.sort_by(f64::total_cmp);
@@ -82,7 +86,8 @@ impl Drop for Kill {
 fn spawn(bin: &Path, args: &[&str], log: &Path) -> Child {
     Command::new(bin)
         .args(args)
-        .env("CLEARVIEW_LOG", "warn")
+        // The roles say " started" once their streams and consumers are ready.
+        .env("CLEARVIEW_LOG", "warn,clearview::daemon::cluster=info")
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(log).unwrap())
         .spawn()
@@ -97,17 +102,22 @@ fn once(bin: &Path, tmp: &Path, src: &Path, mode: &str, run: usize, sessions: us
     let (inbox, out) = (root.join("inbox"), root.join("out"));
     std::fs::create_dir_all(&inbox).unwrap();
     let config = root.join("c.toml");
-    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let replicas = if kind == "nats3" { 3 } else { 1 };
+    let held: Vec<_> =
+        (0..2 * replicas).map(|_| std::net::TcpListener::bind("127.0.0.1:0").unwrap()).collect();
+    let ports: Vec<u16> = held.iter().map(|l| l.local_addr().unwrap().port()).collect();
+    drop(held);
     std::fs::write(
         &config,
         format!(
-            "[watch]\nquiet_period_ms = 200\n[output]\ndir = {out:?}\n[state]\ndir = {:?}\n[compute]\nworkers = {n}\n",
+            "[watch]\nquiet_period_ms = 200\n[output]\ndir = {out:?}\n[state]\ndir = {:?}\n[compute]\nworkers = {n}\n\
+             [nats]\nreplicas = {replicas}\n",
             root.join("state")
         ),
     )
     .unwrap();
     let c = config.to_str().unwrap();
-    let url = format!("nats://127.0.0.1:{port}");
+    let url = ports[..replicas].iter().map(|p| format!("nats://127.0.0.1:{p}")).collect::<Vec<_>>().join(",");
     let mut procs = Kill(Vec::new());
     if kind == "run" {
         procs.0.push(spawn(
@@ -116,24 +126,7 @@ fn once(bin: &Path, tmp: &Path, src: &Path, mode: &str, run: usize, sessions: us
             &root.join("run.log"),
         ));
     } else {
-        let server = Command::new("nats-server")
-            .args([
-                "-js",
-                "-a",
-                "127.0.0.1",
-                "-p",
-                &port.to_string(),
-                "-sd",
-                root.join("js").to_str().unwrap(),
-            ])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("nats-server (run .ci/setup)");
-        procs.0.push(server);
-        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-            std::thread::sleep(Duration::from_millis(20));
-        }
+        procs.0.extend(servers(&root, &ports, replicas));
         let o = out.to_str().unwrap();
         procs.0.push(spawn(
             bin,
@@ -169,8 +162,20 @@ fn once(bin: &Path, tmp: &Path, src: &Path, mode: &str, run: usize, sessions: us
         ];
         procs.0.push(spawn(bin, &args, &root.join("ingest.log")));
     }
-    // Every role ready (streams made): the event log or the consumer exist after a moment.
-    std::thread::sleep(Duration::from_secs(2));
+    // Every role ready (streams made, a cluster's leaders elected).
+    let ready = Instant::now() + Duration::from_secs(60);
+    for log in std::fs::read_dir(&root).unwrap().flatten().map(|e| e.path()) {
+        let role = kind != "run"
+            && log
+                .file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.ends_with(".log") && !n.starts_with('n'));
+        while role && !std::fs::read_to_string(&log).unwrap_or_default().contains(" started") {
+            assert!(Instant::now() < ready, "{} did not start", log.display());
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+    std::thread::sleep(Duration::from_secs(1));
     let start = Instant::now();
     // Each session moved in whole (a rename: no partial files).
     for s in 0..sessions {
@@ -199,6 +204,45 @@ fn once(bin: &Path, tmp: &Path, src: &Path, mode: &str, run: usize, sessions: us
         std::thread::sleep(Duration::from_millis(20));
     }
     start.elapsed().as_secs_f64()
+}
+
+/// `replicas` local JetStream servers (client ports `ports[..replicas]`, cluster routes on
+/// the others when there are several), each answering.
+fn servers(root: &Path, ports: &[u16], replicas: usize) -> Vec<Child> {
+    let mut children = Vec::new();
+    for i in 0..replicas {
+        let store = root.join(format!("js{i}"));
+        let mut conf = format!(
+            "server_name: n{i}\nlisten: 127.0.0.1:{}\njetstream {{ store_dir: {store:?} }}\n",
+            ports[i]
+        );
+        if replicas > 1 {
+            let routes: Vec<String> = (0..replicas)
+                .filter(|&j| j != i)
+                .map(|j| format!("nats-route://127.0.0.1:{}", ports[replicas + j]))
+                .collect();
+            conf.push_str(&format!(
+                "cluster {{ name: bench\n listen: 127.0.0.1:{}\n routes: [{}] }}\n",
+                ports[replicas + i],
+                routes.join(", ")
+            ));
+        }
+        let path = root.join(format!("n{i}.conf"));
+        std::fs::write(&path, conf).unwrap();
+        let child = Command::new("nats-server")
+            .args(["-c", path.to_str().unwrap()])
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(root.join(format!("n{i}.log"))).unwrap())
+            .spawn()
+            .expect("nats-server (run .ci/setup)");
+        children.push(child);
+    }
+    for &p in &ports[..replicas] {
+        while std::net::TcpStream::connect(("127.0.0.1", p)).is_err() {
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+    children
 }
 
 /// Every session's last view event is followed by a result event (updated, not better or

@@ -61,6 +61,15 @@ pub struct CollectArgs {
     /// The collector's durable consumer (one per collected folder).
     #[arg(long, default_value = "clearview-collect")]
     pub consumer: String,
+    /// Serve the preview page of the collected folder on ADDR (read-only: no mask painting,
+    /// no keyframe choice). The token and body limit are `[http]`'s and
+    /// CLEARVIEW_HTTP_TOKEN's, as for `clearview run --http`.
+    #[arg(long, value_name = "ADDR")]
+    pub http: Option<String>,
+    /// The collector's own folder: the sessions' snapshots and, with --http, copies of
+    /// their keyframes and views (default: the configuration's state folder, `collect/` in it).
+    #[arg(long)]
+    pub state: Option<PathBuf>,
 }
 
 fn load(cmd: &str, args: &NatsArgs) -> Result<Config, u8> {
@@ -148,5 +157,22 @@ pub fn collect(args: &CollectArgs) -> u8 {
     if let Some(d) = &args.out {
         config.out_dir = d.clone();
     }
-    block_on("collect", cluster::collect::run(config, &args.consumer, daemon::shutdown_signal()))
+    // Only `--http` serves the page: a configuration shared with `run` may name its
+    // `[http] listen`, which is `run`'s.
+    let listen = args.http.as_deref();
+    let served = listen.map_or(Ok(()), |l| super::run::http_overrides(&mut config, Some(l)));
+    if listen.is_none() {
+        config.http = None;
+    }
+    if let Err(e) = served {
+        eprintln!("clearview collect: {e}");
+        return exit::USAGE;
+    }
+    let state = args.state.clone().unwrap_or_else(|| config.state_dir.join("collect"));
+    if let Err(e) = daemon::paths::check_apart(&[("--out", &config.out_dir), ("--state", &state)]) {
+        eprintln!("clearview collect: {e}");
+        return exit::USAGE;
+    }
+    let opts = cluster::collect::CollectOptions { consumer: args.consumer.clone(), state };
+    block_on("collect", cluster::collect::run(config, opts, daemon::shutdown_signal()))
 }

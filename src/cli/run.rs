@@ -132,7 +132,10 @@ pub fn run(args: &RunArgs) -> u8 {
 }
 
 /// `--http ADDR` and the `CLEARVIEW_HTTP_TOKEN` variable over the configuration's `[http]`.
-fn http_overrides(config: &mut Config, listen: Option<&str>) -> Result<(), crate::config::ConfigError> {
+pub(super) fn http_overrides(
+    config: &mut Config,
+    listen: Option<&str>,
+) -> Result<(), crate::config::ConfigError> {
     let env_token = std::env::var("CLEARVIEW_HTTP_TOKEN").ok().filter(|t| !t.is_empty());
     let current = config.http.clone();
     let Some(listen) = listen.map(str::to_owned).or_else(|| current.as_ref().map(|h| h.listen.to_string()))

@@ -212,12 +212,7 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
         let server =
             http::bind(h, &token).await.map_err(|source| DaemonError::Http { addr: h.listen, source })?;
         tracing::info!(addr = %server.addr, "HTTP server listening");
-        {
-            use std::io::Write;
-            let mut out = std::io::stdout().lock();
-            let _ = writeln!(out, "clearview: preview page at {}", server.url);
-            let _ = out.flush();
-        }
+        http::announce(&server);
         let shared = Arc::new(http::Shared {
             config: config.clone(),
             registry: registry.clone(),
@@ -230,6 +225,7 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
             started,
             cancel: cancel.clone(),
             limits: http::limits::Limits::default(),
+            read_only: None,
         });
         tracker.spawn(http::serve(server, shared, h.max_body_bytes));
     }

@@ -11,11 +11,11 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use tokio::sync::broadcast;
 
 /// A view as the status API shows it.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ViewSnapshot {
     pub file: String,
     /// `buffered`, `used`, `rejected`, `outside_mask`, `dropped`.
@@ -37,7 +37,7 @@ pub struct ViewSnapshot {
 }
 
 /// One colour of the provenance map.
-#[derive(Debug, Clone, Serialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct LegendEntry {
     /// `keyframe`, `fallback` or the view's file name.
     pub source: String,
@@ -48,8 +48,9 @@ pub struct LegendEntry {
     pub pixels: usize,
 }
 
-/// A session as the status API shows it.
-#[derive(Debug, Clone, Serialize)]
+/// A session as the status API shows it (read back by `clearview collect`, which serves
+/// the snapshots the workers publish).
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct SessionSnapshot {
     pub id: String,
     pub keyframe: Option<String>,

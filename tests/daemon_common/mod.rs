@@ -3,6 +3,8 @@
 //! without its HTTP server), its event log, and a small HTTP client.
 #![allow(dead_code)]
 
+pub mod nats;
+
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};

@@ -8,6 +8,17 @@
 //! (temporary name, fsync, rename), `result.json` after the image it describes, so a
 //! reader never sees a result.json naming an image that is not there. A result whose
 //! number is not newer than the one on disk is skipped: a replay writes nothing.
+//!
+//! The preview page (`--http`, read-only): `run`'s page is fed by its in-memory registry of
+//! session snapshots and by the inbox (keyframe, view thumbnails), neither of which exists
+//! here. So each worker step also publishes the session's snapshot and the object of each
+//! file it names ([`SessionMsg`], after the result it shows); the collector keeps the
+//! latest per session in its own folder (`<state>/sessions/`, read back at start) and,
+//! with `--http`, copies the keyframes and views from the object store to
+//! `<state>/inputs/<digest>.<ext>` (content-addressed: once each), which it serves as
+//! `run` serves its inbox. The page's result, mask and provenance come from the collected
+//! folder itself. Painting a mask and choosing a keyframe are refused (405): the session's
+//! files are in the folder ingest watches.
 
 use std::future::Future;
 use std::io::Write;
@@ -21,21 +32,40 @@ use tokio_util::sync::CancellationToken;
 
 use super::{
     ClusterError, Context, DEAD_PREFIX, DeadLetter, EVENTS_PREFIX, Nats, OUT_PREFIX, OpError, ResultMsg,
+    SessionMsg,
 };
 use crate::config::Config;
-use crate::daemon::{paths, watch};
+use crate::daemon::registry::{Registry, SessionSnapshot};
+use crate::daemon::{http, paths, watch};
 
-/// Runs the collector into `config.out_dir` until `shutdown`; `consumer` is its durable
-/// consumer's name (one per collected folder).
+/// What `clearview collect` is told beyond the configuration (`config.http`: serve the
+/// preview page).
+#[derive(Debug, Clone)]
+pub struct CollectOptions {
+    /// Its durable consumer's name (one per collected folder).
+    pub consumer: String,
+    /// Its own folder: the sessions' snapshots and the copies of their inputs.
+    pub state: PathBuf,
+}
+
+/// Why the preview page of a collector refuses changes.
+const READ_ONLY: &str = "this page is served by clearview collect: it shows results only. Paint the mask or choose the keyframe where the session's files are uploaded (the folder clearview ingest watches)";
+
+/// Runs the collector into `config.out_dir` until `shutdown`.
 pub async fn run(
     mut config: Config,
-    consumer: &str,
+    opts: CollectOptions,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ClusterError> {
-    std::fs::create_dir_all(&config.out_dir)
-        .map_err(|source| ClusterError::Io { path: config.out_dir.clone(), source })?;
+    let consumer = opts.consumer.as_str();
+    let sessions = opts.state.join("sessions");
+    let inputs = opts.state.join("inputs");
+    for dir in [&config.out_dir, &sessions, &inputs] {
+        std::fs::create_dir_all(dir).map_err(|source| ClusterError::Io { path: dir.clone(), source })?;
+        crate::daemon::emit::remove_stale_temporaries(dir);
+    }
     config.out_dir = std::fs::canonicalize(&config.out_dir).unwrap_or(config.out_dir);
-    crate::daemon::emit::remove_stale_temporaries(&config.out_dir);
+    let inputs = std::fs::canonicalize(&inputs).unwrap_or(inputs);
     let nats = Arc::new(Nats::connect(&config.nats, "clearview-collect").await?);
     let c = &nats.config;
     let setup = |e: &dyn std::fmt::Display| ClusterError::Setup {
@@ -65,9 +95,33 @@ pub async fn run(
             cancel.cancel();
         });
     }
+    let pages = match &config.http {
+        Some(_) => Some(Pages::start(&config, &sessions, inputs, &cancel).await?),
+        None => None,
+    };
+    let out = Collector {
+        nats: nats.clone(),
+        out: config.out_dir.clone(),
+        history: config.history,
+        sessions,
+        pages,
+    };
+    if let Some(p) = &out.pages {
+        // Inputs a page needs that an earlier run (or one without --http) did not copy.
+        let (pages, nats, cancel) = (p.clone(), nats.clone(), cancel.clone());
+        tokio::spawn(async move {
+            for m in pages.registry_messages() {
+                if cancel.is_cancelled() {
+                    return;
+                }
+                if let Err(e) = pages.mirror(&nats, &m).await {
+                    tracing::warn!(session = %watch::shown(&m.session), error = %e, "inputs not copied for the page (they come with its next step)");
+                }
+            }
+        });
+    }
     tracing::info!(out = %config.out_dir.display(), "collect started");
     crate::daemon::systemd::ready();
-    let out = Collector { nats: nats.clone(), out: config.out_dir.clone(), history: config.history };
     while !cancel.is_cancelled() {
         let fetched = tokio::select! {
             () = cancel.cancelled() => break,
@@ -105,13 +159,27 @@ struct Collector {
     nats: Arc<Nats>,
     out: PathBuf,
     history: usize,
+    /// Where the latest [`SessionMsg`] of each session is kept.
+    sessions: PathBuf,
+    pages: Option<Pages>,
 }
 
 impl Collector {
     async fn take(&self, msg: &jetstream::Message) -> Result<(), OpError> {
         let subject = msg.subject.as_str();
+        let session_msg = subject
+            .strip_prefix(&format!("{OUT_PREFIX}."))
+            .is_some_and(|rest| super::session_subject(rest.split('.').next().unwrap_or("")) == subject);
         if subject.starts_with(&format!("{EVENTS_PREFIX}.")) {
             self.event(&msg.payload)
+        } else if session_msg {
+            match serde_json::from_slice::<SessionMsg>(&msg.payload) {
+                Ok(m) => self.session(m).await,
+                Err(e) => {
+                    tracing::error!(%subject, error = %e, "malformed session message: skipped");
+                    Ok(())
+                }
+            }
         } else if subject.starts_with(&format!("{OUT_PREFIX}.")) {
             let r: ResultMsg = match serde_json::from_slice(&msg.payload) {
                 Ok(r) => r,
@@ -158,7 +226,7 @@ impl Collector {
     /// Writes a result's files into the session's folder, `result.json` last; nothing when
     /// the folder already has this result or a newer one.
     async fn result(&self, r: ResultMsg) -> Result<(), OpError> {
-        if r.session.contains(['/', '\\']) || r.session.starts_with('.') {
+        if !folder_name(&r.session) {
             tracing::error!(session = %watch::shown(&r.session), "a result for a session that cannot be a folder: skipped");
             return Ok(());
         }
@@ -195,6 +263,162 @@ impl Collector {
         }
         tracing::info!(session = %watch::shown(&r.session), number = r.result.number, inputs = %r.result.inputs, "result collected");
         Ok(())
+    }
+
+    /// Keeps a session's latest snapshot (one older than the kept one, by its record's
+    /// revision, is skipped: a message put back comes after later ones) and, with the
+    /// page, copies its inputs and shows it.
+    async fn session(&self, m: SessionMsg) -> Result<(), OpError> {
+        if !folder_name(&m.session) || m.snapshot.id != m.session {
+            tracing::error!(session = %watch::shown(&m.session), "a snapshot for a session that cannot be a folder: skipped");
+            return Ok(());
+        }
+        let path = snapshot_path(&self.sessions, &m.session);
+        let kept = std::fs::read(&path).ok().and_then(|b| serde_json::from_slice::<SessionMsg>(&b).ok());
+        if kept.is_some_and(|k| k.record > m.record) {
+            tracing::debug!(session = %watch::shown(&m.session), record = m.record, "an older snapshot: skipped");
+            return Ok(());
+        }
+        let bytes = serde_json::to_vec(&m).ctx("snapshot")?;
+        crate::fsio::atomic_write(&path, &bytes).ctx("snapshot")?;
+        if let Some(p) = &self.pages {
+            p.mirror(&self.nats, &m).await?;
+            p.show(m);
+        }
+        Ok(())
+    }
+}
+
+/// A session name that is one plain folder name.
+fn folder_name(session: &str) -> bool {
+    !session.contains(['/', '\\']) && !session.starts_with('.')
+}
+
+fn snapshot_path(dir: &Path, session: &str) -> PathBuf {
+    dir.join(format!("{}.json", paths::session_dir_name(session)))
+}
+
+/// The preview page of a collector: its registry, fed by the sessions' snapshots, and the
+/// copies of their inputs.
+#[derive(Clone)]
+struct Pages {
+    registry: Arc<Registry>,
+    /// Kept sessions' messages, for the copies made at start.
+    loaded: Arc<std::sync::Mutex<Vec<SessionMsg>>>,
+    inputs: PathBuf,
+}
+
+impl Pages {
+    /// Reads the snapshots kept by earlier runs and starts the server (`config.http`).
+    async fn start(
+        config: &Config,
+        sessions: &Path,
+        inputs: PathBuf,
+        cancel: &CancellationToken,
+    ) -> Result<Self, ClusterError> {
+        let h = config.http.as_ref().expect("only with [http]");
+        let mut served = config.clone();
+        // The page reads keyframes and views from the copies, as `run` reads its inbox.
+        served.watch_dir = inputs.clone();
+        let pages = Self { registry: Arc::default(), loaded: Arc::default(), inputs };
+        let mut loaded = Vec::new();
+        for entry in std::fs::read_dir(sessions)
+            .map_err(|source| ClusterError::Io { path: sessions.to_owned(), source })?
+            .flatten()
+        {
+            let path = entry.path();
+            if path.extension().is_none_or(|e| e != "json") {
+                continue;
+            }
+            match std::fs::read(&path)
+                .map_err(|e| e.to_string())
+                .and_then(|b| serde_json::from_slice::<SessionMsg>(&b).map_err(|e| e.to_string()))
+            {
+                Ok(m) => {
+                    pages.show(m.clone());
+                    loaded.push(m);
+                }
+                Err(e) => {
+                    tracing::warn!(file = %path.display(), error = %e, "a kept snapshot that cannot be read: skipped")
+                }
+            }
+        }
+        *pages.loaded.lock().expect("pages lock") = loaded;
+        let token = h.token.clone().unwrap_or_else(http::generate_token);
+        let server = http::bind(h, &token)
+            .await
+            .map_err(|source| crate::daemon::DaemonError::Http { addr: h.listen, source })?;
+        tracing::info!(addr = %server.addr, "HTTP server listening (read-only)");
+        http::announce(&server);
+        let shared = Arc::new(http::Shared {
+            emitter: Arc::new(crate::daemon::emit::Emitter::open(&served)?),
+            config: Arc::new(served),
+            registry: pages.registry.clone(),
+            stats: Arc::default(),
+            backlog: Arc::default(),
+            queues: Vec::new(),
+            token,
+            loopback: server.addr.ip().is_loopback(),
+            started: std::time::Instant::now(),
+            cancel: cancel.clone(),
+            limits: http::limits::Limits::default(),
+            read_only: Some(READ_ONLY),
+        });
+        tokio::spawn(http::serve(server, shared, h.max_body_bytes));
+        Ok(pages)
+    }
+
+    /// The messages read at start (once).
+    fn registry_messages(&self) -> Vec<SessionMsg> {
+        std::mem::take(&mut *self.loaded.lock().expect("pages lock"))
+    }
+
+    /// Where the copy of a file with content `digest` and name `name` is.
+    fn input_path(&self, name: &str, digest: &str) -> PathBuf {
+        let ext = name.rsplit_once('.').map(|(_, e)| e.to_ascii_lowercase());
+        let ext =
+            ext.filter(|e| !e.is_empty() && e.len() <= 8 && e.bytes().all(|b| b.is_ascii_alphanumeric()));
+        self.inputs.join(format!("{digest}.{}", ext.as_deref().unwrap_or("bin")))
+    }
+
+    /// Copies the files `m` names from the object store (those not copied yet). A file the
+    /// store no longer has is said and left out (the page answers 404 for it); a store that
+    /// does not answer is an error (the message comes again).
+    async fn mirror(&self, nats: &Nats, m: &SessionMsg) -> Result<(), OpError> {
+        for (name, digest) in &m.files {
+            if digest.len() != 64 || !digest.bytes().all(|b| b.is_ascii_hexdigit()) {
+                continue;
+            }
+            let path = self.input_path(name, digest);
+            if path.is_file() {
+                continue;
+            }
+            let Some(bytes) = nats.get_object(&super::file_object(digest)).await? else {
+                tracing::warn!(session = %watch::shown(&m.session), file = %watch::shown(name), "not in the object store: the page cannot show it");
+                continue;
+            };
+            if super::sha256_hex(&bytes) != *digest {
+                tracing::warn!(file = %watch::shown(name), "the object store's copy does not have its digest: not shown");
+                continue;
+            }
+            crate::fsio::atomic_write(&path, &bytes).ctx(name)?;
+        }
+        Ok(())
+    }
+
+    /// Shows a snapshot: its files are the copies; a `result` update when its result is new.
+    fn show(&self, m: SessionMsg) {
+        let SessionMsg { mut snapshot, files, .. } = m;
+        let at = |name: &str| files.get(name).map(|d| self.input_path(name, d));
+        snapshot.key_path = snapshot.keyframe.as_deref().and_then(at);
+        for v in &mut snapshot.views {
+            v.path = at(&v.file).unwrap_or_default();
+        }
+        snapshot.inbox_dir = self.inputs.clone();
+        let number = |s: &SessionSnapshot| s.result.as_ref().and_then(|r| r["number"].as_u64());
+        let new = number(&snapshot)
+            .filter(|&n| self.registry.get(&snapshot.id).and_then(|o| number(&o)) != Some(n));
+        self.registry.publish(snapshot, new);
     }
 }
 

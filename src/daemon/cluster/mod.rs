@@ -80,6 +80,7 @@ pub mod collect;
 pub mod ingest;
 pub mod worker;
 
+use std::collections::BTreeMap;
 use std::time::Duration;
 
 use async_nats::jetstream::{self, kv, object_store, stream};
@@ -87,6 +88,7 @@ use serde::{Deserialize, Serialize};
 use sha2::Digest as _;
 use thiserror::Error;
 
+use super::registry::SessionSnapshot;
 use super::watch::Role;
 use crate::config::NatsConfig;
 
@@ -233,6 +235,9 @@ pub struct Record {
     pub events: Vec<Said>,
     /// The worker that saved it.
     pub worker: String,
+    /// The session as the status API shows it after the step, published after the result.
+    #[serde(default)]
+    pub session: Option<SessionMsg>,
 }
 
 /// An event line of a step and the session it is of.
@@ -248,6 +253,28 @@ pub struct ResultMsg {
     pub session: String,
     #[serde(flatten)]
     pub result: ResultRef,
+}
+
+/// The message on `clearview.out.<session>.session` ([`session_subject`]): the session as
+/// `run`'s status API shows it after a step, for `clearview collect --http`, and where the
+/// files it names (keyframe, views) are in the object store.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SessionMsg {
+    pub session: String,
+    pub snapshot: SessionSnapshot,
+    /// The revision of the session's record that published it: a later step's snapshot
+    /// has a higher one.
+    #[serde(default)]
+    pub record: u64,
+    /// File name → SHA-256 of its content (the `file/<digest>` object), for the keyframe
+    /// and the views the snapshot names.
+    pub files: BTreeMap<String, String>,
+}
+
+/// The subject of a session's [`SessionMsg`]: under `clearview.out.>` (so the results
+/// stream takes it as it is), one token deeper than its results.
+pub fn session_subject(session_token: &str) -> String {
+    format!("{OUT_PREFIX}.{session_token}.session")
 }
 
 /// The message on `clearview.dead.<session>`: a poison message and why.

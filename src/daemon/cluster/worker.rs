@@ -25,7 +25,7 @@ use tokio_util::sync::CancellationToken;
 
 use super::{
     ClusterError, Context, DEAD_PREFIX, DeadLetter, EVENTS_PREFIX, Entry, FileMsg, IN_PREFIX, NO_SESSION,
-    Nats, OUT_PREFIX, OpError, Record, ResultMsg, ResultRef,
+    Nats, OUT_PREFIX, OpError, Record, ResultMsg, ResultRef, SessionMsg,
 };
 use crate::config::Config;
 use crate::daemon::engine::publish::FillStep;
@@ -417,6 +417,9 @@ impl Worker {
             let local = self.local.get_mut(session).expect("rebuilt above");
             let filled = local.slot.fill(&self.ctx);
             local.slot.save_state(&self.ctx);
+            // The snapshot the record carries to `collect --http` (as `run`'s worker
+            // publishes it for its page).
+            local.slot.publish(&self.ctx, filled.written());
             self.metrics.stage(3, t);
             if filled == FillStep::Cancelled {
                 return Err(StepError::Stopping);
@@ -433,7 +436,15 @@ impl Worker {
                 .map(|(session, line)| super::Said { session, line })
                 .collect();
             let state_text = std::fs::read_to_string(state::path(&self.ctx.config.state_dir, session)).ok();
-            let new = Record { applied: n, state: state_text, result, events, worker: self.id.clone() };
+            let shown = self.shown(session, &listing.entries);
+            let new = Record {
+                applied: n,
+                state: state_text,
+                result,
+                events,
+                worker: self.id.clone(),
+                session: shown,
+            };
             let bytes = serde_json::to_vec(&new).ctx("record")?;
             let saved = Nats::kv_swap(&self.nats.sessions, &format!("state.{tok}"), bytes, rev).await?;
             let Some(new_rev) = saved else { return Err(StepError::TakenOver) };
@@ -451,15 +462,39 @@ impl Worker {
         }
     }
 
-    /// Publishes what record `rev` says: its result's message and its step's events, each
-    /// with a message id of its own (result: session and inputs; event: session, record
-    /// revision and place), so that publishing a record twice adds nothing.
+    /// The session as the engine's snapshot shows it after the step, with the object of
+    /// each file it names (the listing's latest entry of that name).
+    fn shown(&self, session: &str, entries: &[Entry]) -> Option<SessionMsg> {
+        let snapshot = (*self.ctx.registry.get(session)?).clone();
+        let mut digests: HashMap<&str, &str> = HashMap::new();
+        for e in entries {
+            match &e.digest {
+                Some(d) => digests.insert(&e.name, d),
+                None => digests.remove(e.name.as_str()),
+            };
+        }
+        let names = snapshot.keyframe.iter().chain(snapshot.views.iter().map(|v| &v.file));
+        let files = names.filter_map(|n| Some((n.clone(), (*digests.get(n.as_str())?).to_owned()))).collect();
+        Some(SessionMsg { session: session.to_owned(), snapshot, record: 0, files })
+    }
+
+    /// Publishes what record `rev` says: its result's message, the session's snapshot and
+    /// its step's events, each with a message id of its own (result: session and inputs;
+    /// snapshot: session and record revision; event: session, record revision and place),
+    /// so that publishing a record twice adds nothing. The snapshot follows the result it
+    /// names, so a collector has the result's files before it shows them.
     async fn flush(&self, tok: &str, record: &Record, rev: u64) -> Result<(), OpError> {
         if let Some(r) = &record.result {
             let session = super::untoken(tok);
             let msg = serde_json::to_vec(&ResultMsg { session, result: r.clone() }).ctx("result")?;
             self.nats
                 .publish(format!("{OUT_PREFIX}.{tok}"), Some(&format!("result:{tok}:{}", r.inputs)), msg)
+                .await?;
+        }
+        if let Some(shown) = &record.session {
+            let msg = serde_json::to_vec(&SessionMsg { record: rev, ..shown.clone() }).ctx("session")?;
+            self.nats
+                .publish(super::session_subject(tok), Some(&format!("session:{tok}:{rev}")), msg)
                 .await?;
         }
         for (i, e) in record.events.iter().enumerate() {

@@ -107,7 +107,7 @@ pub async fn list(State(s): AppState) -> Json<serde_json::Value> {
             })
         })
         .collect();
-    Json(json!({ "sessions": sessions }))
+    Json(json!({ "sessions": sessions, "read_only": s.read_only.is_some() }))
 }
 
 pub async fn one(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
@@ -116,7 +116,27 @@ pub async fn one(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Res
 
 pub async fn result(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
     let x = session(&s, &id)?;
-    file(s.emitter.session_dir(&x.id).join(s.emitter.result_name()), "result").await
+    file(s.emitter.session_dir(&x.id).join(result_name(&s, &x)), "result").await
+}
+
+/// The result image's name: the one its `result.json` gives (`image.file`, a plain
+/// `result.<ext>`: the workers of `clearview collect` may write another format than the
+/// collector's configuration says), else this service's own.
+fn result_name(s: &Shared, x: &SessionSnapshot) -> String {
+    let named = x.result.as_ref().and_then(|r| r["image"]["file"].as_str());
+    match named {
+        Some(n) if n.starts_with("result.") && !n.contains(['/', '\\']) && !n.contains("..") => n.to_owned(),
+        _ => s.emitter.result_name(),
+    }
+}
+
+/// `405` for a change asked of a server that only shows results (`clearview collect
+/// --http`: the sessions' files are where ingest watches them, on another machine).
+fn refuse_change(s: &Shared) -> Option<Response> {
+    let reason = s.read_only?;
+    let mut r = err(StatusCode::METHOD_NOT_ALLOWED, reason).into_response();
+    r.headers_mut().insert(header::ALLOW, header::HeaderValue::from_static("GET, HEAD"));
+    Some(r)
 }
 
 /// The bytes of a file of the watched folder, opened as the intake opens it (no symbolic
@@ -278,6 +298,9 @@ pub async fn put_mask(
     UrlPath(id): UrlPath<String>,
     body: Bytes,
 ) -> Result<Response, ApiError> {
+    if let Some(refused) = refuse_change(&s) {
+        return Ok(refused);
+    }
     let x = session(&s, &id)?;
     let (Some(key), Some((kw, kh))) = (x.keyframe.clone(), x.key_size) else {
         return Err(err(StatusCode::CONFLICT, "the session has no keyframe yet"));
@@ -369,6 +392,9 @@ pub async fn choose_keyframe(
     UrlPath(id): UrlPath<String>,
     body: Bytes,
 ) -> Result<Response, ApiError> {
+    if let Some(refused) = refuse_change(&s) {
+        return Ok(refused);
+    }
     let x = session(&s, &id)?;
     let choice: KeyChoice = serde_json::from_slice(&body)
         .map_err(|e| err(StatusCode::BAD_REQUEST, format!("expected {{\"file\": NAME}}: {e}")))?;

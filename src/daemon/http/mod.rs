@@ -20,6 +20,9 @@
 //!   [`crate::daemon::paths::Inbox`] (no symbolic link followed unless configured).
 //! - A request head must arrive within [`HEADER_TIMEOUT`], a request with a body be done
 //!   within [`BODY_TIMEOUT`]; at most [`MAX_CONNECTIONS`] connections are served at once.
+//! - `clearview collect --http` serves the same page read-only ([`Shared::read_only`]): the
+//!   same rules, and the two changes answered 405 with the reason (the sessions' files are
+//!   in the folder ingest watches, on another machine).
 //! - Memory and connections are bounded whatever the requests ([`limits`]): event streams
 //!   are capped (503 beyond), images are decoded one at a time (thumbnails cached), a few
 //!   bodies at a time are held, files are streamed from disk.
@@ -64,6 +67,9 @@ pub struct Shared {
     pub cancel: CancellationToken,
     /// Event streams, decodes, bodies and thumbnails, bounded ([`limits`]).
     pub limits: limits::Limits,
+    /// `Some(why)`: the server only shows results (`clearview collect --http`); the two
+    /// changes (paint the mask, choose the keyframe) are answered 405 with `why`.
+    pub read_only: Option<&'static str>,
 }
 
 type AppState = State<Arc<Shared>>;
@@ -101,6 +107,15 @@ pub async fn bind(http: &HttpConfig, token: &str) -> std::io::Result<Server> {
         format!("http://{addr}/?token={token}")
     };
     Ok(Server { listener, addr, url })
+}
+
+/// Says where the page is on standard output (with the generated token: the operator's
+/// way in), and flushes it.
+pub fn announce(server: &Server) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    let _ = writeln!(out, "clearview: preview page at {}", server.url);
+    let _ = out.flush();
 }
 
 /// Connections served at once; more wait in the kernel's backlog until one closes.

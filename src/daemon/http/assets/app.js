@@ -15,6 +15,8 @@ const $ = (id) => document.getElementById(id);
 let current = decodeURIComponent(location.hash.slice(1)) || null;
 let snapshot = null;
 let painting = false;
+// Served by `clearview collect --http`: results only, no mask painting or keyframe choice.
+let readOnly = false;
 
 // A URL of ours with the token (images and the event stream cannot send headers).
 function url(path, extra) {
@@ -40,6 +42,8 @@ const sessionPath = (id) => '/api/sessions/' + encodeURIComponent(id);
 
 async function loadSessions() {
   const list = await api('/api/sessions');
+  readOnly = !!list.read_only;
+  $('paint-toggle').hidden = readOnly;
   const nav = $('sessions');
   if (!list.sessions.length) return;
   nav.replaceChildren(...list.sessions.map((s) => {
@@ -128,11 +132,13 @@ function renderViews(s) {
     q.className = 'reason';
     q.textContent = v.inliers + '/' + v.matches + ' inliers' + (v.median_residual_px != null ? ', ' + v.median_residual_px.toFixed(2) + ' px' : '');
     d.append(q);
-    const b = document.createElement('button');
-    b.type = 'button';
-    b.textContent = 'Make keyframe';
-    b.onclick = () => chooseKeyframe(v.file);
-    d.append(b);
+    if (!readOnly) {
+      const b = document.createElement('button');
+      b.type = 'button';
+      b.textContent = 'Make keyframe';
+      b.onclick = () => chooseKeyframe(v.file);
+      d.append(b);
+    }
     card.append(img, d);
     return card;
   }));
