@@ -9,17 +9,28 @@
 //!   `swept_planes`), from the same alignment;
 //! - `true-planes`: the multi-plane fill given the true planes (an upper bound for the fit).
 //!
-//! `cargo run --release --example parallax_eval -- [--seeds N] [--first K] [--size WxH] [--views N] [--flat] [--dump DIR]`
+//!
+//! With `--oracles`, a second table says where the swept fill loses against the true planes:
+//! the same sweep given the true epipoles (in each view's own scale, tied by the sweep as
+//! the estimated ones are; or already in one scale), the estimated epipoles with their scales
+//! tied by the truth, and the true slab planes on the estimated walls; and, per fill, the
+//! share of masked pixels whose chosen surface is not the one the truth shows there.
+//!
+//! `cargo run --release --example parallax_eval -- [--seeds N] [--first K] [--size WxH] [--views N] [--flat] [--dump DIR] [--oracles] [--no-refine] [--no-supported-ties]`
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use clearview::align::{AlignParams, Frame, align};
 use clearview::geometry::Homography;
+use clearview::geometry::planes::ParallaxFamily;
 use clearview::imaging::RgbF32;
 use clearview::imaging::convert::{luminance, to_rgb8};
 use clearview::imaging::metrics::masked_psnr;
-use clearview::inpaint::parallax::{SurfaceParams, SweepParams, surface_planes, swept_planes};
+use clearview::inpaint::parallax::{
+    SurfaceParams, SurfacePlane, SweepParams, matching_map, parallax_family, surface_planes, sweep_family,
+    swept_planes,
+};
 use clearview::inpaint::{FillExtras, FillParams, Filled, Observer, Source, Stage, fill_with};
 use clearview::synth::facade::{ParallaxCase, parallax_case};
 
@@ -148,11 +159,92 @@ fn family_check(c: &ParallaxCase, walls: &[Homography], views: &[&clearview::ima
     }
 }
 
+/// One case's oracle figures: seed, masked PSNR per column, wrongly chosen share per
+/// column, surfaces found per column.
+type OracleRow = (u64, Vec<f64>, Vec<f64>, Vec<usize>);
+
+/// The true plane + parallax family of a case in the coordinates of the guided matching
+/// (`t`: full resolution → there), its walls the estimated ones (`walls`): per view the
+/// epipole `λ·T·K·t` (`λ` the estimated wall matrix's scale against the true one) and the
+/// slabs' true depths `1/z − 1/WALL`, one scale for all views.
+fn true_family(c: &ParallaxCase, walls: &[Homography], t: &Homography) -> ParallaxFamily {
+    use clearview::synth::facade::WALL;
+    let tm = *t.matrix();
+    let tm_inv = tm.try_inverse().expect("regular");
+    let gammas: Vec<f64> = c.slabs.iter().map(|s| 1.0 / (WALL - s.depth) - 1.0 / WALL).collect();
+    let mut mats = Vec::new();
+    let mut epipoles = Vec::new();
+    for (cam, wall) in c.cameras.iter().zip(walls) {
+        let est = tm * wall.matrix() * tm_inv;
+        let tv = -(cam.r * cam.c);
+        let truth = tm
+            * cam.k
+            * (cam.r + tv * nalgebra::Vector3::new(0.0, 0.0, 1.0).transpose() / WALL)
+            * c.key_camera.k.try_inverse().expect("regular")
+            * tm_inv;
+        let lambda = est.dot(&truth) / truth.norm_squared();
+        mats.push(est);
+        epipoles.push(Some(tm * cam.k * tv * lambda));
+    }
+    let observed = vec![gammas; walls.len()];
+    ParallaxFamily { walls: mats, epipoles, observed }
+}
+
+/// Share of the masked pixels (not on a slab's side) whose chosen surface is not the true
+/// one, given which true plane each chosen surface is (`None`: none).
+fn wrong_choice(c: &ParallaxCase, f: &Filled, truth_of: &[Option<u16>]) -> f64 {
+    let (mut bad, mut all) = (0usize, 0usize);
+    for y in 0..c.key.height() {
+        for x in 0..c.key.width() {
+            let t = c.surface.get(x, y);
+            if !c.mask.is_hole(x, y) || t == clearview::synth::facade::SIDE {
+                continue;
+            }
+            all += 1;
+            let s = f.surface.get(x, y) as usize;
+            let chosen = if s == 0 { Some(0) } else { truth_of.get(s - 1).copied().flatten() };
+            if chosen != Some(t) {
+                bad += 1;
+            }
+        }
+    }
+    bad as f64 / all.max(1) as f64
+}
+
+/// Which true plane each surface is: the one nearest at its region's centre (mean over
+/// views), if within 1.5 pixels.
+fn identify(c: &ParallaxCase, surfaces: &[SurfacePlane]) -> Vec<Option<u16>> {
+    surfaces
+        .iter()
+        .map(|s| {
+            let r = s.region;
+            let p =
+                nalgebra::Point2::new(r.x as f64 + 0.5 * r.width as f64, r.y as f64 + 0.5 * r.height as f64);
+            (0..c.planes[0].len())
+                .map(|t| {
+                    let d: Vec<f64> = s
+                        .views
+                        .iter()
+                        .zip(&c.planes)
+                        .filter_map(|(h, tp)| Some((h.as_ref()?.apply(p)? - tp[t].apply(p)?).norm()))
+                        .collect();
+                    (t as u16, d.iter().sum::<f64>() / d.len().max(1) as f64)
+                })
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .filter(|b| b.1 < 1.5)
+                .map(|b| b.0)
+        })
+        .collect()
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let (mut seeds, mut w, mut h, mut n, mut flat, mut dump) =
         (8u64, 640usize, 480usize, 3usize, false, None);
     let mut first = 1u64;
+    let mut oracles = false;
+    let mut sp = SweepParams::default();
+    let mut oracle_rows: Vec<OracleRow> = Vec::new();
     let mut fp = FillParams::default();
     let mut it = args.iter();
     while let Some(a) = it.next() {
@@ -165,6 +257,9 @@ fn main() {
                 (w, h) = (a.parse().expect("width"), b.parse().expect("height"));
             }
             "--flat" => flat = true,
+            "--oracles" => oracles = true,
+            "--no-refine" => sp.refine_epipoles = false,
+            "--no-supported-ties" => sp.supported_ties = false,
             "--penalty" => fp.parallax.penalty = it.next().and_then(|v| v.parse().ok()).expect("--penalty X"),
             "--bias" => fp.parallax.wall_bias = it.next().and_then(|v| v.parse().ok()).expect("--bias X"),
             "--truncate" => {
@@ -195,7 +290,7 @@ fn main() {
         let planes = surface_planes(&luminance(&c.key), &refs, &walls, &c.mask, &SurfaceParams::default(), 1);
         let fit_ms = t1.elapsed().as_secs_f64() * 1e3;
         let t2 = Instant::now();
-        let swept = swept_planes(&luminance(&c.key), &refs, &walls, &c.mask, &SweepParams::default(), 1);
+        let swept = swept_planes(&luminance(&c.key), &refs, &walls, &c.mask, &sp, 1);
         let sweep_ms = t2.elapsed().as_secs_f64() * 1e3;
         if std::env::var_os("PARALLAX_DEBUG").is_some() {
             family_check(&c, &walls, &refs);
@@ -218,6 +313,90 @@ fn main() {
             ),
         ];
         let psnr: Vec<f64> = results.iter().map(|f| masked_psnr(&f.image, &c.truth, &c.mask)).collect();
+        if oracles {
+            let key_gray = luminance(&c.key);
+            let t = matching_map(w, h, &sp.matching);
+            let truth = true_family(&c, &walls, &t);
+            let est = parallax_family(&key_gray, &refs, &walls, &c.mask, &sp, 1).map(|f| f.0);
+            // Each view's true epipole in a scale of its own (unit norm): the sweep ties them.
+            let untied = {
+                let k: Vec<Option<f64>> = truth.epipoles.iter().map(|e| e.map(|e| 1.0 / e.norm())).collect();
+                truth.scaled(&k)
+            };
+            // The estimated epipoles, each scaled to the true one's length along it.
+            let est_tied = est.as_ref().map(|f| {
+                let k: Vec<Option<f64>> = f
+                    .epipoles
+                    .iter()
+                    .zip(&truth.epipoles)
+                    .map(|(e, t)| Some(e.as_ref()?.dot(t.as_ref()?) / e.as_ref()?.norm_squared()))
+                    .collect();
+                let mut s = f.scaled(&k);
+                s.observed = truth.observed.clone();
+                s
+            });
+            let sweeps: Vec<Vec<SurfacePlane>> = vec![
+                swept.clone(),
+                est_tied
+                    .map_or_else(Vec::new, |f| sweep_family(&key_gray, &refs, &c.mask, &sp, &f, &t, true)),
+                sweep_family(&key_gray, &refs, &c.mask, &sp, &untied, &t, false),
+                sweep_family(&key_gray, &refs, &c.mask, &sp, &truth, &t, true),
+                true_planes.clone(),
+            ];
+            // The true family's surfaces, each given the true plane it is (the regions the
+            // sweep found, the depths exact); the true slabs allowed everywhere.
+            let snapped: Vec<SurfacePlane> = sweeps[3]
+                .iter()
+                .zip(identify(&c, &sweeps[3]))
+                .filter_map(|(s, t)| {
+                    let t = usize::from(t.filter(|&t| t > 0)?);
+                    Some(SurfacePlane {
+                        views: c.planes.iter().map(|v| Some(v[t])).collect(),
+                        region: s.region,
+                    })
+                })
+                .collect();
+            let everywhere: Vec<SurfacePlane> = true_planes
+                .iter()
+                .map(|s| SurfacePlane {
+                    views: s.views.clone(),
+                    region: clearview::imaging::Rect::from_corners(0, 0, w, h),
+                })
+                .collect();
+            let anywhere = |s: &[SurfacePlane]| -> Vec<SurfacePlane> {
+                s.iter()
+                    .map(|s| SurfacePlane {
+                        views: s.views.clone(),
+                        region: clearview::imaging::Rect::from_corners(0, 0, w, h),
+                    })
+                    .collect()
+            };
+            let (swept_any, tied_any) = (anywhere(&sweeps[0]), anywhere(&sweeps[3]));
+            let sweeps: Vec<Vec<SurfacePlane>> =
+                sweeps.into_iter().chain([snapped, everywhere, swept_any, tied_any]).collect();
+            let mut p = Vec::new();
+            let mut wrong = Vec::new();
+            let mut found = Vec::new();
+            for (k, s) in sweeps.iter().enumerate() {
+                let f = if k == 0 {
+                    results[3].clone()
+                } else {
+                    run(
+                        &c,
+                        &walls,
+                        &FillExtras { planes: s, ..FillExtras::default() },
+                        &fp,
+                        &mut Timer::default(),
+                    )
+                };
+                p.push(masked_psnr(&f.image, &c.truth, &c.mask));
+                wrong.push(wrong_choice(&c, &f, &identify(&c, s)));
+                found.push(s.len());
+            }
+            p.push(psnr[4]);
+            wrong.push(wrong_choice(&c, &results[4], &identify(&c, &true_planes)));
+            oracle_rows.push((seed, p, wrong, found));
+        }
         for (s, p) in sums.iter_mut().zip(&psnr) {
             *s += p;
         }
@@ -275,6 +454,38 @@ fn main() {
         "| **mean** | | | | | {} |",
         sums.iter().map(|s| format!("{:.2}", s / k)).collect::<Vec<_>>().join(" | ")
     );
+    if oracles {
+        let cols = [
+            "swept",
+            "est. E, scales*",
+            "E* untied",
+            "E* tied",
+            "true slabs, est. wall",
+            "E* tied, depths*",
+            "true slabs anywhere",
+            "swept anywhere",
+            "E* tied anywhere",
+            "true planes",
+        ];
+        println!("\nmasked PSNR dB (surfaces found | wrongly chosen masked pixels %):");
+        println!("| seed | {} |", cols.join(" | "));
+        println!("|---:|{}", "---:|".repeat(cols.len()));
+        let mut sums = vec![0.0; cols.len()];
+        for (seed, p, wrong, found) in &oracle_rows {
+            let cells: Vec<String> = (0..cols.len())
+                .map(|k| {
+                    sums[k] += p[k];
+                    let n = found.get(k).map_or(String::new(), |n| format!("{n} | "));
+                    format!("{:.2} ({n}{:.0})", p[k], 100.0 * wrong[k])
+                })
+                .collect();
+            println!("| {seed} | {} |", cells.join(" | "));
+        }
+        println!(
+            "| **mean** | {} |",
+            sums.iter().map(|s| format!("{:.2}", s / k)).collect::<Vec<_>>().join(" | ")
+        );
+    }
     // Median cost per stage over the cases.
     let mut keys: Vec<String> = stage_ms.iter().map(|(s, _)| s.clone()).collect();
     keys.dedup();
