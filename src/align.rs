@@ -561,10 +561,29 @@ pub fn align(key: &Frame, view: &Frame, params: &AlignParams, prior: Option<&Hom
     let plain = align_from_matches(key, view, params, &putative);
     if search::worth_searching(&plain)
         && let Some(found) = search::rescue(key, view, params)
+        && !rivalled_by(&found, &plain, params, key, view)
     {
         return found;
     }
     plain
+}
+
+/// Whether the plain path's own guided model, refused on its share, rivals what the search
+/// found: a different place for the keyframe with at least [`Acceptance::max_rival`] of its
+/// inliers is the race's ambiguity, and a repeating facade gives just that (a search
+/// candidate ×1.4 away matched 47 points of a one-period alias where the plain model
+/// matched 80, `tests/align_synthetic.rs`'s scene 4).
+fn rivalled_by(
+    found: &Alignment,
+    plain: &Alignment,
+    params: &AlignParams,
+    key: &Frame,
+    view: &Frame,
+) -> bool {
+    let (Some(a), Some(b)) = (&found.homography, &plain.homography) else { return false };
+    plain.inliers > 0
+        && plain.inliers as f64 >= params.acceptance.max_rival * found.inliers as f64
+        && maps_differ(a, b, found.octave.max(plain.octave), key, view)
 }
 
 /// Step 2: putative correspondences from descriptor matches (SSD of oriented, normalised
