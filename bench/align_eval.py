@@ -324,7 +324,124 @@ def prepare(args):
             write_h(d / "H", read_h(refined if refined.exists() else sdir / f"H1to{n}p"))
             (d / "meta.json").write_text(json.dumps({"key_covered": kc, "view_covered": vc}))
         print(f"occl/{seq}: done", file=sys.stderr)
+    if "simroll" in args.sets.split(","):
+        prepare_simroll(data, work)
+    if "others" in args.sets.split(","):
+        prepare_others(data, work)
     # The clean pairs are read in place.
+
+
+# Real photos (native size) the generated scale/roll pairs are cut from.
+SIMROLL_PHOTOS = [("parapano_hunt", "hunt3.jpg"), ("parapano_ece", "ece4.jpeg"), ("parapano_building", "building2.png")]
+SIMROLL_SCALES = [0.3, 0.5, 0.7, 1.0, 1.4, 2.0, 2.8, 3.5]
+SIMROLL_ROLLS = [0, 30, 60, 90, 135, 180]
+
+
+def _camera(w, h, scale, roll_deg, tilt_deg, tilt_dir, cx, cy):
+    """The map from an image's pixels to the photo's: a camera at (cx, cy) of the photo,
+    `scale` photo pixels per image pixel, turned by `roll_deg`, tilted by `tilt_deg` about an
+    axis in the image plane (a plane-induced homography K R K^-1 about the image centre)."""
+    f = 1.2 * max(w, h)
+    t, a = math.radians(tilt_deg), tilt_dir
+    ax, ay = math.cos(a), math.sin(a)
+    c, sn = math.cos(t), math.sin(t)
+    r = np.array([[c + ax * ax * (1 - c), ax * ay * (1 - c), ay * sn],
+                  [ax * ay * (1 - c), c + ay * ay * (1 - c), -ax * sn],
+                  [-ay * sn, ax * sn, c]])
+    k = np.array([[f, 0, 0], [0, f, 0], [0, 0, 1.0]])
+    tilt = k @ r @ np.linalg.inv(k)
+    rr = math.radians(roll_deg)
+    sim = np.array([[scale * math.cos(rr), -scale * math.sin(rr), cx],
+                    [scale * math.sin(rr), scale * math.cos(rr), cy], [0, 0, 1.0]])
+    centre = np.array([[1, 0, -(w - 1) / 2], [0, 1, -(h - 1) / 2], [0, 0, 1.0]])
+    return sim @ tilt @ centre
+
+
+def _render(photo, m, w, h):
+    """The image whose pixel x shows the photo at m x, blurred first so that shrinking does
+    not alias (sigma from the map's scale at the centre)."""
+    scale = math.sqrt(abs(np.linalg.det(m[:2, :2]) / m[2, 2] ** 2))
+    src = photo
+    if scale > 1.05:
+        sigma = 0.5 * math.sqrt(scale * scale - 1)
+        src = cv2.GaussianBlur(photo, (0, 0), sigma)
+    return cv2.warpPerspective(src, m, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_REFLECT)
+
+
+def _inside(m, w, h, pw, ph):
+    c = m @ np.array([[0, w - 1, 0, w - 1], [0, 0, h - 1, h - 1], [1, 1, 1, 1.0]])
+    c = c[:2] / c[2]
+    return c.min() >= 0 and (c[0] <= pw - 1).all() and (c[1] <= ph - 1).all()
+
+
+def prepare_simroll(data, work):
+    """Pairs with known truth at scales 0.3..3.5 (key -> view) and rolls 0..180 degrees, cut
+    from real photos at native size (never enlarged beyond the photo's own pixels for the
+    zoomed-in side), each with a seeded out-of-plane tilt of up to 8 degrees, noise and an
+    exposure change. Both images are as large as the photo allows (at most 640 x 480), so
+    at ×3.5 they are small: that is what such a zoom leaves of a 1440 x 1080 photo."""
+    rng = np.random.default_rng(13)
+    for folder, name in SIMROLL_PHOTOS:
+        photo = cv2.imread(str(data / "multiview" / folder / name))
+        ph, pw = photo.shape[:2]
+        for sc in SIMROLL_SCALES:
+            for roll in SIMROLL_ROLLS:
+                tilt, tdir = rng.uniform(0, 8), rng.uniform(0, 2 * math.pi)
+                # Photo pixels per image pixel: the zoomed-in side at the photo's own
+                # resolution (1), the other `sc` (or 1/sc) times coarser.
+                if sc < 1:
+                    a_key, a_view = 1.0, 1.0 / sc
+                else:
+                    a_key, a_view = sc, 1.0
+                w = 640
+                while True:
+                    h = w * 3 // 4
+                    mk = _camera(w, h, a_key, 0, 0, 0, pw / 2, ph / 2)
+                    mv = _camera(w, h, a_view, -roll, tilt, tdir, pw / 2 + rng.uniform(-0.03, 0.03) * pw,
+                                 ph / 2 + rng.uniform(-0.03, 0.03) * ph)
+                    if (_inside(mk, w, h, pw, ph) and _inside(mv, w, h, pw, ph)) or w <= 160:
+                        break
+                    w -= 16
+                key = _render(photo, mk, w, h)
+                view = _render(photo, mv, w, h)
+                view = np.clip(view.astype(np.float32) * rng.uniform(0.8, 1.2) + rng.normal(0, 2.0, view.shape),
+                               0, 255).astype(np.uint8)
+                d = work / "simroll" / f"{Path(name).stem}-s{sc:.1f}-r{roll:03d}"
+                d.mkdir(parents=True, exist_ok=True)
+                cv2.imwrite(str(d / "key.png"), key)
+                cv2.imwrite(str(d / "view.png"), view)
+                # key -> photo -> view
+                write_h(d / "H", np.linalg.inv(mv) @ mk)
+                (d / "meta.json").write_text(json.dumps({"scale": sc, "roll": roll, "tilt": tilt, "size": [w, h]}))
+        print(f"simroll/{name}: done", file=sys.stderr)
+
+
+# Unrelated pairs: any acceptance is a false accept.
+OTHERS = [("parapano_hunt/hunt3.jpg", "parapano_ece/ece4.jpeg"), ("parapano_building/building2.png", "vlfeat_roofs/roofs1.jpg"),
+          ("parapano_ece/ece2.jpeg", "parapano_building/building1.png"), ("cmu_incline/incline_L.png", "parapano_hunt/hunt1.jpg"),
+          ("vlfeat_roofs/roofs2.jpg", "parapano_ece/ece6.jpeg"), ("parapano_hunt/hunt5.jpg", "cmu_incline/incline_R.png")]
+
+
+def prepare_others(data, work):
+    """Pairs of different scenes, the view turned by 0, 90 or 150 degrees and zoomed by 1 or
+    0.5: no view may be accepted (the H written is a placeholder far outside the view)."""
+    for i, (a, b) in enumerate(OTHERS):
+        ka, vb = cv2.imread(str(data / "multiview" / a)), cv2.imread(str(data / "multiview" / b))
+        for roll, zoom in ((0, 1.0), (90, 1.0), (150, 0.5)):
+            ph, pw = vb.shape[:2]
+            w = min(640, pw)
+            h = w * 3 // 4
+            mv = _camera(w, h, 1.0 / zoom * min(pw / w, ph / h) * 0.7, -roll, 0, 0, pw / 2, ph / 2)
+            view = _render(vb, mv, w, h)
+            key = _render(ka, _camera(w, h, min(ka.shape[1] / w, ka.shape[0] / h) * 0.95, 0, 0, 0,
+                                      ka.shape[1] / 2, ka.shape[0] / 2), w, h)
+            d = work / "others" / f"{Path(a).stem}-{Path(b).stem}-r{roll:03d}-z{zoom:.1f}"
+            d.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(d / "key.png"), key)
+            cv2.imwrite(str(d / "view.png"), view)
+            write_h(d / "H", np.array([[1, 0, 1e6], [0, 1, 1e6], [0, 0, 1.0]]))
+    print("others: done", file=sys.stderr)
 
 
 def clean_pairs(data):

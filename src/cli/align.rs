@@ -60,6 +60,9 @@ struct Report<'a> {
     /// The pyramid octave the final estimate was made at (0 = full resolution; a soft
     /// high-resolution image stops at a coarser one).
     octave: usize,
+    /// Set when the plain path refused the view and the scale and roll search found it:
+    /// the candidate scale (key → view) and roll in degrees.
+    search: Option<[f64; 2]>,
     /// Keyframe corners used for matching (those under `--mask` left out).
     key_corners: usize,
     key_size: [usize; 2],
@@ -128,6 +131,7 @@ pub fn run(args: &AlignArgs) -> u8 {
         median_residual_px: result.median_residual_px.is_finite().then_some(result.median_residual_px),
         coverage: result.coverage,
         octave: result.octave,
+        search: result.searched.map(|s| [s.scale, s.roll.to_degrees()]),
         key_corners: key_frame.keypoints().len(),
         key_size: [key_frame.width(), key_frame.height()],
         view_size: [view_frame.width(), view_frame.height()],

@@ -29,11 +29,15 @@ pub struct DescriptorParams {
     /// Skip orientation (all patches axis-aligned): faster, and more distinctive when the
     /// camera is known not to roll.
     pub upright: bool,
+    /// With `upright`, every patch is sampled turned by this angle (radians) instead: the
+    /// roll of the whole image, when it is known or being tried (the scale and roll search
+    /// of [`crate::align`]).
+    pub roll: f32,
 }
 
 impl Default for DescriptorParams {
     fn default() -> Self {
-        Self { spacing: 4.0, orientation_sigma: 4.5, upright: false }
+        Self { spacing: 4.0, orientation_sigma: 4.5, upright: false, roll: 0.0 }
     }
 }
 
@@ -70,7 +74,7 @@ pub fn describe(
         .par_iter()
         .filter_map(|c| {
             let (sx, sy) = (c.x * ratio, c.y * ratio);
-            let angle = if params.upright { 0.0 } else { orientation(source, sx, sy, &window)? };
+            let angle = if params.upright { params.roll } else { orientation(source, sx, sy, &window)? };
             let d = sample(source, sx, sy, angle, spacing)?;
             let kp = Keypoint {
                 x: c.x * scale,
