@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use clearview::imaging::convert::to_rgb;
 use clearview::imaging::metrics::masked_psnr;
-use daemon_common::nats::{Proc, events, free_ports, nats_server, wait_port};
+use daemon_common::nats::{Proc, events, free_ports, nats_server, start_ingest, wait_port};
 use daemon_common::{Scene, bin, mask_png, png, put};
 use serde_json::Value;
 
@@ -110,22 +110,7 @@ fn a_three_server_cluster_survives_a_dead_worker_and_a_dead_server() {
     };
     let w1 = worker("w1");
     let mut w2 = worker("w2");
-    let mut ingest = Proc::start(
-        "ingest",
-        Path::new(bin()),
-        &[
-            "ingest",
-            "-c",
-            c,
-            "--nats",
-            &urls,
-            "--watch",
-            inbox.to_str().unwrap(),
-            "--state",
-            root.join("ingest").to_str().unwrap(),
-        ],
-        root,
-    );
+    let mut ingest = start_ingest(c, &urls, &inbox, &root.join("ingest"), root);
     let all = [&collect, &w1, &w2, &ingest];
     // Every role up (streams and buckets made, consumers ready).
     let deadline = Instant::now() + Duration::from_secs(40);

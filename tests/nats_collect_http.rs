@@ -13,7 +13,7 @@ mod daemon_common;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use daemon_common::nats::{Proc, events, free_ports, nats_server, wait_port};
+use daemon_common::nats::{Proc, events, free_ports, nats_server, start_ingest, wait_port};
 use daemon_common::{Reply, Scene, Service, bin, folders, get, mask_png, png, put, raw_status, request};
 use serde_json::Value;
 
@@ -82,22 +82,7 @@ fn collect_serves_the_preview_page_of_what_it_collected() {
         root,
     );
     let ingest_state = root.join("ingest");
-    let ingest = Proc::start(
-        "ingest",
-        Path::new(bin()),
-        &[
-            "ingest",
-            "-c",
-            c,
-            "--nats",
-            &urls,
-            "--watch",
-            inbox.to_str().unwrap(),
-            "--state",
-            ingest_state.to_str().unwrap(),
-        ],
-        root,
-    );
+    let ingest = start_ingest(c, &urls, &inbox, &ingest_state, root);
     let deadline = Instant::now() + Duration::from_secs(30);
     for p in [&collector, &worker, &ingest] {
         while !p.log().contains(" started") {

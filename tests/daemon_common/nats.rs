@@ -111,3 +111,24 @@ pub fn events(out: &Path) -> Vec<Value> {
         .filter_map(|l| serde_json::from_str(l).ok())
         .collect()
 }
+
+/// `clearview ingest` with config `config`, watching `inbox`, its state in `state`, its
+/// logs in `dir`.
+pub fn start_ingest(config: &str, urls: &str, inbox: &Path, state: &Path, dir: &Path) -> Proc {
+    Proc::start(
+        "ingest",
+        Path::new(super::bin()),
+        &[
+            "ingest",
+            "-c",
+            config,
+            "--nats",
+            urls,
+            "--watch",
+            inbox.to_str().unwrap(),
+            "--state",
+            state.to_str().unwrap(),
+        ],
+        dir,
+    )
+}
