@@ -72,19 +72,10 @@ fn run(
 
 /// For each swept surface (stderr): its region, and the true plane nearest to it at the
 /// region's centre (mean over views of the distance between where each puts the centre).
-fn describe(c: &ParallaxCase, walls: &[Homography], swept: &[clearview::inpaint::parallax::SurfacePlane]) {
+fn describe(c: &ParallaxCase, walls: &[Homography], swept: &[SurfacePlane]) {
     for (k, s) in swept.iter().enumerate() {
-        let r = s.region;
-        let p = nalgebra::Point2::new(r.x as f64 + 0.5 * r.width as f64, r.y as f64 + 0.5 * r.height as f64);
-        let err = |t: usize| -> f64 {
-            let d: Vec<f64> = s
-                .views
-                .iter()
-                .zip(&c.planes)
-                .filter_map(|(h, tp)| Some((h.as_ref()?.apply(p)? - tp[t].apply(p)?).norm()))
-                .collect();
-            d.iter().sum::<f64>() / d.len().max(1) as f64
-        };
+        let (r, p) = (s.region, centre(s));
+        let err = |t: usize| distance_to_true(c, s, t);
         let shift: Vec<String> = s
             .views
             .iter()
@@ -211,25 +202,33 @@ fn wrong_choice(c: &ParallaxCase, f: &Filled, truth_of: &[Option<u16>]) -> f64 {
     bad as f64 / all.max(1) as f64
 }
 
+/// The centre of a surface's region.
+fn centre(s: &SurfacePlane) -> nalgebra::Point2<f64> {
+    let r = s.region;
+    nalgebra::Point2::new(r.x as f64 + 0.5 * r.width as f64, r.y as f64 + 0.5 * r.height as f64)
+}
+
+/// How far (pixels, mean over the views) a surface's homographies send its region's centre
+/// from where true plane `t` does.
+fn distance_to_true(c: &ParallaxCase, s: &SurfacePlane, t: usize) -> f64 {
+    let p = centre(s);
+    let d: Vec<f64> = s
+        .views
+        .iter()
+        .zip(&c.planes)
+        .filter_map(|(h, tp)| Some((h.as_ref()?.apply(p)? - tp[t].apply(p)?).norm()))
+        .collect();
+    d.iter().sum::<f64>() / d.len().max(1) as f64
+}
+
 /// Which true plane each surface is: the one nearest at its region's centre (mean over
 /// views), if within 1.5 pixels.
 fn identify(c: &ParallaxCase, surfaces: &[SurfacePlane]) -> Vec<Option<u16>> {
     surfaces
         .iter()
         .map(|s| {
-            let r = s.region;
-            let p =
-                nalgebra::Point2::new(r.x as f64 + 0.5 * r.width as f64, r.y as f64 + 0.5 * r.height as f64);
             (0..c.planes[0].len())
-                .map(|t| {
-                    let d: Vec<f64> = s
-                        .views
-                        .iter()
-                        .zip(&c.planes)
-                        .filter_map(|(h, tp)| Some((h.as_ref()?.apply(p)? - tp[t].apply(p)?).norm()))
-                        .collect();
-                    (t as u16, d.iter().sum::<f64>() / d.len().max(1) as f64)
-                })
+                .map(|t| (t as u16, distance_to_true(c, s, t)))
                 .min_by(|a, b| a.1.total_cmp(&b.1))
                 .filter(|b| b.1 < 1.5)
                 .map(|b| b.0)
