@@ -251,7 +251,7 @@ impl Collector {
                 .nats
                 .get_object(&name)
                 .await?
-                .ok_or_else(|| OpError(format!("{name} is not in the object store")))?;
+                .ok_or_else(|| OpError::lasting(format!("{name} is not in the object store")))?;
             let path = dir.join(rel);
             if let Some(parent) = path.parent() {
                 std::fs::create_dir_all(parent).ctx("create folder")?;

@@ -126,7 +126,8 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
     Ok(())
 }
 
-/// Tries `op` up to `tries` times (or until `cancel`), waiting 0.5 s, 1 s, 2 s… between.
+/// Tries `op` up to `tries` times (or until `cancel`, or a lasting failure), waiting
+/// 0.5 s, 1 s, 2 s… between.
 pub(crate) async fn retry<T, F, Fut>(cancel: &CancellationToken, tries: u32, mut op: F) -> Result<T, OpError>
 where
     F: FnMut() -> Fut,
@@ -137,7 +138,7 @@ where
     loop {
         match op().await {
             Ok(v) => return Ok(v),
-            Err(e) if n + 1 >= tries || cancel.is_cancelled() => return Err(e),
+            Err(e) if e.lasting || n + 1 >= tries || cancel.is_cancelled() => return Err(e),
             Err(e) => {
                 tracing::warn!(error = %e, retry_in_ms = delay.as_millis() as u64, "NATS operation failed: trying again");
                 tokio::time::sleep(delay).await;
@@ -167,7 +168,7 @@ async fn ingest(nats: &Nats, config: &Config, job: Job, cancel: &CancellationTok
             // (no link followed); a file that changed since is brought again by the intake.
             let bytes = {
                 use std::io::Read;
-                let mut f = Inbox::of(config).open(&path).map_err(|e| OpError(e.to_string()))?;
+                let mut f = Inbox::of(config).open(&path).ctx("open")?;
                 let mut b = Vec::new();
                 f.read_to_end(&mut b).ctx("read")?;
                 let meta = f.metadata().ctx("read")?;

@@ -65,9 +65,11 @@
 //!   once within the stream's duplicate window.
 //!
 //!   **Poison.** A file that does not decode is not poison: it is a `file_skipped` event, as
-//!   in `run`. A message whose step fails `max_deliver` times (the object store lost a file,
-//!   a malformed message) goes to `clearview.dead.<session>` with the reason and an event
-//!   `message_dead_lettered`, and is terminated.
+//!   in `run`. A message whose step fails `max_deliver` times the same lasting way (the
+//!   object store lost a file, a malformed message: [`OpError::lasting`]) goes to
+//!   `clearview.dead.<session>` with the reason and an event `message_dead_lettered`, and
+//!   is terminated. A failure of the cluster (a server died, a stream without a leader for
+//!   a while) is never poison: the message comes again, up to 30 s later each time.
 //! - [`collect`]: a durable consumer of the OUT stream that writes `DIR/<session>/result.*`,
 //!   `result.json`, `history/`, the maps, and `DIR/events.jsonl`, with `run`'s layout, each
 //!   file atomically; a result whose number is not newer than the one on disk is skipped,
@@ -107,19 +109,46 @@ pub enum ClusterError {
     Daemon(#[from] super::DaemonError),
 }
 
-/// A failure of one NATS operation, in words (for a NAK, a retry, a dead letter).
+/// A failure of one operation, in words (for a NAK, a retry, a dead letter), and whether
+/// doing it again can go differently.
 #[derive(Debug, Error)]
-#[error("{0}")]
-pub struct OpError(pub String);
+#[error("{reason}")]
+pub struct OpError {
+    pub reason: String,
+    /// It fails the same way every time: a file the object store does not have, a copy
+    /// without its digest, a malformed message or record. Only such a failure makes a
+    /// message poison. Anything else (a timeout, no leader for a moment, a lost
+    /// connection, a full disk) is the cluster or the machine not doing it *now*.
+    pub lasting: bool,
+}
 
-/// `?` on any NATS error, with what was being done.
+impl OpError {
+    /// A failure that may not happen again (the default: see [`OpError::lasting`]).
+    pub fn passing(reason: impl Into<String>) -> Self {
+        Self { reason: reason.into(), lasting: false }
+    }
+
+    /// A failure that will happen every time.
+    pub fn lasting(reason: impl Into<String>) -> Self {
+        Self { reason: reason.into(), lasting: true }
+    }
+}
+
+/// `?` on any error, with what was being done.
 pub(crate) trait Context<T> {
+    /// A failure that may not happen again (a NATS request, a file written).
     fn ctx(self, what: &str) -> Result<T, OpError>;
+    /// A failure that will happen every time (bytes that do not parse).
+    fn lasting(self, what: &str) -> Result<T, OpError>;
 }
 
 impl<T, E: std::fmt::Display> Context<T> for Result<T, E> {
     fn ctx(self, what: &str) -> Result<T, OpError> {
-        self.map_err(|e| OpError(format!("{what}: {e}")))
+        self.map_err(|e| OpError::passing(format!("{what}: {e}")))
+    }
+
+    fn lasting(self, what: &str) -> Result<T, OpError> {
+        self.map_err(|e| OpError::lasting(format!("{what}: {e}")))
     }
 }
 
@@ -366,7 +395,7 @@ impl Nats {
         match self.objects.info(name).await {
             Ok(_) => Ok(true),
             Err(e) if e.kind() == object_store::InfoErrorKind::NotFound => Ok(false),
-            Err(e) => Err(OpError(format!("object {name}: {e}"))),
+            Err(e) => Err(OpError::passing(format!("object {name}: {e}"))),
         }
     }
 
@@ -382,7 +411,7 @@ impl Nats {
             let mut reader = data.as_slice();
             objects.put(owned.as_str(), &mut reader).await.map(|_| ()).ctx(&format!("put {owned}"))
         });
-        put.await.map_err(|e| OpError(format!("put {name}: the client failed ({e})")))??;
+        put.await.map_err(|e| OpError::passing(format!("put {name}: the client failed ({e})")))??;
         Ok(true)
     }
 
@@ -397,7 +426,7 @@ impl Nats {
             Ok(i) if !i.deleted => i,
             Ok(_) => return Ok(None),
             Err(e) if e.kind() == object_store::InfoErrorKind::NotFound => return Ok(None),
-            Err(e) => return Err(OpError(format!("object {name}: {e}"))),
+            Err(e) => return Err(OpError::passing(format!("object {name}: {e}"))),
         };
         let subject = format!("$O.{}.C.{}", self.config.objects, info.nuid);
         let mut bytes = Vec::with_capacity(info.size);
@@ -412,7 +441,7 @@ impl Nats {
             seq = m.sequence + 1;
         }
         if bytes.len() != info.size {
-            return Err(OpError(format!("read {name}: {} bytes of {}", bytes.len(), info.size)));
+            return Err(OpError::passing(format!("read {name}: {} bytes of {}", bytes.len(), info.size)));
         }
         Ok(Some(bytes))
     }
@@ -440,7 +469,7 @@ impl Nats {
     /// Reads a session's listing.
     pub async fn listing(&self, tok: &str) -> Result<(Listing, u64), OpError> {
         match Self::kv_get(&self.sessions, &format!("files.{tok}")).await? {
-            Some((v, rev)) => Ok((serde_json::from_slice(&v).ctx("listing")?, rev)),
+            Some((v, rev)) => Ok((serde_json::from_slice(&v).lasting("listing")?, rev)),
             None => Ok((Listing::default(), 0)),
         }
     }
@@ -448,7 +477,7 @@ impl Nats {
     /// Reads a session's record and its revision (0: none yet).
     pub async fn record(&self, tok: &str) -> Result<(Record, u64), OpError> {
         match Self::kv_get(&self.sessions, &format!("state.{tok}")).await? {
-            Some((v, rev)) => Ok((serde_json::from_slice(&v).ctx("record")?, rev)),
+            Some((v, rev)) => Ok((serde_json::from_slice(&v).lasting("record")?, rev)),
             None => Ok((Record::default(), 0)),
         }
     }
@@ -465,13 +494,13 @@ impl Nats {
             return match store.create(key, value.into()).await {
                 Ok(r) => Ok(Some(r)),
                 Err(e) if e.kind() == kv::CreateErrorKind::AlreadyExists => Ok(None),
-                Err(e) => Err(OpError(format!("create {key}: {e}"))),
+                Err(e) => Err(OpError::passing(format!("create {key}: {e}"))),
             };
         }
         match store.update(key, value.into(), rev).await {
             Ok(r) => Ok(Some(r)),
             Err(e) if e.kind() == kv::UpdateErrorKind::WrongLastRevision => Ok(None),
-            Err(e) => Err(OpError(format!("update {key}: {e}"))),
+            Err(e) => Err(OpError::passing(format!("update {key}: {e}"))),
         }
     }
 }

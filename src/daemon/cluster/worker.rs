@@ -173,6 +173,9 @@ enum StepError {
     Failed(OpError),
 }
 
+/// The longest wait, in seconds, before a message whose step failed comes again.
+const RETRY_CAP_S: i64 = 30;
+
 impl From<OpError> for StepError {
     fn from(e: OpError) -> Self {
         Self::Failed(e)
@@ -302,15 +305,18 @@ impl Worker {
             m.redelivered.fetch_add(1, Ordering::Relaxed);
         }
         let subject = msg.subject.to_string();
-        let parsed: Result<FileMsg, OpError> = serde_json::from_slice(&msg.payload).ctx("malformed message");
+        let parsed: Result<FileMsg, OpError> =
+            serde_json::from_slice(&msg.payload).lasting("malformed message");
         let file = match parsed.and_then(|f| check_names(&f).map(|()| f)) {
             Ok(f) => f,
-            Err(e) => return self.dead_letter(&msg, None, None, delivered, seq, &e.0).await,
+            Err(e) => return self.dead_letter(&msg, None, None, delivered, seq, &e.reason).await,
         };
         let session = file.session.clone();
         let tok = super::token(&session);
         // A message delivered far more often than poison allows never finished a step:
-        // it kills the worker that takes it (or it waited out many leases).
+        // it kills the worker that takes it (or it waited out many leases). The cluster
+        // failing meanwhile takes `max_deliver` × 10 NAKs, later each time up to
+        // RETRY_CAP_S apart: 50 take some 18 minutes.
         let limit = self.nats.config.max_deliver;
         if delivered > limit.saturating_mul(10) {
             let reason = format!("delivered {delivered} times without finishing a step");
@@ -329,7 +335,8 @@ impl Worker {
             }
             Err(e) => {
                 tracing::warn!(session = %watch::shown(&session), error = %e, "cannot take the lease: later");
-                let _ = msg.ack_with(AckKind::Nak(Some(Duration::from_secs(1)))).await;
+                let delay = Duration::from_secs(delivered.clamp(1, RETRY_CAP_S) as u64);
+                let _ = msg.ack_with(AckKind::Nak(Some(delay))).await;
                 return;
             }
         };
@@ -365,14 +372,25 @@ impl Worker {
                 self.metrics.failures.fetch_add(1, Ordering::Relaxed);
                 self.local.remove(&session);
                 self.said.lock().expect("events lock").clear();
-                if delivered >= limit {
+                if e.lasting && delivered >= limit {
                     let name = file.entry.name.as_str();
-                    self.send_dead(&subject, &msg.payload, Some(&session), Some(name), delivered, seq, &e.0)
-                        .await;
+                    self.send_dead(
+                        &subject,
+                        &msg.payload,
+                        Some(&session),
+                        Some(name),
+                        delivered,
+                        seq,
+                        &e.reason,
+                    )
+                    .await;
                     let _ = acker.ack_with(AckKind::Term).await;
                 } else {
-                    tracing::warn!(error = %e, delivered, "step failed: the message comes again");
-                    let _ = acker.ack_with(AckKind::Nak(Some(Duration::from_secs(delivered as u64)))).await;
+                    // A failure of the cluster (a server died, no leader yet) is not the
+                    // message's: it comes again, later each time, and is never poison.
+                    let delay = Duration::from_secs(delivered.clamp(1, RETRY_CAP_S) as u64);
+                    tracing::warn!(error = %e, lasting = e.lasting, delivered, "step failed: the message comes again");
+                    let _ = acker.ack_with(AckKind::Nak(Some(delay))).await;
                 }
             }
         }
@@ -585,7 +603,7 @@ impl Worker {
             .result
             .as_ref()
             .map(|r| format!("{:016x}", r.digest))
-            .ok_or_else(|| OpError("a result without its inputs' digest".into()))?;
+            .ok_or_else(|| OpError::lasting("a result without its inputs' digest"))?;
         let out = self.ctx.emitter.session_dir(session);
         let ext = self.ctx.emitter.result_name();
         let mut files: Vec<String> = Vec::new();
@@ -682,10 +700,10 @@ impl Worker {
 fn check_names(f: &FileMsg) -> Result<(), OpError> {
     let plain = |s: &str| !s.is_empty() && !s.contains(['/', '\\', '\0']) && !s.starts_with('.');
     if !plain(&f.session) {
-        return Err(OpError(format!("session {:?} cannot be a folder name", f.session)));
+        return Err(OpError::lasting(format!("session {:?} cannot be a folder name", f.session)));
     }
     if !plain(&f.entry.name) {
-        return Err(OpError(format!("file {:?} cannot be a file name", f.entry.name)));
+        return Err(OpError::lasting(format!("file {:?} cannot be a file name", f.entry.name)));
     }
     Ok(())
 }
@@ -721,12 +739,14 @@ async fn materialize(nats: &Nats, dir: &Path, e: &Entry) -> Result<(), OpError> 
     {
         return Ok(());
     }
-    let bytes = nats
-        .get_object(&super::file_object(digest))
-        .await?
-        .ok_or_else(|| OpError(format!("{}: its content {digest} is not in the object store", e.name)))?;
+    let bytes = nats.get_object(&super::file_object(digest)).await?.ok_or_else(|| {
+        OpError::lasting(format!("{}: its content {digest} is not in the object store", e.name))
+    })?;
     if super::sha256_hex(&bytes) != *digest {
-        return Err(OpError(format!("{}: the object store's copy does not have its digest", e.name)));
+        return Err(OpError::lasting(format!(
+            "{}: the object store's copy does not have its digest",
+            e.name
+        )));
     }
     crate::fsio::atomic_write(&path, &bytes).ctx(&e.name)?;
     let f = std::fs::File::options().write(true).open(&path).ctx(&e.name)?;
