@@ -132,3 +132,80 @@ pub fn start_ingest(config: &str, urls: &str, inbox: &Path, state: &Path, dir: &
         dir,
     )
 }
+
+/// A TCP relay between clients and a `nats-server` that stalls a connection the way a
+/// congested or partitioned link does: once [`Stall::arm`]ed, the first client-to-server
+/// chunk that contains `needle` is held back (and every byte after it, both ways) for
+/// `hold`, then all of it goes through, late. Clients' requests meanwhile time out; no
+/// byte is lost.
+pub struct Stall {
+    pub port: u16,
+    /// How many times the link stalled (it stalls once).
+    pub stalled: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+    armed: std::sync::Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl Stall {
+    pub fn start(server_port: u16, needle: &'static [u8], hold: Duration) -> Self {
+        use std::sync::Arc;
+        use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let stalled = Arc::new(AtomicUsize::new(0));
+        // Until when the link is held, as milliseconds since `epoch` (0: not held).
+        let epoch = Instant::now();
+        let until = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let armed = Arc::new(AtomicBool::new(false));
+        let (count, arm) = (stalled.clone(), armed.clone());
+        std::thread::spawn(move || {
+            for client in listener.incoming() {
+                let Ok(client) = client else { return };
+                let Ok(server) = std::net::TcpStream::connect(("127.0.0.1", server_port)) else { return };
+                let pump = |from: std::net::TcpStream, to: std::net::TcpStream, watch: bool| {
+                    let (until, armed, count) = (until.clone(), armed.clone(), count.clone());
+                    move || {
+                        use std::io::{Read, Write};
+                        let (mut from, mut to) = (from, to);
+                        let mut buf = vec![0u8; 64 * 1024];
+                        loop {
+                            let n = match from.read(&mut buf) {
+                                Ok(0) | Err(_) => break,
+                                Ok(n) => n,
+                            };
+                            let chunk = &buf[..n];
+                            if watch
+                                && chunk.windows(needle.len()).any(|w| w == needle)
+                                && armed.swap(false, Ordering::SeqCst)
+                            {
+                                let end = epoch.elapsed() + hold;
+                                until.store(end.as_millis() as u64, Ordering::SeqCst);
+                                count.fetch_add(1, Ordering::SeqCst);
+                            }
+                            loop {
+                                let held = until.load(Ordering::SeqCst);
+                                let now = epoch.elapsed().as_millis() as u64;
+                                if now >= held {
+                                    break;
+                                }
+                                std::thread::sleep(Duration::from_millis((held - now).min(50)));
+                            }
+                            if to.write_all(chunk).is_err() {
+                                break;
+                            }
+                        }
+                        let _ = to.shutdown(std::net::Shutdown::Both);
+                    }
+                };
+                let (c2, s2) = (client.try_clone().unwrap(), server.try_clone().unwrap());
+                std::thread::spawn(pump(client, server, true));
+                std::thread::spawn(pump(s2, c2, false));
+            }
+        });
+        Self { port, stalled, armed: arm }
+    }
+
+    /// From now on, the next chunk with the needle stalls the link.
+    pub fn arm(&self) {
+        self.armed.store(true, std::sync::atomic::Ordering::SeqCst);
+    }
+}

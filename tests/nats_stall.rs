@@ -1,0 +1,177 @@
+//! A worker whose link to the cluster stalls in the middle of a step (issue 17): the
+//! step fails on a timeout, which is the cluster's failure and not the message's, so the
+//! message comes again and the session gets its result; it is never dead-lettered, even
+//! with `max_deliver = 1`. A file whose content the object store really lost is a lasting
+//! failure: that message is dead-lettered, with the file and the reason.
+//!
+//! One `nats-server`; the worker reaches it through a relay that holds its bytes back for
+//! 12 s (longer than the client's request timeouts) at its first object read. Needs
+//! `nats-server` (Debian's package; `.ci/setup` installs it).
+
+mod daemon_common;
+
+use std::path::Path;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+use daemon_common::nats::{Proc, Stall, events, free_ports, nats_server, start_ingest, wait_port};
+use daemon_common::{Scene, bin, mask_png, png, put};
+use serde_json::Value;
+
+const VIEWS: u64 = 2;
+
+/// A session's mask, keyframe and views, each written under a hidden name first.
+fn drop_session(inbox: &Path, name: &str, seed: u64) -> Vec<String> {
+    let mut scene = Scene::new(seed);
+    let dir = inbox.join(name);
+    put(&dir.join("key.mask.png"), &mask_png(&scene.mask));
+    put(&dir.join("key.png"), &png(&scene.key));
+    (0..VIEWS)
+        .map(|i| {
+            let file = format!("view{i}.png");
+            put(&dir.join(&file), &png(&scene.view(i, 60.0 + 120.0 * i as f32, 40.0)));
+            file
+        })
+        .collect()
+}
+
+fn wait_until(what: &str, secs: u64, logs: &[&Proc], mut done: impl FnMut() -> bool) {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    while !done() {
+        let said: Vec<String> = logs.iter().map(|p| format!("{}:\n{}", p.name, p.log())).collect();
+        assert!(Instant::now() < deadline, "{what} within {secs} s\n{}", said.join("\n"));
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+fn started(p: &Proc) -> bool {
+    p.log().contains(" started")
+}
+
+#[test]
+fn a_stalled_link_is_not_poison_and_a_lost_file_is() {
+    let server = nats_server();
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let (inbox, out) = (root.join("inbox"), root.join("out"));
+    std::fs::create_dir_all(&inbox).unwrap();
+    let port = free_ports(1)[0];
+    let (port_s, store) = (port.to_string(), root.join("store"));
+    let _nats = Proc::start(
+        "nats",
+        &server,
+        &["-a", "127.0.0.1", "-p", &port_s, "-js", "-sd", store.to_str().unwrap()],
+        root,
+    );
+    wait_port(port, 20);
+    let urls = format!("nats://127.0.0.1:{port}");
+    // The worker's object reads are direct gets of the object store's meta subjects.
+    let stall = Stall::start(port, b"$O.clearview-files.M.", Duration::from_secs(12));
+    let config = root.join("clearview.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[watch]\nquiet_period_ms = 300\n[state]\ndir = {:?}\n\
+             [nats]\nreplicas = 1\nlease_ttl_ms = 3000\nack_wait_ms = 4000\nmax_deliver = 1\n",
+            root.join("state")
+        ),
+    )
+    .unwrap();
+    let c = config.to_str().unwrap();
+    let collect = Proc::start(
+        "collect",
+        Path::new(bin()),
+        &["collect", "-c", c, "--nats", &urls, "--out", out.to_str().unwrap()],
+        root,
+    );
+    let worker = |relay: u16| {
+        let scratch = root.join("scratch");
+        let via = format!("nats://127.0.0.1:{relay}");
+        Proc::start(
+            "worker",
+            Path::new(bin()),
+            &["worker", "-c", c, "--nats", &via, "--id", "w1", "--scratch", scratch.to_str().unwrap()],
+            root,
+        )
+    };
+    let w = worker(stall.port);
+    let ingest = start_ingest(c, &urls, &inbox, &root.join("ingest"), root);
+    wait_until("every role started", 40, &[&collect, &w, &ingest], || {
+        [&collect, &w, &ingest].iter().all(|p| started(p))
+    });
+    stall.arm();
+
+    // 1. The link stalls at the worker's first object read: a timeout, then the message
+    //    again, then the result; nothing dead-lettered.
+    let views = drop_session(&inbox, "site0", 31);
+    let named = |ev: &[Value], s: &str, f: &str| ev.iter().any(|e| e["session"] == s && e["file"] == f);
+    wait_until("a result after every view of site0", 90, &[&w, &collect], || {
+        let ev = events(&out);
+        views.iter().all(|v| named(&ev, "site0", v)) && out.join("site0").join("result.json").is_file()
+    });
+    let dead = |ev: &[Value]| -> Vec<Value> {
+        ev.iter().filter(|e| e["event"] == "message_dead_lettered").cloned().collect()
+    };
+    assert!(
+        dead(&events(&out)).is_empty(),
+        "a stalled link made a message poison: {:?}",
+        dead(&events(&out))
+    );
+
+    assert_eq!(stall.stalled.load(Ordering::SeqCst), 1, "the link never stalled:\n{}", w.log());
+    let log = w.log();
+    assert!(
+        log.contains("step failed: the message comes again") && log.contains("lasting=false"),
+        "the stall did not fail a step (the test did not test anything):\n{log}"
+    );
+
+    // 2. A file the object store lost: the worker is stopped, the session's files are
+    //    ingested, one view's content is deleted from the store, the worker comes back.
+    assert_eq!(w.terminate(), Some(0));
+    let views = drop_session(&inbox, "site1", 32);
+    let lost = &views[1];
+    let digest = {
+        let mut digest = None;
+        wait_until("every file of site1 ingested", 30, &[&ingest], || {
+            digest = ingest.log().lines().find_map(|l| {
+                (l.contains("file ingested")
+                    && l.contains("session=site1")
+                    && l.contains(&format!("file={lost}")))
+                .then(|| {
+                    l.split("digest=")
+                        .nth(1)
+                        .unwrap()
+                        .split_whitespace()
+                        .next()
+                        .unwrap()
+                        .trim_matches('"')
+                        .to_owned()
+                })
+            });
+            digest.is_some() && ingest.log().matches("file ingested").count() >= 2 * (VIEWS as usize + 2)
+        });
+        digest.unwrap()
+    };
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    rt.block_on(async {
+        let js = async_nats::jetstream::new(async_nats::connect(urls.as_str()).await.unwrap());
+        let objects = js.get_object_store("clearview-files").await.unwrap();
+        let name = format!("file/{digest}");
+        objects.delete(&name).await.unwrap_or_else(|e| panic!("{name}: {e}\n{}", ingest.log()));
+    });
+    let w = worker(port);
+    wait_until("the message of site1's lost file dead-lettered", 60, &[&w, &collect], || {
+        dead(&events(&out)).iter().any(|e| e["session"] == "site1")
+    });
+    let letters = dead(&events(&out));
+    assert!(letters.iter().all(|e| e["session"] == "site1"), "only site1's messages: {letters:?}");
+    let reason = letters[0]["reason"].as_str().unwrap();
+    assert!(
+        reason.contains(lost.as_str()) && reason.contains("is not in the object store"),
+        "the dead letter names the file and why: {reason}"
+    );
+    for p in [w, ingest, collect] {
+        let (name, log) = (p.name.clone(), p.log());
+        assert_eq!(p.terminate(), Some(0), "{name}:\n{log}");
+    }
+}
