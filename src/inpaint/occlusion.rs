@@ -385,7 +385,8 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
     // How foreign a colour is to the building around the hole (0 common .. 1 never seen).
     let foreign = |c: [f32; 3]| -> f32 { 1.0 - (building.prob(c) / 2e-3).min(1.0) };
 
-    let occluded: Vec<Vec<f32>> = (0..nv)
+    // Each view's own occluders (outside the mask, followed into it).
+    let own: Vec<Vec<bool>> = (0..nv)
         .into_par_iter()
         .map(|v| {
             let (img_b, ok) = (&views_b[v], valid[v]);
@@ -415,7 +416,7 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
             // object survives an erosion.
             let core = super::automask::erode(&crate::imaging::Plane::from_vec(w, h, seeds), 1);
             let seeds = objects(core.as_slice(), w, h, params.min_object);
-            let own = if seeds.iter().any(|&s| s) {
+            if seeds.iter().any(|&s| s) {
                 // ...followed into the hole through pixels that look like the object.
                 let object = Histogram::new((0..n).filter(|&i| seeds[i]).map(|i| input.views[v].0[i]));
                 let allowed: Vec<bool> = (0..n)
@@ -426,40 +427,54 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
                         }
                     })
                     .collect();
-                grow(&seeds, &allowed, w, h)
+                // The seeds stop short of the hole: the keyframe's pixels next to it are
+                // blurred with its occluder, and the seeds were eroded. The object is taken
+                // across that gap (outside the hole only) before it is followed in.
+                let gap = 1 + r + params.shift_tolerance;
+                let near =
+                    super::automask::dilate(&crate::imaging::Plane::from_vec(w, h, seeds.clone()), gap);
+                let start: Vec<bool> = (0..n)
+                    .map(|i| seeds[i] || (near.as_slice()[i] && ok[i] && !input.region.hole[i]))
+                    .collect();
+                grow(&start, &allowed, w, h)
             } else {
                 vec![false; n]
-            };
-            (0..n)
-                .map(|i| {
-                    if !ok[i] || !input.region.need[i] {
-                        return 0.0;
-                    }
-                    let c = img_b[i];
-                    let mut l = params.prior;
-                    // Consensus of the other views, by independence. One other view cannot
-                    // say which of the two is occluded; the consensus carries weight from
-                    // two other witnesses, fully from three.
-                    let others = witnesses[i] - ind[v];
-                    let trust = ((others - 0.5) / 2.5).clamp(0.0, 1.0);
-                    l += params.w_consensus * trust * (best[i] - support[v][i] - 0.5 * best[i]) * 2.0;
-                    if input.region.hole[i] {
-                        // The keyframe's own occluder, seen again.
-                        // At the same place, or anywhere: colours the keyframe's occluder has
-                        // and its building has not (a tree shifted by parallax is still green).
-                        let same = (1.0 - dist(c, key_b[i]) / params.agree).clamp(0.0, 1.0);
-                        let kind = (2.0 * occluder_like(c) - 1.0).max(0.0);
-                        l += params.w_resemblance * (same * occluder_like(key_b[i])).max(kind);
-                    }
-                    if own[i] {
-                        l += params.w_own;
-                    }
-                    l += params.w_foreign * (foreign(c) - 0.5);
-                    sigmoid(l)
-                })
-                .collect()
+            }
         })
         .collect();
+    // A view's probability of showing an occluder, given its own occluders `own`.
+    let probability = |v: usize, own: &[bool]| -> Vec<f32> {
+        let (img_b, ok) = (&views_b[v], valid[v]);
+        (0..n)
+            .map(|i| {
+                if !ok[i] || !input.region.need[i] {
+                    return 0.0;
+                }
+                let c = img_b[i];
+                let mut l = params.prior;
+                // Consensus of the other views, by independence. One other view cannot
+                // say which of the two is occluded; the consensus carries weight from
+                // two other witnesses, fully from three.
+                let others = witnesses[i] - ind[v];
+                let trust = ((others - 0.5) / 2.5).clamp(0.0, 1.0);
+                l += params.w_consensus * trust * (best[i] - support[v][i] - 0.5 * best[i]) * 2.0;
+                if input.region.hole[i] {
+                    // The keyframe's own occluder, seen again.
+                    // At the same place, or anywhere: colours the keyframe's occluder has
+                    // and its building has not (a tree shifted by parallax is still green).
+                    let same = (1.0 - dist(c, key_b[i]) / params.agree).clamp(0.0, 1.0);
+                    let kind = (2.0 * occluder_like(c) - 1.0).max(0.0);
+                    l += params.w_resemblance * (same * occluder_like(key_b[i])).max(kind);
+                }
+                if own[i] {
+                    l += params.w_own;
+                }
+                l += params.w_foreign * (foreign(c) - 0.5);
+                sigmoid(l)
+            })
+            .collect()
+    };
+    let occluded: Vec<Vec<f32>> = (0..nv).into_par_iter().map(|v| probability(v, &own[v])).collect();
     OcclusionMap { occluded, independence: ind }
 }
 
