@@ -78,6 +78,10 @@ impl Default for OcclusionParams {
     }
 }
 
+/// Fewer other witnesses than this (independence-weighted) cannot outvote a view: there
+/// a disagreement is explained by the objects the views are known to have in front.
+const FEW_WITNESSES: f32 = 1.5;
+
 /// Colour histogram bins per channel (8 levels: 512 bins, coarse enough to generalise).
 const LEVELS: usize = 8;
 
@@ -474,7 +478,44 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
             })
             .collect()
     };
-    let occluded: Vec<Vec<f32>> = (0..nv).into_par_iter().map(|v| probability(v, &own[v])).collect();
+    let first: Vec<Vec<f32>> = (0..nv).into_par_iter().map(|v| probability(v, &own[v])).collect();
+    // Explaining away, where too few witnesses for a consensus see a hole pixel: where a
+    // view disagrees grossly with every other view there and one of those is not
+    // suspected, the disagreement belongs to whichever of them has an object in front that
+    // reaches that place. An object is connected, so a view's own occluder is followed
+    // further through such pixels, whatever their colour: the roof of a car whose body
+    // crosses the mask's edge, with one other view that saw the wall behind it. The other
+    // view's disagreement there is explained by this object, so its own objects do not
+    // grow through it.
+    let grown: Vec<Vec<bool>> = (0..nv)
+        .into_par_iter()
+        .map(|v| {
+            if !own[v].iter().any(|&o| o) {
+                return own[v].clone();
+            }
+            let allowed: Vec<bool> = (0..n)
+                .map(|i| {
+                    input.region.hole[i]
+                        && valid[v][i]
+                        && witnesses[i] - ind[v] < FEW_WITNESSES
+                        && support[v][i] == 0.0
+                        && (0..nv).any(|u| {
+                            u != v
+                                && valid[u][i]
+                                && !own[u][i]
+                                && first[u][i] < 0.5
+                                && dist(views_b[u][i], views_b[v][i]) > params.seed_distance
+                        })
+                })
+                .collect();
+            grow(&own[v], &allowed, w, h)
+        })
+        .collect();
+    let occluded: Vec<Vec<f32>> = (0..nv)
+        .into_par_iter()
+        .zip(first)
+        .map(|(v, p)| if grown[v] == own[v] { p } else { probability(v, &grown[v]) })
+        .collect();
     OcclusionMap { occluded, independence: ind }
 }
 
