@@ -348,11 +348,16 @@ fn sigkill_while_results_are_written_leaves_only_whole_files_and_a_restart_agree
 fn restart_and_settle(f: &Folders, views: usize) -> Vec<Value> {
     let seen = events(f).len();
     let service = Service::start(f);
+    // Settled: every view accepted, and a fill decided after the last of them (a result
+    // after an earlier view is not the session's last).
     let ev = wait_for(f, "the session to settle", 40, |e| {
-        e.len() > seen
-            && of_kind(&e[seen..], "view_accepted").len() >= views
-            && (!of_kind(&e[seen..], "result_updated").is_empty()
-                || !of_kind(&e[seen..], "result_unchanged").is_empty())
+        let new = &e[seen.min(e.len())..];
+        let accepted: Vec<usize> = (0..new.len()).filter(|&i| new[i]["event"] == "view_accepted").collect();
+        accepted.len() >= views
+            && new[accepted[views - 1]..].iter().any(|x| {
+                ["result_updated", "result_unchanged", "result_not_better"]
+                    .contains(&x["event"].as_str().unwrap_or(""))
+            })
     });
     assert_eq!(service.terminate(), 0);
     ev[seen..].to_vec()
