@@ -13,7 +13,9 @@
 //! - **the view's own occluders, followed into the mask**: outside the mask the keyframe
 //!   shows the building, so where the view disagrees with it there the view has something in
 //!   front; such an object is connected, so it is grown into the mask through the view's
-//!   pixels that look like it rather than like the building;
+//!   pixels that look like it rather than like the building, and, where too few views see a
+//!   pixel for a consensus, through the pixels where the view disagrees with one that is not
+//!   suspected (the disagreement is explained by the object that reaches it);
 //! - **the building's own colours**: the keyframe's unmasked surroundings say what the
 //!   building looks like; a view's pixel unlike all of it is suspect (what carries one or
 //!   two views, where a consensus cannot be had).
