@@ -544,14 +544,9 @@ pub fn sweep_family(
     let mut costs: Vec<Vec<f32>> = raw.iter().map(|r| r.0.clone()).collect();
     if params.inside {
         let ni = band.inside.len();
-        let np = nv * (nv - 1) / 2;
         let agreed: Vec<Vec<f32>> = (0..ni)
             .into_par_iter()
-            .map(|j| {
-                let per: Vec<Vec<f32>> =
-                    raw.iter().map(|r| (0..np).map(|k| r.1[k * ni + j]).collect()).collect();
-                inside_agreement(&per, nv, params.max_cost)
-            })
+            .map(|j| inside_agreement(nl, nv, |l, k| raw[l].1[k * ni + j], params.max_cost))
             .collect();
         vote.extend(agreed.iter().map(|c| vote_of(|l| cost_or_inf(c[l]), nl, wall, params)));
         for (l, cl) in costs.iter_mut().enumerate() {
@@ -1017,22 +1012,21 @@ fn vote_of(c: impl Fn(usize) -> f32, nl: usize, wall: usize, params: &SweepParam
         .then_some(best)
 }
 
-/// One hole pixel's agreement of the views among themselves per depth, from `pairs[l][k]`
-/// (depth `l`, pair `k` of `nv` views as [`Band::inside_costs`] orders them; NaN: not
-/// covered). A view that agrees with no other under any depth (best cost above `max_cost`)
+/// One hole pixel's agreement of the views among themselves at each of `nl` depths, from
+/// `pair(l, k)` (depth `l`, pair `k` of `nv` views as [`Band::inside_costs`] orders them;
+/// NaN: not covered). A view that agrees with no other under any depth (best cost above `max_cost`)
 /// shows something else there, its passer-by: it is left out. The cost is the mean over
 /// the pairs of the views left; NaN at every depth unless they are three or more views, or
 /// two while a third is so left out (two views are one baseline, and a repeat of texture
 /// agrees as well as the surface unless the others rule it out).
-fn inside_agreement(pairs: &[Vec<f32>], nv: usize, max_cost: f32) -> Vec<f32> {
-    let nl = pairs.len();
+fn inside_agreement(nl: usize, nv: usize, pair: impl Fn(usize, usize) -> f32, max_cost: f32) -> Vec<f32> {
     let pair_of: Vec<(usize, usize)> = (0..nv).flat_map(|a| (a + 1..nv).map(move |b| (a, b))).collect();
     // Per view: whether it is seen at all, and its best agreement with any other.
     let mut covered = vec![false; nv];
     let mut best = vec![f32::INFINITY; nv];
-    for costs in pairs {
+    for l in 0..nl {
         for (k, &(a, b)) in pair_of.iter().enumerate() {
-            let c = costs[k];
+            let c = pair(l, k);
             if c.is_nan() {
                 continue;
             }
@@ -1048,16 +1042,16 @@ fn inside_agreement(pairs: &[Vec<f32>], nv: usize, max_cost: f32) -> Vec<f32> {
     if n_live < 2 || (n_live == 2 && n_out == 0) {
         return vec![f32::NAN; nl];
     }
-    pairs
-        .iter()
-        .map(|costs| {
+    (0..nl)
+        .map(|l| {
             let (mut sum, mut cnt) = (0.0f32, 0usize);
             for (k, &(a, b)) in pair_of.iter().enumerate() {
                 if live[a] && live[b] {
-                    if costs[k].is_nan() {
+                    let c = pair(l, k);
+                    if c.is_nan() {
                         return f32::NAN;
                     }
-                    sum += costs[k];
+                    sum += c;
                     cnt += 1;
                 }
             }
@@ -1494,12 +1488,9 @@ mod tests {
                     band.inside_costs(views, &hs, params.min_texture)
                 })
                 .collect();
-            let np = nv * (nv - 1) / 2;
             (0..ni)
                 .map(|j| {
-                    let per: Vec<Vec<f32>> =
-                        raw.iter().map(|r| (0..np).map(|k| r[k * ni + j]).collect()).collect();
-                    let c = inside_agreement(&per, nv, params.max_cost);
+                    let c = inside_agreement(labels.len(), nv, |l, k| raw[l][k * ni + j], params.max_cost);
                     vote_of(|l| cost_or_inf(c[l]), labels.len(), wall, &params)
                 })
                 .collect()
