@@ -266,6 +266,9 @@ pub struct SweepParams {
     pub min_density: f64,
     /// At most this many surfaces besides the wall.
     pub max_planes: usize,
+    /// Hole pixels vote too, the views among themselves (where the keyframe's occluder hides
+    /// a surface that two views see), besides the band's keyframe pixels.
+    pub inside: bool,
     /// A surface may be chosen around its support grown by half its size, and at least this
     /// many (full-resolution) pixels.
     pub min_grow: usize,
@@ -295,6 +298,7 @@ impl Default for SweepParams {
             min_votes: 150,
             min_density: 0.1,
             max_planes: 6,
+            inside: true,
             min_grow: 24,
         }
     }
@@ -503,11 +507,21 @@ pub fn sweep_family(
     let gs = depths(rate, &seen);
     let labels: Vec<f64> = gs;
     let wall = labels.iter().position(|&gm| gm == 0.0).expect("the wall is swept");
-    let costs: Vec<Vec<f32>> = labels
+    // Per depth: the band's costs (the keyframe against the views), then the hole's (the
+    // views among themselves).
+    let raw: Vec<(Vec<f32>, Vec<f32>)> = labels
         .par_iter()
         .map(|&gamma| {
             let per_view: Vec<Vec<f32>> = (0..nv).filter_map(|v| warp_cost(&family, v, gamma)).collect();
-            (0..band.len())
+            let inside = if params.inside {
+                let hs: Vec<Option<Homography>> = (0..nv)
+                    .map(|v| family.homography(v, gamma).map(|hm| to_sweep.after(&hm).after(&to_sweep_inv)))
+                    .collect();
+                band.inside_costs(&views_w, &hs, params.min_texture)
+            } else {
+                Vec::new()
+            };
+            let outside = (0..band.len())
                 .map(|j| {
                     let mut c: Vec<f32> = per_view.iter().map(|p| p[j]).filter(|c| !c.is_nan()).collect();
                     if c.is_empty() {
@@ -519,17 +533,38 @@ pub fn sweep_family(
                     let keep = (3 * c.len()).div_ceil(4).max(c.len().min(3));
                     c[..keep].iter().sum::<f32>() / keep as f32
                 })
-                .collect()
+                .collect();
+            (outside, inside)
         })
         .collect();
     let nl = labels.len();
-    let vote = band.votes(&costs, wall, params);
-    let band_px = &band.pixels;
-    // Stray votes out: a vote stands with enough neighbours voting alike.
-    let rw = rect.width;
+    let mut vote = band.votes(&raw.iter().map(|r| r.0.as_slice()).collect::<Vec<_>>(), wall, params);
+    let mut band_px = band.pixels.clone();
+    // Per depth, per band pixel then per hole pixel.
+    let mut costs: Vec<Vec<f32>> = raw.iter().map(|r| r.0.clone()).collect();
+    if params.inside {
+        let ni = band.inside.len();
+        let agreed: Vec<Vec<f32>> = (0..ni)
+            .into_par_iter()
+            .map(|j| inside_agreement(nl, nv, |l, k| raw[l].1[k * ni + j], params.max_cost))
+            .collect();
+        vote.extend(agreed.iter().map(|c| vote_of(|l| cost_or_inf(c[l]), nl, wall, params)));
+        for (l, cl) in costs.iter_mut().enumerate() {
+            cl.extend(agreed.iter().map(|c| c[l]));
+        }
+        band_px.extend(&band.inside);
+    }
+    drop(raw);
+    let mut inside = vec![false; n];
+    for &i in &band.inside {
+        inside[i] = true;
+    }
+    let band_px = &band_px;
+    // Stray votes out: a vote stands with enough neighbours voting alike (across the
+    // mask's edge too).
     let mut histogram = vec![0usize; nl];
     let mut kept: Vec<(usize, usize)> = Vec::new();
-    for (j, l) in band.supported(&vote, nl, params.min_neighbours).into_iter().enumerate() {
+    for (j, l) in supported_in(rect, band_px, &vote, nl, params.min_neighbours).into_iter().enumerate() {
         if let Some(l) = l {
             histogram[l] += 1;
             kept.push((band_px[j], l));
@@ -577,24 +612,28 @@ pub fn sweep_family(
         };
         let step = if l + 1 < nl { labels[l + 1] - labels[l] } else { labels[l] - labels[l - 1] };
         let gamma = labels[l] + frac * step;
-        // Where it was seen: the support's extent, its outlying 5 % on each side left out.
-        let mut xs: Vec<usize> = support.iter().map(|&i| rect.x + i % rw).collect();
-        let mut ys: Vec<usize> = support.iter().map(|&i| rect.y + i / rw).collect();
-        xs.sort_unstable();
-        ys.sort_unstable();
-        let at = |v: &[usize], f: f64| v[((v.len() - 1) as f64 * f).round() as usize] as f64;
-        let (x0, y0, x1, y1) = (at(&xs, 0.05), at(&ys, 0.05), at(&xs, 0.95), at(&ys, 0.95));
-        // Votes scattered over a wide area are repeats of texture, not a surface.
-        if (support.len() as f64) < params.min_density * (x1 - x0 + 1.0) * (y1 - y0 + 1.0) {
-            continue;
-        }
-        let a = tw_inv.apply(Point2::new(x0 - 0.5, y0 - 0.5)).expect("affine");
-        let b = tw_inv.apply(Point2::new(x1 + 0.5, y1 + 0.5)).expect("affine");
-        let region = grown_region(a, b, params.min_grow, w, h);
-        let hv = (0..views.len())
+        let hv: Vec<Option<Homography>> = (0..views.len())
             .map(|v| family.homography(v, gamma).map(|hm| tm_inv.after(&hm).after(t)))
             .collect();
-        planes.push(SurfacePlane { views: hv, region });
+        // Where it was seen: the support's extent, when dense enough; else (the votes inside
+        // the hole spread it over several slabs at one depth and the wall between) the
+        // band's votes alone, as without them. Votes scattered over a wide area are repeats
+        // of texture, not a surface.
+        let parts = if dense_box(&support, rect, params.min_density).is_some() {
+            vec![support]
+        } else {
+            vec![support.into_iter().filter(|&i| !inside[i]).collect()]
+        };
+        for part in parts {
+            if planes.len() >= params.max_planes || part.len() < params.min_votes {
+                continue;
+            }
+            let Some((x0, y0, x1, y1)) = dense_box(&part, rect, params.min_density) else { continue };
+            let a = tw_inv.apply(Point2::new(x0 - 0.5, y0 - 0.5)).expect("affine");
+            let b = tw_inv.apply(Point2::new(x1 + 0.5, y1 + 0.5)).expect("affine");
+            let region = grown_region(a, b, params.min_grow, w, h);
+            planes.push(SurfacePlane { views: hv.clone(), region });
+        }
     }
     planes
 }
@@ -635,6 +674,11 @@ struct Band {
     ks: Vec<f32>,
     k2: Vec<f32>,
     window: usize,
+    /// Hole pixels (indices into `rect`): there the keyframe says nothing, the views vote
+    /// among themselves ([`Band::inside_costs`]).
+    inside: Vec<usize>,
+    /// `rect`-sized: where views are sampled for `inside` (the pixels and their windows).
+    inside_need: Plane<bool>,
 }
 
 impl Band {
@@ -657,6 +701,8 @@ impl Band {
         let need = dilate(&Plane::from_fn(rw, rh, |x, y| in_band.get(rect.x + x, rect.y + y)), params.window);
         let kv: Vec<f32> = (0..n).map(|i| key.get(rect.x + i % rw, rect.y + i / rw)).collect();
         let r = params.window;
+        let inside: Vec<usize> = (0..n).filter(|&i| hole.get(rect.x + i % rw, rect.y + i / rw)).collect();
+        let inside_need = dilate(&Plane::from_fn(rw, rh, |x, y| hole.get(rect.x + x, rect.y + y)), r);
         Some(Self {
             rect,
             pixels,
@@ -666,6 +712,8 @@ impl Band {
             k2: box_sum(&kv.iter().map(|v| v * v).collect::<Vec<_>>(), rw, rh, r),
             key: kv,
             window: r,
+            inside,
+            inside_need,
         })
     }
 
@@ -676,28 +724,7 @@ impl Band {
     /// `votes` (per band pixel, a label of `nl`) without the stray ones: a vote stands with
     /// at least `min_neighbours` of its `(2·4 + 1)²` neighbours voting alike (±1 label).
     fn supported(&self, votes: &[Option<usize>], nl: usize, min_neighbours: f32) -> Vec<Option<usize>> {
-        let (rw, rh) = (self.rect.width, self.rect.height);
-        let mut label_at = vec![usize::MAX; self.rect.area()];
-        for (j, &i) in self.pixels.iter().enumerate() {
-            if let Some(l) = votes[j] {
-                label_at[i] = l;
-            }
-        }
-        let mut out = vec![None; self.pixels.len()];
-        let used: std::collections::BTreeSet<usize> = votes.iter().flatten().copied().collect();
-        for l in (0..nl).filter(|l| used.contains(l)) {
-            let near: Vec<f32> = label_at
-                .iter()
-                .map(|&a| if a != usize::MAX && a.abs_diff(l) <= 1 { 1.0 } else { 0.0 })
-                .collect();
-            let support = box_sum(&near, rw, rh, 4);
-            for (j, &i) in self.pixels.iter().enumerate() {
-                if votes[j] == Some(l) && support[i] >= min_neighbours {
-                    out[j] = Some(l);
-                }
-            }
-        }
-        out
+        supported_in(self.rect, &self.pixels, votes, nl, min_neighbours)
     }
 
     /// 1 − the normalised cross-correlation of the keyframe's window at band pixel `j` with
@@ -856,7 +883,7 @@ impl Band {
 
     /// Per band pixel: the depth (index into `costs`) it votes for, if any: a textured
     /// window whose best depth is good, clearly better than the wall (`wall`), and unique.
-    fn votes(&self, costs: &[Vec<f32>], wall: usize, params: &SweepParams) -> Vec<Option<usize>> {
+    fn votes<C: AsRef<[f32]>>(&self, costs: &[C], wall: usize, params: &SweepParams) -> Vec<Option<usize>> {
         let nl = costs.len();
         let min_var = params.min_texture * params.min_texture;
         self.pixels
@@ -866,17 +893,184 @@ impl Band {
                 if (self.k2[i] - self.ks[i] * self.ks[i] / self.area[i]) / self.area[i] < min_var {
                     return None;
                 }
-                let c = |l: usize| if costs[l][j].is_nan() { f32::INFINITY } else { costs[l][j] };
-                let best = (0..nl).min_by(|&a, &b| c(a).total_cmp(&c(b)))?;
-                let second = (0..nl).filter(|&l| l.abs_diff(best) > 2).map(c).fold(f32::INFINITY, f32::min);
-                (best.abs_diff(wall) > 2
-                    && c(best) <= params.max_cost
-                    && c(wall) - c(best) >= params.margin
-                    && second - c(best) >= params.unique)
-                    .then_some(best)
+                vote_of(|l| cost_or_inf(costs[l].as_ref()[j]), nl, wall, params)
             })
             .collect()
     }
+
+    /// Per pair of views `(a, b)`, `a < b` in order, then per hole pixel (`inside`; pair-major):
+    /// how well the two views agree there under one depth, each view warped through its
+    /// homography `hs[v]` (keyframe → view, sweep resolution; `None`: the view has none):
+    /// 1 − the normalised cross-correlation of their windows; 1 where either window is flat
+    /// (below `min_texture`), NaN where either view does not cover it.
+    fn inside_costs(&self, views: &[GrayF32], hs: &[Option<Homography>], min_texture: f32) -> Vec<f32> {
+        let (rw, rh) = (self.rect.width, self.rect.height);
+        let n = self.rect.area();
+        let r = self.window;
+        // Per view: the warped values, window count, sum, sum of squares.
+        type Sums = (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>);
+        let warped: Vec<Option<Sums>> = views
+            .iter()
+            .zip(hs)
+            .map(|(view, hm)| {
+                let hm = hm.as_ref()?;
+                let (mut img, mut ok) = (vec![0.0f32; n], vec![0.0f32; n]);
+                for i in 0..n {
+                    if !self.inside_need.as_slice()[i] {
+                        continue;
+                    }
+                    let p = Point2::new((self.rect.x + i % rw) as f64, (self.rect.y + i / rw) as f64);
+                    if let Some(val) = hm.apply(p).and_then(|q| bilinear(view, q.x as f32, q.y as f32)) {
+                        img[i] = val;
+                        ok[i] = 1.0;
+                    }
+                }
+                let cnt = box_sum(&ok, rw, rh, r);
+                let s = box_sum(&img, rw, rh, r);
+                let s2 = box_sum(&img.iter().map(|a| a * a).collect::<Vec<_>>(), rw, rh, r);
+                Some((img, cnt, s, s2))
+            })
+            .collect();
+        let ni = self.inside.len();
+        let nv = views.len();
+        let mut out = vec![f32::NAN; ni * nv * nv.saturating_sub(1) / 2];
+        let min_var = min_texture * min_texture;
+        let mut k = 0;
+        for a in 0..nv {
+            for b in a + 1..nv {
+                let slot = &mut out[k * ni..(k + 1) * ni];
+                k += 1;
+                let (Some((ia, ca, sa, qa)), Some((ib, cb, sb, qb))) = (&warped[a], &warped[b]) else {
+                    continue;
+                };
+                let ab = box_sum(&ia.iter().zip(ib).map(|(x, y)| x * y).collect::<Vec<_>>(), rw, rh, r);
+                for (o, &i) in slot.iter_mut().zip(&self.inside) {
+                    let area = self.area[i];
+                    if ca[i] < area - 0.5 || cb[i] < area - 0.5 {
+                        continue;
+                    }
+                    let va = (qa[i] - sa[i] * sa[i] / area).max(0.0);
+                    let vb = (qb[i] - sb[i] * sb[i] / area).max(0.0);
+                    *o = if va < min_var * area || vb < min_var * area {
+                        1.0
+                    } else {
+                        (1.0 - (ab[i] - sa[i] * sb[i] / area) / (va * vb).sqrt()).clamp(0.0, 1.0)
+                    };
+                }
+            }
+        }
+        out
+    }
+}
+
+/// `votes` (per pixel of `pixels`, indices into `rect`; a label of `nl`) without the stray
+/// ones: a vote stands with at least `min_neighbours` of its `(2·4 + 1)²` neighbours voting
+/// alike (±1 label).
+fn supported_in(
+    rect: Rect,
+    pixels: &[usize],
+    votes: &[Option<usize>],
+    nl: usize,
+    min_neighbours: f32,
+) -> Vec<Option<usize>> {
+    let (rw, rh) = (rect.width, rect.height);
+    let mut label_at = vec![usize::MAX; rect.area()];
+    for (j, &i) in pixels.iter().enumerate() {
+        if let Some(l) = votes[j] {
+            label_at[i] = l;
+        }
+    }
+    let mut out = vec![None; pixels.len()];
+    let used: std::collections::BTreeSet<usize> = votes.iter().flatten().copied().collect();
+    for l in (0..nl).filter(|l| used.contains(l)) {
+        let near: Vec<f32> =
+            label_at.iter().map(|&a| if a != usize::MAX && a.abs_diff(l) <= 1 { 1.0 } else { 0.0 }).collect();
+        let support = box_sum(&near, rw, rh, 4);
+        for (j, &i) in pixels.iter().enumerate() {
+            if votes[j] == Some(l) && support[i] >= min_neighbours {
+                out[j] = Some(l);
+            }
+        }
+    }
+    out
+}
+
+/// A cost, infinite where it is unknown (NaN).
+fn cost_or_inf(c: f32) -> f32 {
+    if c.is_nan() { f32::INFINITY } else { c }
+}
+
+/// The depth (index into `nl` labels) a pixel with costs `c(l)` votes for, if any: its best
+/// depth is good, clearly better than the wall (`wall`), and unique.
+fn vote_of(c: impl Fn(usize) -> f32, nl: usize, wall: usize, params: &SweepParams) -> Option<usize> {
+    let best = (0..nl).min_by(|&a, &b| c(a).total_cmp(&c(b)))?;
+    let second = (0..nl).filter(|&l| l.abs_diff(best) > 2).map(&c).fold(f32::INFINITY, f32::min);
+    (best.abs_diff(wall) > 2
+        && c(best) <= params.max_cost
+        && c(wall) - c(best) >= params.margin
+        && second - c(best) >= params.unique)
+        .then_some(best)
+}
+
+/// One hole pixel's agreement of the views among themselves at each of `nl` depths, from
+/// `pair(l, k)` (depth `l`, pair `k` of `nv` views as [`Band::inside_costs`] orders them;
+/// NaN: not covered). A view that agrees with no other under any depth (best cost above `max_cost`)
+/// shows something else there, its passer-by: it is left out. The cost is the mean over
+/// the pairs of the views left; NaN at every depth unless they are three or more views, or
+/// two while a third is so left out (two views are one baseline, and a repeat of texture
+/// agrees as well as the surface unless the others rule it out).
+fn inside_agreement(nl: usize, nv: usize, pair: impl Fn(usize, usize) -> f32, max_cost: f32) -> Vec<f32> {
+    let pair_of: Vec<(usize, usize)> = (0..nv).flat_map(|a| (a + 1..nv).map(move |b| (a, b))).collect();
+    // Per view: whether it is seen at all, and its best agreement with any other.
+    let mut covered = vec![false; nv];
+    let mut best = vec![f32::INFINITY; nv];
+    for l in 0..nl {
+        for (k, &(a, b)) in pair_of.iter().enumerate() {
+            let c = pair(l, k);
+            if c.is_nan() {
+                continue;
+            }
+            covered[a] = true;
+            covered[b] = true;
+            best[a] = best[a].min(c);
+            best[b] = best[b].min(c);
+        }
+    }
+    let live: Vec<bool> = (0..nv).map(|v| covered[v] && best[v] <= max_cost).collect();
+    let n_live = live.iter().filter(|&&l| l).count();
+    let n_out = (0..nv).filter(|&v| covered[v] && !live[v]).count();
+    if n_live < 2 || (n_live == 2 && n_out == 0) {
+        return vec![f32::NAN; nl];
+    }
+    (0..nl)
+        .map(|l| {
+            let (mut sum, mut cnt) = (0.0f32, 0usize);
+            for (k, &(a, b)) in pair_of.iter().enumerate() {
+                if live[a] && live[b] {
+                    let c = pair(l, k);
+                    if c.is_nan() {
+                        return f32::NAN;
+                    }
+                    sum += c;
+                    cnt += 1;
+                }
+            }
+            if cnt == 0 { f32::NAN } else { sum / cnt as f32 }
+        })
+        .collect()
+}
+
+/// The extent of `support` (indices into `rect`; in `rect`'s image coordinates), its
+/// outlying 5 % on each side left out, when the support covers at least `min_density` of it.
+fn dense_box(support: &[usize], rect: Rect, min_density: f64) -> Option<(f64, f64, f64, f64)> {
+    let rw = rect.width;
+    let mut xs: Vec<usize> = support.iter().map(|&i| rect.x + i % rw).collect();
+    let mut ys: Vec<usize> = support.iter().map(|&i| rect.y + i / rw).collect();
+    xs.sort_unstable();
+    ys.sort_unstable();
+    let at = |v: &[usize], f: f64| v[((v.len() - 1) as f64 * f).round() as usize] as f64;
+    let (x0, y0, x1, y1) = (at(&xs, 0.05), at(&ys, 0.05), at(&xs, 0.95), at(&ys, 0.95));
+    ((support.len() as f64) >= min_density * (x1 - x0 + 1.0) * (y1 - y0 + 1.0)).then_some((x0, y0, x1, y1))
 }
 
 /// Bounding box of the `true` pixels.
@@ -1245,6 +1439,82 @@ mod tests {
         let other = GrayF32::from_fn(w, h, |x, y| tex(1.7 * y as f64 + 13.0, 0.6 * x as f64 - 5.0));
         let (_, ok) = band.refine_epipole(&other, &wall, start, &votes, &id, &params).expect("covered");
         assert!(!ok, "another texture does not agree");
+    }
+
+    /// Inside the hole the keyframe says nothing: three views of a surface at a known depth
+    /// (plane + parallax, their epipoles apart) agree among themselves at that depth, and the
+    /// hole's pixels vote for it; with a view showing something else (its passer-by) the
+    /// other two still do; two views alone (one baseline) do not vote.
+    #[test]
+    fn inside_the_hole_the_views_vote_among_themselves() {
+        let (w, h) = (160, 120);
+        let tex = |x: f64, y: f64| -> f32 {
+            (0.5 + 0.2 * (0.31 * x + 0.17 * y).sin()
+                + 0.15 * (0.13 * x - 0.41 * y + 1.0).sin()
+                + 0.1 * (0.53 * x + 0.07 * y * y / 40.0).sin()) as f32
+        };
+        let key = GrayF32::from_fn(w, h, |x, y| tex(x as f64, y as f64));
+        let mask =
+            Mask::from_fn(w, h, |x, y| if (60..100).contains(&x) && (40..80).contains(&y) { 255 } else { 0 });
+        let epipoles = [
+            nalgebra::Vector3::new(40.0, 10.0, 0.02),
+            nalgebra::Vector3::new(-30.0, 25.0, 0.01),
+            nalgebra::Vector3::new(5.0, -35.0, 0.0),
+        ];
+        let z = nalgebra::RowVector3::new(0.0, 0.0, 1.0);
+        let at = |e: &nalgebra::Vector3<f64>, g: f64| {
+            Homography::from_matrix(nalgebra::Matrix3::identity() + e * z * g).unwrap()
+        };
+        let truth = 0.2;
+        let view_of = |e: &nalgebra::Vector3<f64>| {
+            let inv = at(e, truth).inverse().unwrap();
+            GrayF32::from_fn(w, h, |x, y| {
+                let p = inv.apply(Point2::new(x as f64, y as f64)).unwrap();
+                tex(p.x, p.y)
+            })
+        };
+        let mut views: Vec<GrayF32> = epipoles.iter().map(view_of).collect();
+        let labels: Vec<f64> = (-20..=20).map(|k| f64::from(k) * 0.02).collect();
+        let wall = 20;
+        let params = SweepParams::default();
+        let band = Band::new(&key, &mask, 1, &params).expect("a band");
+        let ni = band.inside.len();
+        let votes = |views: &[GrayF32]| -> Vec<Option<usize>> {
+            let nv = views.len();
+            let raw: Vec<Vec<f32>> = labels
+                .iter()
+                .map(|&g| {
+                    let hs: Vec<Option<Homography>> = epipoles[..nv].iter().map(|e| Some(at(e, g))).collect();
+                    band.inside_costs(views, &hs, params.min_texture)
+                })
+                .collect();
+            (0..ni)
+                .map(|j| {
+                    let c = inside_agreement(labels.len(), nv, |l, k| raw[l][k * ni + j], params.max_cost);
+                    vote_of(|l| cost_or_inf(c[l]), labels.len(), wall, &params)
+                })
+                .collect()
+        };
+        let right = |v: &[Option<usize>]| v.iter().filter(|&&l| l == Some(30)).count() as f64 / ni as f64;
+        let wrong = |v: &[Option<usize>]| v.iter().filter(|l| l.is_some_and(|l| l != 30)).count();
+        let all = votes(&views);
+        assert!(right(&all) > 0.8, "{:.2} of the hole votes for the surface", right(&all));
+        assert_eq!(wrong(&all), 0);
+        // View 2 shows its passer-by there (flat clothes that agree with neither view under
+        // any depth): the other two still vote. (A passer-by whose texture happens to agree
+        // with a view somewhere in the range is not told from a repeat: that pixel does not
+        // vote.)
+        views[2] = GrayF32::from_fn(w, h, |x, y| {
+            let inside = (40..120).contains(&x) && (20..100).contains(&y);
+            if inside { if x < 80 { 0.3 } else { 0.7 } } else { views[2].get(x, y) }
+        });
+        let occluded = votes(&views);
+        assert!(right(&occluded) > 0.6, "{:.2} with a passer-by", right(&occluded));
+        // One baseline is less sure of the depth (a step or two off) and of repeats.
+        let far = occluded.iter().flatten().filter(|&&l| l.abs_diff(30) > 2).count();
+        assert!(far * 50 < ni, "{far} votes far off");
+        // Two views alone: no vote.
+        assert!(votes(&views[..2]).iter().all(Option::is_none));
     }
 
     /// A region whose left half is a "slab": the views agree there only under plane 1.
