@@ -71,7 +71,7 @@ use crate::features::{
     DescriptorParams, GuidedParams, HarrisParams, Keypoint, MatchParams, descriptor, guided_match, harris,
     match_descriptors,
 };
-use crate::geometry::robust::Consensus;
+use crate::geometry::robust::{Consensus, settle};
 use crate::geometry::{Correspondence, Homography, Method, NoModel, RobustParams, homography::image_corners};
 use crate::imaging::pyramid::{Pyramid, half};
 use crate::imaging::{GrayF32, Mask};
@@ -846,6 +846,9 @@ fn refine(key: &Frame, view: &Frame, params: &AlignParams, h: Homography, putati
     }
 }
 
+/// Refits of a finer octave's model on its inliers (see [`settle`]).
+const SETTLE_ROUNDS: usize = 4;
+
 /// Guided matching and re-estimation from an initial `h`, coarse to fine.
 ///
 /// The octave schedule walks from the detection octave down to full resolution one
@@ -888,13 +891,22 @@ fn fit(
         let checked = points.iter().filter(|&&p| lands_inside(&h, p, view)).count();
         let scale = (1u32 << octave) as f64;
         let fine = RobustParams { threshold_px: params.fine.threshold_px * scale, ..params.fine.clone() };
-        let rng = ChaCha8Rng::seed_from_u64(params.seed.wrapping_add(1 + i as u64));
-        let est = match Consensus::new(fine, rng).estimate(&found) {
-            Ok(e) => e,
-            Err(e) => match best {
-                Some(_) => break,
-                None => return Err((e, h)),
-            },
+        // The detection octave chooses the model (LMedS with bucketing on every guided
+        // match); the finer octaves and settling passes only sharpen it. Run again there,
+        // LMedS chose afresh which plane of a scene with depth wins, and on the finer
+        // matches it often fitted a narrower one: ece5→ece6 at 12 MP was 1.7 px from the
+        // reference at the detection octave and 4.9 px after the finer ones.
+        let est = if best.is_some() {
+            match settle(&found, &h, fine.threshold_px, SETTLE_ROUNDS) {
+                Some(e) => e,
+                None => break,
+            }
+        } else {
+            let rng = ChaCha8Rng::seed_from_u64(params.seed.wrapping_add(1 + i as u64));
+            match Consensus::new(fine, rng).estimate(&found) {
+                Ok(e) => e,
+                Err(e) => return Err((e, h)),
+            }
         };
         if let Some(prev) = &best
             && (est.inliers.len() as f64) < params.keep_finer * prev.inliers.len() as f64
