@@ -9,7 +9,7 @@ For each prepared mv12 pair (bench/align_eval.py prepare), against the pair's re
     only, clearview's only, both, neither. "Agree with the reference only" is the support
     the estimate gave up, "clearview's only" the support it chose instead;
   - the median transfer error per cell of a 4 x 4 grid over the keyframe ("-" = unseen);
-  - an overview PNG (keyframe at about 1000 px wide): green = agrees with the reference
+  - an overview JPEG (keyframe at about 1000 px wide): green = agrees with the reference
     only, red = clearview's only, yellow = both.
 
 Usage:
@@ -120,7 +120,7 @@ def main():
                 col = (0, 220, 220) if t and c else (0, 200, 0) if t else (0, 0, 230) if c else None
                 if col:
                     cv2.circle(img, (int(x * s), int(y * s)), 3, col, -1)
-            cv2.imwrite(str(out / f"{name}.png"), img)
+            cv2.imwrite(str(out / f"{name}.jpg"), img, [cv2.IMWRITE_JPEG_QUALITY, 80])
 
 
 if __name__ == "__main__":
