@@ -372,6 +372,51 @@ impl Buckets {
     }
 }
 
+/// Refines `h` where it is, without drawing samples: the correspondences within
+/// `threshold_px` of the current model are its inliers, the model is refitted on them
+/// ([`refine`]) and the inliers taken again, for at most `rounds` rounds, while the refit
+/// lowers MSAC's truncated cost. `None` when fewer than 8 correspondences are within reach.
+///
+/// This is the refinement of a model already chosen (the coarse-to-fine alignment's finer
+/// octaves): on a scene that is not one plane, a sample consensus run again on a finer
+/// octave's matches chooses afresh which plane wins (LMedS fits the best-fitting half), and
+/// can leave the plane the coarser octave chose for a narrower one; settling cannot jump
+/// to another plane, it only sharpens the one it starts on.
+pub fn settle(data: &[Correspondence], h: &Homography, threshold_px: f64, rounds: usize) -> Option<Estimate> {
+    let t2 = threshold_px * threshold_px;
+    let within =
+        |h: &Homography| -> Vec<usize> { (0..data.len()).filter(|&i| data[i].residual_sq(h) < t2).collect() };
+    // MSAC's truncated cost: a refit is kept only if it explains the data better.
+    let cost = |h: &Homography| -> f64 { data.iter().map(|c| c.residual_sq(h).min(t2)).sum() };
+    let mut h = *h;
+    let mut inliers = within(&h);
+    if inliers.len() < 8 {
+        return None;
+    }
+    let mut current = cost(&h);
+    for _ in 0..rounds {
+        let refined = refine(data, &inliers, &h);
+        let c = cost(&refined);
+        if c >= current {
+            break;
+        }
+        let again = within(&refined);
+        if again.len() < 8 {
+            break;
+        }
+        (h, current) = (refined, c);
+        let same = again == inliers;
+        inliers = again;
+        if same {
+            break;
+        }
+    }
+    let mut residuals: Vec<f64> = data.iter().map(|c| c.residual_sq(&h)).collect();
+    let inlier_rms = (inliers.iter().map(|&i| residuals[i]).sum::<f64>() / inliers.len() as f64).sqrt();
+    let median_residual = median_of(&mut residuals).sqrt();
+    Some(Estimate { homography: h, inliers, median_residual, inlier_rms, iterations: 0 })
+}
+
 /// Levenberg–Marquardt on the transfer distances of `inliers`, in Hartley-conditioned
 /// coordinates, with `h33` fixed to 1. Returns `h` unchanged when there is nothing to gain.
 pub fn refine(data: &[Correspondence], inliers: &[usize], h: &Homography) -> Homography {
@@ -597,6 +642,65 @@ mod tests {
             (e1.homography.mean_corner_error(&h, 640, 480), e0.homography.mean_corner_error(&h, 640, 480));
         assert!(a < b, "refined {a} vs sample {b}");
         assert!(a < 0.3, "refined error {a}");
+    }
+
+    /// Two planes side by side, as a facade and a wing standing out of it: the keyframe's left
+    /// half on one (40 % of the points), the right half on another that parts from it by 3 px
+    /// at the seam and 9 px at the right edge (60 %), plus 10 % outliers. Started near the
+    /// minority plane, settling ends on it (it refines, it does not choose), where LMedS on
+    /// the same data fits the majority plane.
+    #[test]
+    fn settling_keeps_the_plane_it_starts_on() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        for case in 0..20 {
+            let a = random_h(&mut rng, 640.0, 480.0);
+            // The other plane: a shear of the keyframe, 3 px at x = 320, 9 px at x = 640.
+            let shear =
+                Homography::from_rows([[1.0, 0.0, 0.0], [0.01875, 1.0, -3.0], [0.0, 0.0, 1.0]]).unwrap();
+            let b = a.after(&shear);
+            let mut data = Vec::new();
+            for i in 0..500 {
+                let k = Point2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0));
+                let on_a = k.x < 320.0 && i % 5 < 2;
+                let on_b = k.x >= 320.0 && i % 5 >= 2;
+                let noise = |rng: &mut ChaCha8Rng| rng.random_range(-0.3..0.3);
+                let v = if i % 5 == 4 && i % 10 == 9 {
+                    Point2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0))
+                } else if on_a {
+                    let p = a.apply(k).unwrap();
+                    Point2::new(p.x + noise(&mut rng), p.y + noise(&mut rng))
+                } else if on_b {
+                    let p = b.apply(k).unwrap();
+                    Point2::new(p.x + noise(&mut rng), p.y + noise(&mut rng))
+                } else {
+                    continue;
+                };
+                data.push(Correspondence::new(k, v));
+            }
+            // Where the left half lands, how far a model is from plane a.
+            let off_a = |h: &Homography| {
+                let mut d: Vec<f64> = (0..8)
+                    .flat_map(|j| {
+                        (0..8).map(move |i| Point2::new(20.0 + 40.0 * i as f64, 20.0 + 60.0 * j as f64))
+                    })
+                    .map(|p| (h.apply(p).unwrap() - a.apply(p).unwrap()).norm())
+                    .collect();
+                d.sort_by(f64::total_cmp);
+                d[d.len() / 2]
+            };
+            let start = a.after(&Homography::translation(0.4, -0.3));
+            let settled = settle(&data, &start, 1.5, 4).expect("plane a's points are within reach");
+            let off = off_a(&settled.homography);
+            assert!(off < 0.1, "case {case}: settled {off} px off plane a");
+            let lmeds = Consensus::new(
+                RobustParams { threshold_px: 1.5, ..RobustParams::paper() },
+                ChaCha8Rng::seed_from_u64(case),
+            )
+            .estimate(&data)
+            .unwrap();
+            let off = off_a(&lmeds.homography);
+            assert!(off > 1.0, "case {case}: LMedS chose plane a too ({off} px off): the case tests nothing");
+        }
     }
 
     #[test]
