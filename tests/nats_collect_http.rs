@@ -13,7 +13,7 @@ mod daemon_common;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use daemon_common::nats::{Proc, events, free_ports, nats_server, start_ingest, wait_port};
+use daemon_common::nats::{Proc, events, single_server, start_ingest};
 use daemon_common::{Reply, Scene, Service, bin, folders, get, mask_png, png, put, raw_status, request};
 use serde_json::Value;
 
@@ -47,22 +47,11 @@ fn ok(r: Reply, what: &str) -> Reply {
 
 #[test]
 fn collect_serves_the_preview_page_of_what_it_collected() {
-    let server = nats_server();
     let tmp = tempfile::tempdir().unwrap();
     let root = tmp.path();
     let (inbox, out) = (root.join("inbox"), root.join("out"));
     std::fs::create_dir_all(&inbox).unwrap();
-    let port = free_ports(1)[0];
-    let store = root.join("store");
-    let port_s = port.to_string();
-    let _nats = Proc::start(
-        "nats",
-        &server,
-        &["-a", "127.0.0.1", "-p", &port_s, "-js", "-sd", store.to_str().unwrap()],
-        root,
-    );
-    wait_port(port, 20);
-    let urls = format!("nats://127.0.0.1:{port}");
+    let (_nats, urls, _) = single_server(root);
     let config = root.join("clearview.toml");
     std::fs::write(
         &config,

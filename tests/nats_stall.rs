@@ -14,7 +14,7 @@ use std::path::Path;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
-use daemon_common::nats::{Proc, Stall, events, free_ports, nats_server, start_ingest, wait_port};
+use daemon_common::nats::{Proc, Stall, events, single_server, start_ingest};
 use daemon_common::{Scene, bin, mask_png, png, put};
 use serde_json::Value;
 
@@ -50,21 +50,11 @@ fn started(p: &Proc) -> bool {
 
 #[test]
 fn a_stalled_link_is_not_poison_and_a_lost_file_is() {
-    let server = nats_server();
     let tmp = tempfile::tempdir().unwrap();
     let root = tmp.path();
     let (inbox, out) = (root.join("inbox"), root.join("out"));
     std::fs::create_dir_all(&inbox).unwrap();
-    let port = free_ports(1)[0];
-    let (port_s, store) = (port.to_string(), root.join("store"));
-    let _nats = Proc::start(
-        "nats",
-        &server,
-        &["-a", "127.0.0.1", "-p", &port_s, "-js", "-sd", store.to_str().unwrap()],
-        root,
-    );
-    wait_port(port, 20);
-    let urls = format!("nats://127.0.0.1:{port}");
+    let (_nats, urls, port) = single_server(root);
     // The worker's object reads are direct gets of the object store's meta subjects.
     let stall = Stall::start(port, b"$O.clearview-files.M.", Duration::from_secs(12));
     let config = root.join("clearview.toml");

@@ -1392,21 +1392,29 @@ fn sgm(costs: &[Vec<f32>], w: usize, h: usize, penalty: f32) -> Vec<u16> {
 mod tests {
     use super::*;
 
+    /// A smooth, non-repeating texture (plane coordinates to grey).
+    fn tex(x: f64, y: f64) -> f32 {
+        (0.5 + 0.2 * (0.31 * x + 0.17 * y).sin()
+            + 0.15 * (0.13 * x - 0.41 * y + 1.0).sin()
+            + 0.1 * (0.53 * x + 0.07 * y * y / 40.0).sin()) as f32
+    }
+
+    /// A 160 × 120 keyframe of [`tex`] with a 40 × 40 hole in the middle.
+    fn textured_square_hole() -> (usize, usize, GrayF32, Mask) {
+        let (w, h) = (160, 120);
+        let key = GrayF32::from_fn(w, h, |x, y| tex(x as f64, y as f64));
+        let mask =
+            Mask::from_fn(w, h, |x, y| if (60..100).contains(&x) && (40..80).contains(&y) { 255 } else { 0 });
+        (w, h, key, mask)
+    }
+
     /// A view that sees the band around the mask as a surface off the wall (plane +
     /// parallax with a known epipole): the refinement, started from an epipole that puts
     /// the surface 3 pixels off, comes back to within a fraction of a pixel and says the view
     /// agrees; a view of something else does not.
     #[test]
     fn the_epipole_is_refined_to_where_the_view_agrees_with_the_keyframe() {
-        let (w, h) = (160, 120);
-        let tex = |x: f64, y: f64| -> f32 {
-            (0.5 + 0.2 * (0.31 * x + 0.17 * y).sin()
-                + 0.15 * (0.13 * x - 0.41 * y + 1.0).sin()
-                + 0.1 * (0.53 * x + 0.07 * y * y / 40.0).sin()) as f32
-        };
-        let key = GrayF32::from_fn(w, h, |x, y| tex(x as f64, y as f64));
-        let mask =
-            Mask::from_fn(w, h, |x, y| if (60..100).contains(&x) && (40..80).contains(&y) { 255 } else { 0 });
+        let (w, h, key, mask) = textured_square_hole();
         let wall = nalgebra::Matrix3::identity();
         let truth = nalgebra::Vector3::new(40.0, 10.0, 0.02);
         let gamma = 0.2;
@@ -1447,15 +1455,7 @@ mod tests {
     /// other two still do; two views alone (one baseline) do not vote.
     #[test]
     fn inside_the_hole_the_views_vote_among_themselves() {
-        let (w, h) = (160, 120);
-        let tex = |x: f64, y: f64| -> f32 {
-            (0.5 + 0.2 * (0.31 * x + 0.17 * y).sin()
-                + 0.15 * (0.13 * x - 0.41 * y + 1.0).sin()
-                + 0.1 * (0.53 * x + 0.07 * y * y / 40.0).sin()) as f32
-        };
-        let key = GrayF32::from_fn(w, h, |x, y| tex(x as f64, y as f64));
-        let mask =
-            Mask::from_fn(w, h, |x, y| if (60..100).contains(&x) && (40..80).contains(&y) { 255 } else { 0 });
+        let (w, h, key, mask) = textured_square_hole();
         let epipoles = [
             nalgebra::Vector3::new(40.0, 10.0, 0.02),
             nalgebra::Vector3::new(-30.0, 25.0, 0.01),

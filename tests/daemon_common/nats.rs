@@ -112,6 +112,21 @@ pub fn events(out: &Path) -> Vec<Value> {
         .collect()
 }
 
+/// One JetStream `nats-server` on the loopback, its store under `dir`: the process and its
+/// URL.
+pub fn single_server(dir: &Path) -> (Proc, String, u16) {
+    let port = free_ports(1)[0];
+    let (port_s, store) = (port.to_string(), dir.join("store"));
+    let server = Proc::start(
+        "nats",
+        &nats_server(),
+        &["-a", "127.0.0.1", "-p", &port_s, "-js", "-sd", store.to_str().unwrap()],
+        dir,
+    );
+    wait_port(port, 20);
+    (server, format!("nats://127.0.0.1:{port}"), port)
+}
+
 /// `clearview ingest` with config `config`, watching `inbox`, its state in `state`, its
 /// logs in `dir`.
 pub fn start_ingest(config: &str, urls: &str, inbox: &Path, state: &Path, dir: &Path) -> Proc {
