@@ -128,7 +128,7 @@ pub fn ingest(args: &IngestArgs) -> u8 {
         eprintln!("clearview ingest: {e}");
         return exit::USAGE;
     }
-    block_on("ingest", cluster::ingest::run(config, daemon::shutdown_signal()))
+    block_on("ingest", async move { cluster::ingest::run(config, daemon::shutdown_signal()).await })
 }
 
 pub fn worker(args: &WorkerArgs) -> u8 {
@@ -146,7 +146,7 @@ pub fn worker(args: &WorkerArgs) -> u8 {
     }
     let scratch = args.scratch.clone().unwrap_or_else(|| config.state_dir.join(format!("worker-{id}")));
     let opts = cluster::worker::WorkerOptions { id, scratch, metrics: args.metrics };
-    block_on("worker", cluster::worker::run(config, opts, daemon::shutdown_signal()))
+    block_on("worker", async move { cluster::worker::run(config, opts, daemon::shutdown_signal()).await })
 }
 
 pub fn collect(args: &CollectArgs) -> u8 {
@@ -174,5 +174,5 @@ pub fn collect(args: &CollectArgs) -> u8 {
         return exit::USAGE;
     }
     let opts = cluster::collect::CollectOptions { consumer: args.consumer.clone(), state };
-    block_on("collect", cluster::collect::run(config, opts, daemon::shutdown_signal()))
+    block_on("collect", async move { cluster::collect::run(config, opts, daemon::shutdown_signal()).await })
 }

@@ -116,7 +116,8 @@ pub fn run(args: &RunArgs) -> u8 {
             return exit::FAILURE;
         }
     };
-    let outcome = runtime.block_on(daemon::run(config, daemon::shutdown_signal()));
+    // The signal handlers are installed inside the runtime, before anything starts.
+    let outcome = runtime.block_on(async move { daemon::run(config, daemon::shutdown_signal()).await });
     // The grace period was spent inside `run`: a step still running past it (a worker
     // thread joined from a blocking task) is not waited for again here, as dropping the
     // runtime would; it has been told to stop and can write nothing more.
