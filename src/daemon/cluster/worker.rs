@@ -176,6 +176,12 @@ enum StepError {
 /// The longest wait, in seconds, before a message whose step failed comes again.
 const RETRY_CAP_S: i64 = 30;
 
+/// How long a message delivered `delivered` times waits before it comes again after a
+/// failure: longer each time, up to [`RETRY_CAP_S`].
+fn retry_delay(delivered: i64) -> Duration {
+    Duration::from_secs(delivered.clamp(1, RETRY_CAP_S) as u64)
+}
+
 impl From<OpError> for StepError {
     fn from(e: OpError) -> Self {
         Self::Failed(e)
@@ -335,8 +341,7 @@ impl Worker {
             }
             Err(e) => {
                 tracing::warn!(session = %watch::shown(&session), error = %e, "cannot take the lease: later");
-                let delay = Duration::from_secs(delivered.clamp(1, RETRY_CAP_S) as u64);
-                let _ = msg.ack_with(AckKind::Nak(Some(delay))).await;
+                let _ = msg.ack_with(AckKind::Nak(Some(retry_delay(delivered)))).await;
                 return;
             }
         };
@@ -388,9 +393,8 @@ impl Worker {
                 } else {
                     // A failure of the cluster (a server died, no leader yet) is not the
                     // message's: it comes again, later each time, and is never poison.
-                    let delay = Duration::from_secs(delivered.clamp(1, RETRY_CAP_S) as u64);
                     tracing::warn!(error = %e, lasting = e.lasting, delivered, "step failed: the message comes again");
-                    let _ = acker.ack_with(AckKind::Nak(Some(delay))).await;
+                    let _ = acker.ack_with(AckKind::Nak(Some(retry_delay(delivered)))).await;
                 }
             }
         }
