@@ -104,6 +104,11 @@ pub(super) fn take_key(
     // Views rejected against the old keyframe may well match the new one.
     let refused: Vec<PathBuf> =
         slot.refused_views().into_iter().map(|n| slot.dir.join(n)).filter(|p| p.is_file()).collect();
+    // A session rebuilt from disk (a restart, a wake, a cluster rebuild) takes back at
+    // once every view whose alignment to this keyframe is saved, before it can fill: a
+    // fill of some of them would publish a worse result over the saved one.
+    let restored =
+        if slot.session.key_id().is_none() { saved_views(ctx, slot, &id, path) } else { Vec::new() };
     let mut again = slot.set_key(ctx, id, path.to_owned(), image, source, None);
     if let Some(old) = old
         && old != path
@@ -115,6 +120,7 @@ pub(super) fn take_key(
     }
     again.extend(std::mem::take(&mut slot.parked).into_values());
     again.extend(refused);
+    again.extend(restored);
     again.retain(|p| p != path);
     again.sort();
     again.dedup();
@@ -136,6 +142,25 @@ pub(super) fn take_key(
         reprocess(ctx, slot, &p);
     }
     auto_mask(ctx, slot);
+}
+
+/// The session folder's views (other than `key_path`) whose alignment to keyframe `key`
+/// is saved in the state, as their files are now (name, size and time unchanged).
+fn saved_views(ctx: &Ctx, slot: &Slot, key: &ViewId, key_path: &Path) -> Vec<PathBuf> {
+    if slot.state.alignments.is_empty() {
+        return Vec::new();
+    }
+    watch::scan(&slot.dir, ctx.config.follow_symlinks)
+        .into_iter()
+        .filter(|p| p != key_path)
+        .filter(|p| {
+            watch::classify(&ctx.config.watch_dir, p, &ctx.config.extensions)
+                .is_some_and(|c| c.role == Role::View)
+        })
+        .filter(|p| {
+            FileId::of(p).is_ok_and(|f| slot.state.has_alignment_for(&format!("{}|", f.id()), key.as_str()))
+        })
+        .collect()
 }
 
 /// A keyframe without a mask (and no automatic mask configured) makes no result: said
@@ -303,6 +328,12 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
     let _enter = span.enter();
     let id: ViewId = file.view_id(image);
     let Some(key_id) = slot.session.key_id().map(str::to_owned) else { return };
+    if slot.decided(&id) {
+        // Taken already against this keyframe and mask (a restored session takes its
+        // saved views before the intake brings their files again).
+        tracing::debug!("already taken");
+        return;
+    }
     slot.forget_old_content(ctx, &file.name, Some(&id), "its file was replaced");
     let start = Instant::now();
     let (record, from_state) = match slot.state.alignment(id.as_str(), &key_id) {
@@ -333,4 +364,93 @@ pub(super) fn view_gone(ctx: &Ctx, slot: &mut Slot, name: &str, path: &Path) {
     let why =
         if path.exists() { "its file was replaced by something unusable" } else { "its file was deleted" };
     slot.forget_old_content(ctx, name, None, why);
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use tokio_util::sync::CancellationToken;
+
+    use super::*;
+    use crate::config::Config;
+    use crate::daemon::emit::Emitter;
+    use crate::daemon::engine::publish::FillStep;
+    use crate::imaging::convert::{mask_to_luma8, to_rgb8};
+
+    fn ctx(root: &Path) -> Ctx {
+        let config = Config {
+            watch_dir: root.join("inbox"),
+            out_dir: root.join("out"),
+            state_dir: root.join("state"),
+            ..Config::default()
+        };
+        std::fs::create_dir_all(&config.out_dir).unwrap();
+        let config = Arc::new(config);
+        Ctx {
+            emitter: Arc::new(Emitter::open(&config).unwrap()),
+            config,
+            cancel: CancellationToken::new(),
+            backlog: Arc::default(),
+            stats: Arc::default(),
+            registry: Arc::default(),
+        }
+    }
+
+    fn give(ctx: &Ctx, slot: &mut Slot, name: &str) {
+        let path = slot.dir.join(name);
+        let role = watch::classify(&ctx.config.watch_dir, &path, &ctx.config.extensions).unwrap().role;
+        let (file, image) = load(ctx, &path, role).unwrap();
+        apply(ctx, slot, role, &file, &path, Some(&image));
+        slot.save_state(ctx);
+    }
+
+    fn events(ctx: &Ctx) -> Vec<serde_json::Value> {
+        let log = std::fs::read_to_string(ctx.config.out_dir.join("events.jsonl")).unwrap();
+        log.lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+    }
+
+    /// After a restart the intake brings a session's files again, in any order and not
+    /// all at once. The keyframe takes back every view whose alignment is saved before the
+    /// session can fill, so the first fill has the saved result's inputs (unchanged, not
+    /// rewritten) instead of publishing a fill of one view over the three-view result; the
+    /// files that come after are not taken twice.
+    #[test]
+    fn a_restored_session_takes_back_its_saved_views_before_it_fills() {
+        let tmp = tempfile::tempdir().unwrap();
+        let ctx = ctx(tmp.path());
+        let dir = ctx.config.watch_dir.join("s");
+        std::fs::create_dir_all(&dir).unwrap();
+        let scene = crate::synth::tree_scene(320, 240, 5, 6);
+        to_rgb8(&scene.key).save(dir.join("key.png")).unwrap();
+        mask_to_luma8(&scene.mask).save(dir.join("key.mask.png")).unwrap();
+        for (i, v) in scene.views.iter().enumerate() {
+            to_rgb8(v).save(dir.join(format!("v{}.png", i + 1))).unwrap();
+        }
+        let first = {
+            let mut slot = Slot::new(&ctx, "s", dir.clone());
+            for name in ["key.png", "key.mask.png", "v1.png", "v2.png", "v3.png"] {
+                give(&ctx, &mut slot, name);
+            }
+            let FillStep::Written(n) = slot.fill(&ctx) else { panic!("no first result") };
+            slot.save_state(&ctx);
+            n
+        };
+        let lines = events(&ctx).len();
+        let result = std::fs::read(ctx.config.out_dir.join("s/result.json")).unwrap();
+
+        let mut slot = Slot::new(&ctx, "s", dir.clone());
+        give(&ctx, &mut slot, "v2.png");
+        give(&ctx, &mut slot, "key.png");
+        assert!(matches!(slot.fill(&ctx), FillStep::Unchanged(n) if n == first));
+        for name in ["v1.png", "key.mask.png", "v3.png"] {
+            give(&ctx, &mut slot, name);
+        }
+        let again = &events(&ctx)[lines..];
+        let accepted: Vec<_> = again.iter().filter(|e| e["event"] == "view_accepted").collect();
+        assert_eq!(accepted.len(), 3, "{again:#?}");
+        assert!(accepted.iter().all(|e| e["from_state"] == true), "{again:#?}");
+        assert!(again.iter().all(|e| e["event"] != "result_updated"), "{again:#?}");
+        assert_eq!(std::fs::read(ctx.config.out_dir.join("s/result.json")).unwrap(), result);
+    }
 }

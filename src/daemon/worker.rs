@@ -185,7 +185,8 @@ impl Worker {
     }
 
     /// Rebuilds a sleeping session from disk: its keyframe, mask and the views whose
-    /// alignments are saved (none is realigned); an unchanged result is not rewritten.
+    /// alignments are saved (taken back by [`folder::take_key`]; none is realigned); an
+    /// unchanged result is not rewritten.
     fn wake(&mut self, name: &str) {
         let Self { ctx, sessions, .. } = self;
         let slot = Self::slot(ctx, sessions, name);
@@ -194,21 +195,9 @@ impl Worker {
         let Some(key_name) = slot.state.key_file.clone() else { return };
         let key_path = slot.dir.join(&key_name);
         let Ok((file, img)) = folder::load(ctx, &key_path, Role::View) else { return };
-        let key_id = format!("{}|", file.id());
-        for path in watch::scan(&slot.dir, ctx.config.follow_symlinks) {
-            let Some(c) = watch::classify(&ctx.config.watch_dir, &path, &ctx.config.extensions) else {
-                continue;
-            };
-            let saved = super::job::FileId::of(&path)
-                .is_ok_and(|f| slot.state.has_alignment_for(&format!("{}|", f.id()), &key_id));
-            if c.role == Role::View && path != key_path && saved {
-                let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
-                slot.parked.insert(name, path);
-            }
-        }
         let listing = folder::listing(ctx, &slot.dir);
         let source = policy::saved_key_source(&ctx.config.keyframe, &listing, &key_name);
-        tracing::info!(views = slot.parked.len(), "waking the session up");
+        tracing::info!("waking the session up");
         folder::take_key(ctx, slot, &file, &key_path, &img, source);
         slot.fill(ctx);
     }

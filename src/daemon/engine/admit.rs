@@ -115,6 +115,7 @@ impl Slot {
                 (ViewStatus::Buffered, None, Admitted::Buffered { improves })
             }
         };
+        self.decided.insert(id.as_str().to_owned());
         let entry = ViewEntry { id, status, reason, record: Some(record), from_state, seq: self.seq };
         self.views.insert(name, entry);
         if self.views.len() > MAX_LISTED
@@ -150,6 +151,7 @@ impl Slot {
             return;
         };
         self.paths.remove(old.as_str());
+        self.decided.remove(old.as_str());
         if self.session.forget_view(old.as_str()) {
             tracing::info!(file = %watch::shown(name), reason = why, "the view's old pixels leave the buffer");
             let reason = format!("{why}: its old pixels are no longer used");

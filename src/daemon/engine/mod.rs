@@ -30,7 +30,7 @@
 mod admit;
 pub(crate) mod publish;
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -140,6 +140,9 @@ pub(crate) struct Slot {
     /// Where each buffered view's file is (to re-read it).
     pub(crate) paths: HashMap<String, PathBuf>,
     views: BTreeMap<String, ViewEntry>,
+    /// Ids of the views decided (admitted, rejected, seeing none of the mask) against the
+    /// current keyframe and mask: offered again, they are not taken twice.
+    decided: HashSet<String>,
     seq: u64,
     pub(crate) state_dirty: bool,
     /// A result that could not be written yet.
@@ -197,6 +200,7 @@ impl Slot {
             parked: BTreeMap::new(),
             paths: HashMap::new(),
             views: BTreeMap::new(),
+            decided: HashSet::new(),
             seq: 0,
             state_dirty: false,
             pending: None,
@@ -214,6 +218,11 @@ impl Slot {
     /// The keyframe's file (or frame) name.
     pub(crate) fn key_name(&self) -> Option<String> {
         self.key_path.as_ref().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned())
+    }
+
+    /// Whether view `id` was decided against the current keyframe and mask.
+    pub(crate) fn decided(&self, id: &ViewId) -> bool {
+        self.decided.contains(id.as_str())
     }
 
     /// The current mask came from file `name`.
@@ -264,6 +273,7 @@ impl Slot {
             .collect();
         self.key_path = Some(path);
         self.key_source = Some(source);
+        self.decided.clear();
         self.waiting_said = false;
         self.mask_source = None;
         self.refused_mask = None;
@@ -299,6 +309,7 @@ impl Slot {
         let masked = mask.hole_count();
         let share = masked as f64 / mask.len().max(1) as f64;
         let again = self.session.set_mask(id, mask).map_err(|e| e.to_string())?;
+        self.decided.clear();
         let (file, views) = match origin {
             MaskOrigin::File(f) => (Some(f.to_owned()), None),
             MaskOrigin::Auto(n) => (None, Some(n)),
@@ -331,6 +342,7 @@ impl Slot {
         if in_use {
             self.session.clear_mask();
             self.mask_source = None;
+            self.decided.clear();
         }
         let reason = "the mask file was deleted: no new result until a mask arrives; the last result is kept";
         tracing::warn!(file = %watch::shown(name), reason, "mask removed");
