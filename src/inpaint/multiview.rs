@@ -170,6 +170,12 @@ pub fn fill_region(region: &mut Region<'_>, views: &[ViewData<'_>], params: &Mul
     let (w, h) = (region.width, region.height);
     let n = w * h;
     assert!(region.pixels.len() == n && region.state.len() == n && region.pick.len() == n);
+    // No view sees any of the hole (a keyframe and its mask alone): nothing to search, and
+    // the front would walk the whole hole for nothing (seconds on a large one).
+    if !(0..n).any(|i| region.state[i] == HOLE && views.iter().any(|v| v.valid[i])) {
+        region.state.iter_mut().filter(|s| **s == HOLE).for_each(|s| *s = UNSEEN);
+        return 0;
+    }
     let r = params.patch_radius;
     let rc = params.copy_radius.max(r);
     let mut known: Vec<bool> = region.state.iter().map(|&s| s == KNOWN || s == FILLED).collect();
