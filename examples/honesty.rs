@@ -138,7 +138,7 @@ fn model_accuracy(case: &Case, params: &OcclusionParams) -> Option<(usize, usize
         need: need.as_slice(),
         blocked: &blocked,
     };
-    let input = RegionInput { region, views: &refs };
+    let input = RegionInput { region, views: &refs, diagonal: (w as f32).hypot(h as f32) };
     let map = occlusion_map(&input, params);
     let (mut tp, mut fp, mut fneg) = (0, 0, 0);
     for (v, t) in truth.iter().enumerate() {

@@ -873,7 +873,8 @@ fn region_model(key: &RgbF32, part: &Part, warps: &[Warped], params: &FillParams
     }
     let pixels = key.crop(r).into_vec();
     let refs: Vec<_> = warps.iter().map(|wv| (wv.image.as_slice(), wv.valid.as_slice())).collect();
-    let input = RegionInput { region: part.region(&pixels), views: &refs };
+    let diagonal = (key.width() as f32).hypot(key.height() as f32);
+    let input = RegionInput { region: part.region(&pixels), views: &refs, diagonal };
     occlusion_map(&input, &params.occlusion_model)
 }
 

@@ -12,7 +12,9 @@
 //!   the occluder and not to the building around it, shows the same occluder;
 //! - **the view's own occluders, followed into the mask**: outside the mask the keyframe
 //!   shows the building, so where the view disagrees with it there the view has something in
-//!   front; such an object is connected, so it is grown into the mask through the view's
+//!   front (unless that disagreement is the keyframe's building moved by one shift, as
+//!   ground or a surface off the wall is with parallax: displaced, not in front); such an
+//!   object is connected, so it is grown into the mask through the view's
 //!   pixels that look like it rather than like the building, and, where too few views see a
 //!   pixel for a consensus, through the pixels where the view disagrees with one that is not
 //!   suspected (the disagreement is explained by the object that reaches it);
@@ -45,6 +47,11 @@ pub struct OcclusionParams {
     /// Seeds count only in connected groups of at least this many pixels (an object, not
     /// the misregistration of an edge).
     pub min_object: usize,
+    /// A group of seeds that is the keyframe's building moved by one shift of up to this
+    /// share of the keyframe's diagonal is not an object: it is ground or a surface off
+    /// the wall seen with parallax (or the alignment a little off), and it disagrees
+    /// because it is displaced.
+    pub displaced_share: f32,
     /// Log-odds weights of the evidence.
     pub w_consensus: f32,
     pub w_resemblance: f32,
@@ -69,6 +76,7 @@ impl Default for OcclusionParams {
             seed_distance: 0.2,
             shift_tolerance: 2,
             min_object: 24,
+            displaced_share: 0.035,
             w_consensus: 4.0,
             w_resemblance: 4.0,
             w_own: 4.0,
@@ -170,6 +178,8 @@ pub struct KeyRegion<'a> {
 pub struct RegionInput<'a> {
     pub region: KeyRegion<'a>,
     pub views: &'a [(&'a [[f32; 3]], &'a [bool])],
+    /// The keyframe's diagonal in pixels (parallax and misregistration scale with it).
+    pub diagonal: f32,
 }
 
 /// The model over one region.
@@ -272,8 +282,8 @@ fn independence(blurred: &[Vec<[f32; 3]>], valid: &[&[bool]], need: &[bool], agr
     (0..nv).map(|a| 1.0 / (1.0 + twin[a].iter().sum::<f32>())).collect()
 }
 
-/// 4-connected components of `seed` with at least `min` pixels.
-fn objects(seed: &[bool], w: usize, h: usize, min: usize) -> Vec<bool> {
+/// 4-connected components of `seed` with at least `min` pixels that `keep` keeps.
+fn objects(seed: &[bool], w: usize, h: usize, min: usize, keep: impl Fn(&[usize]) -> bool) -> Vec<bool> {
     let mut out = vec![false; seed.len()];
     let mut seen = vec![false; seed.len()];
     let mut stack = Vec::new();
@@ -294,13 +304,64 @@ fn objects(seed: &[bool], w: usize, h: usize, min: usize) -> Vec<bool> {
                 }
             });
         }
-        if members.len() >= min {
+        if members.len() >= min && keep(&members) {
             for &i in &members {
                 out[i] = true;
             }
         }
     }
     out
+}
+
+/// Whether a view's pixels `members` (box-averaged: `view`) are the keyframe's building
+/// (`key`, where `building` marks it) moved by one shift of at most `max_shift` pixels:
+/// their mean distance to it there is under `agree`. Every shift is tried with 64 of them
+/// (where at least 60 % land on the building), the three best again with up to 256.
+#[allow(clippy::too_many_arguments)]
+fn displaced(
+    members: &[usize],
+    view: &[[f32; 3]],
+    key: &[[f32; 3]],
+    building: &[bool],
+    w: usize,
+    h: usize,
+    max_shift: usize,
+    agree: f32,
+) -> bool {
+    if max_shift == 0 || members.is_empty() {
+        return false;
+    }
+    let sample = |count: usize| -> Vec<(isize, isize, [f32; 3])> {
+        let step = members.len().div_ceil(count);
+        members.iter().step_by(step).map(|&i| ((i % w) as isize, (i / w) as isize, view[i])).collect()
+    };
+    // Mean distance at shift (dx, dy), if enough of `at` lands on the building.
+    let mean = |at: &[(isize, isize, [f32; 3])], dx: isize, dy: isize| -> Option<f32> {
+        let (mut n, mut sum) = (0usize, 0.0f32);
+        for &(x, y, c) in at {
+            let (xx, yy) = (x + dx, y + dy);
+            if xx >= 0 && yy >= 0 && (xx as usize) < w && (yy as usize) < h {
+                let j = yy as usize * w + xx as usize;
+                if building[j] {
+                    n += 1;
+                    sum += dist(c, key[j]);
+                }
+            }
+        }
+        (5 * n >= 3 * at.len()).then(|| sum / n as f32)
+    };
+    let (coarse, fine) = (sample(64), sample(256));
+    let m = max_shift as isize;
+    let mut best: Vec<(f32, isize, isize)> = (-m..=m)
+        .into_par_iter()
+        .flat_map_iter(|dy| {
+            let coarse = &coarse;
+            (-m..=m).filter_map(move |dx| mean(coarse, dx, dy).map(|d| (d, dx, dy)))
+        })
+        .filter(|b| b.0 < 2.0 * agree)
+        .collect();
+    best.sort_by(|a, b| a.0.total_cmp(&b.0));
+    best.iter().take(3).any(|&(_, dx, dy)| mean(&fine, dx, dy).is_some_and(|d| d < agree))
 }
 
 /// Calls `visit` with the index of each 4-neighbour of pixel `i` in a `w × h` grid.
@@ -341,6 +402,7 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
     let n = w * h;
     let nv = input.views.len();
     let r = params.blur_radius;
+    let max_shift = (params.displaced_share * input.diagonal).round() as usize;
     let all = vec![true; n];
     let key_b = box_blur(input.region.key, &all, w, h, r);
     let valid: Vec<&[bool]> = input.views.iter().map(|v| v.1).collect();
@@ -421,7 +483,20 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
             // Thin lines of disagreement are edges a little off (parallax, registration): an
             // object survives an erosion.
             let core = super::automask::erode(&crate::imaging::Plane::from_vec(w, h, seeds), 1);
-            let seeds = objects(core.as_slice(), w, h, params.min_object);
+            let objs = objects(core.as_slice(), w, h, params.min_object, |_| true);
+            // Disagreement that is the keyframe's building moved (ground or a surface off the
+            // wall, with parallax) is not an object. Objects near each other are judged
+            // together: the part of a displaced band next to the hole lands, moved back, in
+            // the hole, where the keyframe cannot say; the rest of the band can.
+            let near = super::automask::dilate(
+                &crate::imaging::Plane::from_vec(w, h, objs.clone()),
+                2 + max_shift / 4,
+            );
+            let kept = objects(near.as_slice(), w, h, 1, |cluster| {
+                let members: Vec<usize> = cluster.iter().copied().filter(|&i| objs[i]).collect();
+                !displaced(&members, img_b, &key_b, &around, w, h, max_shift, params.agree)
+            });
+            let seeds: Vec<bool> = (0..n).map(|i| objs[i] && kept[i]).collect();
             if seeds.iter().any(|&s| s) {
                 // ...followed into the hole through pixels that look like the object.
                 let object = Histogram::new((0..n).filter(|&i| seeds[i]).map(|i| input.views[v].0[i]));
@@ -612,6 +687,78 @@ mod tests {
         }
     }
 
+    /// Ground seen with parallax disagrees with the keyframe beside the hole as much as a
+    /// passer-by does, but it is the keyframe's own content moved: it is not followed into
+    /// the hole as an object (on parapano_hunt, with `--mask auto` along a path's edge, the
+    /// fill became a patchwork of squares where the views' displaced grass was cut). A real
+    /// object crossing the hole's edge still is.
+    #[test]
+    fn displaced_ground_is_not_an_object_but_a_passer_by_is() {
+        let (w, h) = (160, 100);
+        let mut seed = 7u64;
+        let cells: Vec<[f32; 3]> = (0..40 * 40)
+            .map(|_| {
+                let mut c = [0.0; 3];
+                for v in &mut c {
+                    seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                    *v = 0.2 + 0.6 * ((seed >> 33) as f32 / (1u64 << 31) as f32);
+                }
+                c
+            })
+            .collect();
+        let building =
+            |x: isize, y: isize| cells[(y.rem_euclid(320) / 8 * 40 + x.rem_euclid(320) / 8) as usize];
+        let in_hole = |x: usize, y: usize| (60..100).contains(&x) && (20..80).contains(&y);
+        let key: Vec<[f32; 3]> = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                if in_hole(x, y) { [0.1, 0.5, 0.1] } else { building(x as isize, y as isize) }
+            })
+            .collect();
+        let (hole, need, blocked) = region(w, h, in_hole);
+        // The ground (the lower half) moved 12 px by parallax.
+        let ground: Vec<[f32; 3]> = (0..w * h)
+            .map(|i| {
+                let (x, y) = ((i % w) as isize, (i / w) as isize);
+                if y >= 50 { building(x - 12, y) } else { building(x, y) }
+            })
+            .collect();
+        let blob = |x: usize, y: usize| (40..75).contains(&x) && (25..45).contains(&y);
+        let passer_by: Vec<[f32; 3]> = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                if blob(x, y) { [0.6, 0.1, 0.7] } else { building(x as isize, y as isize) }
+            })
+            .collect();
+        let ok = vec![true; w * h];
+        let views = [(ground.as_slice(), ok.as_slice()), (passer_by.as_slice(), ok.as_slice())];
+        let region =
+            KeyRegion { width: w, height: h, key: &key, hole: &hole, need: &need, blocked: &blocked };
+        let input = RegionInput { region, views: &views, diagonal: 600.0 };
+        let cut_share = |m: &OcclusionMap, v: usize, at: &dyn Fn(usize, usize) -> bool| {
+            let px: Vec<usize> = (0..w * h).filter(|&i| hole[i] && at(i % w, i / w)).collect();
+            px.iter().filter(|&&i| m.occluded[v][i] > 0.85).count() as f32 / px.len() as f32
+        };
+        let lower = |_x: usize, y: usize| y >= 52;
+        let params = OcclusionParams::default();
+        let m = occlusion_map(&input, &params);
+        let (ground_cut, blob_cut) = (cut_share(&m, 0, &lower), cut_share(&m, 1, &blob));
+        // Without the displacement test the ground is taken for an object.
+        let blind = occlusion_map(&input, &OcclusionParams { displaced_share: 0.0, ..params });
+        let blind_cut = cut_share(&blind, 0, &lower);
+        assert!(ground_cut < 0.05, "displaced ground cut on {:.0} % of the hole", 100.0 * ground_cut);
+        assert!(
+            blob_cut > 0.8,
+            "the passer-by cut on only {:.0} % of its part of the hole",
+            100.0 * blob_cut
+        );
+        assert!(
+            blind_cut > 0.3,
+            "the case does not test the displacement: {:.0} % cut without it",
+            100.0 * blind_cut
+        );
+    }
+
     #[test]
     fn a_view_showing_the_keyframes_occluder_is_occluded_and_a_clean_one_is_not() {
         // A grey-brown wall with stripes; the keyframe has a green square in the middle.
@@ -629,7 +776,7 @@ mod tests {
         let views = [(clean.as_slice(), ok.as_slice()), (same.as_slice(), ok.as_slice())];
         let region =
             KeyRegion { width: w, height: h, key: &key, hole: &hole, need: &need, blocked: &blocked };
-        let input = RegionInput { region, views: &views };
+        let input = RegionInput { region, views: &views, diagonal: 57.0 };
         let m = occlusion_map(&input, &OcclusionParams::default());
         let c = 20 * w + 20;
         assert!(m.occluded[0][c] < 0.3, "clean view {}", m.occluded[0][c]);
