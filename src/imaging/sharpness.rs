@@ -35,7 +35,7 @@ pub struct SelectParams {
     pub min_motion: f32,
     /// Frames kept per second of stream time at most (0: no cap).
     pub max_kept_fps: f32,
-    /// Frames that only set the running level before any is kept.
+    /// Frames that set the running level before any is judged (see [`FrameSelector::observe`]).
     pub warmup_frames: usize,
     /// Width of the motion thumbnail, in pixels.
     pub thumb_width: usize,
