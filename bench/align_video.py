@@ -111,6 +111,51 @@ def masked_psnr(img, truth, mask):
     return 10 * math.log10(255.0 ** 2 / max(mse, 1e-9))
 
 
+def seen_clear(key, frames, covers, mask):
+    """Masked pixels of frame `key` that one of `frames` shows clear of occluders (inside the
+    frame, off its occluders' cover grown by 2 px): what a view could give, by the truth."""
+    ys, xs = np.nonzero(mask > 127)
+    pts = np.stack([xs, ys, np.ones_like(xs)]).astype(np.float64)
+    world = view_to_world(key) @ pts
+    seen = np.zeros(xs.shape, bool)
+    for j in frames:
+        if j == key:
+            continue
+        c = cv2.dilate(covers[j].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        q = np.linalg.inv(view_to_world(j)) @ world
+        u, v = np.round(q[0] / q[2]).astype(int), np.round(q[1] / q[2]).astype(int)
+        inside = (u >= 0) & (v >= 0) & (u < W) & (v < H)
+        ok = inside.copy()
+        ok[inside] = ~c[v[inside], u[inside]]
+        seen |= ok
+    out = np.zeros(mask.shape, bool)
+    out[ys, xs] = seen
+    return out
+
+
+def breakdown(result, truth, mask, provenance, seen_any, seen_kept):
+    """Where the masked error is: per class of pixel, its share of the mask, its PSNR and its
+    share of the squared error. Classes from provenance.png (magenta: the fallback; red: a
+    view's pixel the model doubts; other colours: a view's pixel it is sure of) and from the
+    truth (no frame at all shows the pixel clear; only frames that were not kept do)."""
+    m = mask > 127
+    err = ((result.astype(np.float64) - truth.astype(np.float64)) ** 2).mean(axis=2)
+    total = float(err[m].sum())
+    b, g, r = provenance[..., 0], provenance[..., 1], provenance[..., 2]
+    fallback = (r == 255) & (g == 0) & (b == 255)
+    doubtful = (r == 0xd6) & (g == 0x27) & (b == 0x28)
+    classes = {"fallback": fallback, "doubtful view": doubtful, "confident view": ~fallback & ~doubtful,
+               "unseen by any frame": ~seen_any, "seen only by frames not kept": seen_any & ~seen_kept}
+    out = {}
+    for name, c in classes.items():
+        c = c & m
+        n = int(c.sum())
+        mse = float(err[c].mean()) if n else 0.0
+        out[name] = {"share": n / max(int(m.sum()), 1), "psnr": 10 * math.log10(255.0 ** 2 / max(mse, 1e-9)) if n else None,
+                     "error_share": float(err[c].sum()) / max(total, 1e-9)}
+    return out
+
+
 def run_case(args, work, video, truths, covers, key, flag):
     mask = cv2.dilate(covers[key].astype(np.uint8) * 255, np.ones((13, 13), np.uint8))
     name = f"key{key}" + ("-flag" if flag else "-noflag")
@@ -138,12 +183,19 @@ def run_case(args, work, video, truths, covers, key, flag):
     cv2.imwrite(str(work / f"{name}.telea.png"), telea)
     cv2.imwrite(str(work / f"{name}.result.png"), result)
     truth = truths[key]
+    kept = [int(e["frame"]) for e in events if e.get("event") == "view_accepted" and "frame" in e]
+    seen_any = seen_clear(key, range(len(truths)), covers, mask)
+    seen_kept = seen_clear(key, kept, covers, mask)
+    prov = cv2.imread(str(sess / "provenance.png"), cv2.IMREAD_COLOR)
+    where = breakdown(result, truth, mask, prov, seen_any, seen_kept) if prov is not None else {}
+    cv2.imwrite(str(work / f"{name}.truth.png"), truth)
     r = {"case": name, "keyframe": report.get("keyframe"), "masked_px": int((mask > 127).sum()),
          "mask_share": float((mask > 127).mean()), "accepted": accepted, "rejected": rejected,
          "psnr": masked_psnr(result, truth, mask), "telea": masked_psnr(telea, truth, mask),
          "keyframe_psnr": masked_psnr(keyimg, truth, mask),
          "from_fallback": report.get("from_fallback", float("nan")), "doubtful": report.get("doubtful", float("nan")),
-         "result_number": report.get("number"), "wall_s": wall}
+         "result_number": report.get("number"), "wall_s": wall,
+         "kept_frames": kept, "where": where}
     r["target"] = max(27.0, r["telea"] + 6.0)
     r["met"] = r["psnr"] >= r["target"]
     return r
@@ -173,6 +225,13 @@ def main():
         print(f"| {r['case']} | {r['keyframe']} | {r['masked_px']} ({r['mask_share']:.0%}) | "
               f"{r['accepted']} / {r['rejected']} | {r['from_fallback']:.0%} / {r['doubtful']:.0%} | {r['keyframe_psnr']:.2f} | {r['telea']:.2f} | "
               f"**{r['psnr']:.2f}** | {r['target']:.2f} | {'yes' if r['met'] else 'no'} | {r['wall_s']:.1f} |")
+    print()
+    print("| case | class of masked pixel | share of mask | PSNR dB | share of squared error |")
+    print("|---|---|---:|---:|---:|")
+    for r in rows:
+        for name, c in r.get("where", {}).items():
+            psnr = "–" if c["psnr"] is None else f"{c['psnr']:.2f}"
+            print(f"| {r['case']} | {name} | {c['share']:.1%} | {psnr} | {c['error_share']:.0%} |")
     (work / "results.json").write_text(json.dumps(rows, indent=1))
 
 

@@ -256,6 +256,76 @@ fn a_video_file_is_selected_aligned_and_filled_until_its_end() {
     assert!(final_err < key_err / 4.0);
 }
 
+/// Writes `frames` as an H.264 file (CRF 16, `FPS`) in `dir`; its path.
+fn encode(dir: &Path, frames: &[RgbF32]) -> std::path::PathBuf {
+    let pngs = dir.join("frames");
+    std::fs::create_dir_all(&pngs).unwrap();
+    for (i, f) in frames.iter().enumerate() {
+        to_rgb8(f).save(pngs.join(format!("{i:04}.png"))).unwrap();
+    }
+    let video = dir.join("walk.mp4");
+    let st = Command::new("ffmpeg")
+        .args(["-v", "error", "-y", "-framerate", &FPS.to_string(), "-i"])
+        .arg(pngs.join("%04d.png"))
+        .args(["-c:v", "libx264", "-crf", "16", "-pix_fmt", "yuv420p"])
+        .arg(&video)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    video
+}
+
+/// The first frames of a stream only set the sharpness level, but they are views too: with
+/// the keyframe named just after them, they may be the only frames that saw what its
+/// occluder hides. Here the camera walks past the tree during the first five frames (the
+/// warm-up) and then stands still: every later frame shows the tree where the keyframe
+/// does. Before the warm-up's frames were held and judged, none of them was kept and the
+/// session had no view to fill from.
+#[test]
+fn the_frames_of_the_warm_up_are_views_of_a_keyframe_named_after_them() {
+    if !have_ffmpeg() {
+        return;
+    }
+    const KEY_AT: usize = 8;
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let world = World::new();
+    // 30 facade pixels per frame for frames 0..=4, then still (the tree 90 px per frame).
+    let pan = |i: usize| 30.0 * i.min(4) as f64;
+    let frames: Vec<RgbF32> = (0..16).map(|i| world.frame(pan(i), None)).collect();
+    let video = encode(dir, &frames);
+    let mut mask = Mask::new(W, H, 0);
+    let key = world.frame(pan(KEY_AT), Some(&mut mask));
+    let mask = dilate(&mask, 6);
+    write_mask(&dir.join("mask.png"), &mask);
+    let out = dir.join("out");
+    let run = Command::new(bin())
+        .args(["run", "--video"])
+        .arg(&video)
+        .args(["--keyframe-frame", &KEY_AT.to_string(), "--mask"])
+        .arg(dir.join("mask.png"))
+        .arg("--out")
+        .arg(&out)
+        .current_dir(dir)
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(0), "log:\n{log}");
+    let ev = events(&out);
+    let accepted: Vec<u64> =
+        of_kind(&ev, "view_accepted").iter().map(|v| v["frame"].as_u64().unwrap()).collect();
+    assert!(accepted.contains(&0), "frame 0 (in the warm-up) is not a view: {ev:#?}");
+    let end = of_kind(&ev, "video_ended")[0];
+    assert_eq!(end["warmup"], 0, "every frame of the warm-up was judged: {end}");
+    let result = image::open(out.join("video").join("result.png")).unwrap().to_rgb8();
+    let truth = world.facade(pan(KEY_AT));
+    let (err, key_err) = (masked_error(&truth, &mask, &result), masked_error(&truth, &mask, &to_rgb8(&key)));
+    eprintln!("masked error: keyframe {key_err:.4}, result {err:.4}; views {accepted:?}");
+    if multi_view_fill() {
+        assert!(err < 0.035 && err < key_err / 4.0, "result {err:.4}, keyframe {key_err:.4}");
+    }
+}
+
 /// Whether the library's fill takes pixels from views (the multi-view fill has landed):
 /// a hole in a flat grey keyframe with one view that sees it.
 fn multi_view_fill() -> bool {

@@ -12,8 +12,12 @@
 //!    is at least [`SelectParams::min_motion`];
 //! 3. it is at least `1 / max_kept_fps` seconds after the last kept frame.
 //!
-//! The first [`SelectParams::warmup_frames`] frames only set the level (nothing is kept
-//! before the selector knows what sharp looks like in this stream).
+//! The first [`SelectParams::warmup_frames`] frames set the level before anything is judged
+//! ([`FrameSelector::observe`]: nothing is judged before the selector knows what sharp looks
+//! like in this stream). The caller holds them and judges them once the level is known
+//! ([`FrameSelector::judge`]) rather than lose them: with the keyframe named at frame 30,
+//! the first frames are the ones that saw most of what its occluders hide (measured on the
+//! rendered walks of `bench/align_video.py`; BENCHMARKS.md, "Video target, sixth pass").
 
 use super::GrayF32;
 use super::convert::luma;
@@ -31,7 +35,7 @@ pub struct SelectParams {
     pub min_motion: f32,
     /// Frames kept per second of stream time at most (0: no cap).
     pub max_kept_fps: f32,
-    /// Frames that only set the running level before any is kept.
+    /// Frames that set the running level before any is judged (see [`FrameSelector::observe`]).
     pub warmup_frames: usize,
     /// Width of the motion thumbnail, in pixels.
     pub thumb_width: usize,
@@ -191,10 +195,18 @@ impl FrameSelector {
         self.level
     }
 
-    /// Judges the frame at stream time `t` (seconds, non-decreasing) and, when kept,
-    /// remembers it as the last kept frame. `force_keep` keeps a sharp frame whatever its
-    /// motion and time (the keyframe).
+    /// Judges the frame at stream time `t` (seconds, non-decreasing): [`Self::observe`],
+    /// then [`Self::judge`] once the warm-up is over.
     pub fn offer(&mut self, t: f64, m: &FrameMeasure, force_keep: bool) -> Verdict {
+        if !self.observe(t, m) {
+            return Verdict::Warmup;
+        }
+        self.judge(t, m, force_keep)
+    }
+
+    /// Takes the frame at stream time `t` (non-decreasing) into the running level; whether
+    /// the warm-up is over (frames can be judged).
+    pub fn observe(&mut self, t: f64, m: &FrameMeasure) -> bool {
         let p = &self.params;
         let dt = (t - self.level_t).max(0.0);
         let decay =
@@ -202,9 +214,15 @@ impl FrameSelector {
         self.level = (self.level * decay as f32).max(m.sharpness);
         self.level_t = t;
         self.seen += 1;
-        if self.seen <= p.warmup_frames {
-            return Verdict::Warmup;
-        }
+        self.seen > p.warmup_frames
+    }
+
+    /// Whether the frame at `t` (not before the last frame judged) is kept against the
+    /// current level; when it is, it becomes the last kept frame. `force_keep` keeps a
+    /// sharp frame whatever its motion and time (the keyframe). A frame held through the
+    /// warm-up is judged here once [`Self::observe`] says the level is known.
+    pub fn judge(&mut self, t: f64, m: &FrameMeasure, force_keep: bool) -> Verdict {
+        let p = &self.params;
         if m.sharpness < p.min_sharpness * self.level {
             return Verdict::Blurred;
         }
@@ -280,6 +298,26 @@ mod tests {
         // The keyframe is kept whatever its motion, but never blurred.
         assert_eq!(s.offer(0.75, &f(9), true), Verdict::Keep);
         assert_eq!(s.offer(0.8, &blurred, true), Verdict::Blurred);
+    }
+
+    #[test]
+    fn frames_held_through_the_warm_up_are_judged_once_the_level_is_known() {
+        let params =
+            SelectParams { warmup_frames: 3, max_kept_fps: 5.0, min_motion: 0.02, ..Default::default() };
+        let mut s = FrameSelector::new(params);
+        let f = |dx| measure(&texture(80, 60, dx));
+        let blurred = measure(&gaussian_blur(&texture(80, 60, 4), 2.5));
+        // A blurred first frame sets a low level; the sharp ones after it raise it.
+        assert!(!s.observe(0.0, &blurred));
+        assert!(!s.observe(0.1, &f(1)));
+        assert!(!s.observe(0.35, &f(3)));
+        assert!(s.observe(0.4, &f(4)));
+        // Held frames, in order, against the level the warm-up set: the blurred one is
+        // refused although it was the sharpest when it came, then the cap and the motion test.
+        assert_eq!(s.judge(0.0, &blurred, false), Verdict::Blurred);
+        assert_eq!(s.judge(0.1, &f(1), false), Verdict::Keep);
+        assert_eq!(s.judge(0.35, &f(3), false), Verdict::Keep);
+        assert_eq!(s.judge(0.4, &f(4), false), Verdict::RateCapped);
     }
 
     #[test]

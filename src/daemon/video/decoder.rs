@@ -52,6 +52,7 @@ impl Decoder {
         let mut index = 0u64;
         let select = &self.src.select;
         let mut pick = KeyPick::new(self.src.keyframe, select.min_sharpness, select.warmup_frames);
+        let mut held = Vec::new();
         let started = Instant::now();
         let mut last_progress = Instant::now();
         let mut connections = 0u64;
@@ -123,7 +124,7 @@ impl Decoder {
             while pipe.read_exact(&mut buf).is_ok() {
                 got += 1;
                 let t = if self.src.live { started.elapsed().as_secs_f64() } else { index as f64 / fps };
-                match self.offer(&mut selector, &mut pick, &mut buf, index, t, (w, h)) {
+                match self.offer(&mut selector, &mut pick, &mut held, &mut buf, index, t, (w, h)) {
                     Ok(()) => {}
                     Err(stop) => {
                         if let Stop::Refused(reason) = stop {
@@ -148,6 +149,15 @@ impl Decoder {
                         gone = true;
                     }
                     KeyStep::Wait => {}
+                }
+            }
+            // A file shorter than the warm-up: its frames are judged on the level they set.
+            if !gone && !self.src.live {
+                for f in std::mem::take(&mut held) {
+                    if self.release(&mut selector, f, (w, h)).is_err() {
+                        gone = true;
+                        break;
+                    }
                 }
             }
             drop(pipe);
@@ -181,6 +191,7 @@ impl Decoder {
                 break;
             }
         }
+        self.drop_held(&mut held);
         self.progress();
         // A stream that is not live ends its session; on shutdown the session thread stops
         // by itself.
@@ -270,11 +281,14 @@ impl Decoder {
 
     /// Judges one frame and queues it when kept: the keyframe once it is judged sharp
     /// against the frames around it ([`KeyPick`]), any other frame (before the keyframe
-    /// too) when the selector keeps it.
+    /// too) when the selector keeps it. Frames of the warm-up are held and judged once the
+    /// level is known (they may be the only ones to see the keyframe's borders).
+    #[allow(clippy::too_many_arguments)]
     fn offer(
         &self,
         selector: &mut FrameSelector,
         pick: &mut KeyPick,
+        held: &mut Vec<Held>,
         buf: &mut Vec<u8>,
         index: u64,
         t: f64,
@@ -285,19 +299,65 @@ impl Decoder {
         let m = FrameMeasure::of_rgb24(buf, w, h, selector.params().thumb_width);
         let candidate = pick.is_candidate(index, t);
         let step = pick.offer(index, t, buf, m.sharpness);
-        let verdict = selector.offer(t, &m, candidate);
+        let warm = selector.observe(t, &m);
         match step {
             KeyStep::Key { index, t, rgb } => self.send_key(index, t, (w, h), rgb)?,
             KeyStep::Refused { reason } => return Err(Stop::Refused(reason)),
             KeyStep::Wait => {}
         }
-        if candidate {
-            // Its pixels travel with the keyframe once it is judged.
-            return Ok(());
+        if warm {
+            for f in std::mem::take(held) {
+                self.release(selector, f, (w, h))?;
+            }
         }
-        if !pick.decided() {
+        if !pick.decided() && !candidate {
             s.before_key.fetch_add(1, Ordering::Relaxed);
         }
+        if !warm {
+            // Held until the level is known: at most the warm-up's length of frames. The
+            // keyframe candidate's pixels travel with the keyframe: only its place is held.
+            let rgb = (!candidate).then(|| std::mem::replace(buf, vec![0u8; w * h * 3]));
+            held.push(Held { index, t, measure: m, rgb });
+            return Ok(());
+        }
+        if candidate {
+            // The frames kept after it are spaced from it.
+            selector.judge(t, &m, true);
+            return Ok(());
+        }
+        if !self.judge(selector, index, t, &m) {
+            return Ok(());
+        }
+        let rgb = std::mem::replace(buf, vec![0u8; w * h * 3]);
+        self.queue(index, t, rgb, (w, h))
+    }
+
+    /// Judges a frame held through the warm-up, in its turn, and queues it when kept (the
+    /// keyframe candidate only spaces the frames after it).
+    fn release(&self, selector: &mut FrameSelector, f: Held, size: (usize, usize)) -> Result<(), Stop> {
+        match f.rgb {
+            None => {
+                selector.judge(f.t, &f.measure, true);
+                Ok(())
+            }
+            Some(rgb) if self.judge(selector, f.index, f.t, &f.measure) => {
+                self.queue(f.index, f.t, rgb, size)
+            }
+            Some(_) => Ok(()),
+        }
+    }
+
+    /// The stream ended during the warm-up: its held frames only set the level.
+    fn drop_held(&self, held: &mut Vec<Held>) {
+        let frames = held.iter().filter(|f| f.rgb.is_some()).count();
+        self.stats.warmup.fetch_add(frames as u64, Ordering::Relaxed);
+        held.clear();
+    }
+
+    /// Whether the selector keeps frame `index`; counts the verdict.
+    fn judge(&self, selector: &mut FrameSelector, index: u64, t: f64, m: &FrameMeasure) -> bool {
+        let verdict = selector.judge(t, m, false);
+        let s = &self.stats;
         let counter = match verdict {
             Verdict::Keep => &s.kept,
             Verdict::Warmup => &s.warmup,
@@ -314,9 +374,14 @@ impl Decoder {
                 verdict = verdict.name(),
                 "frame skipped"
             );
-            return Ok(());
         }
-        let rgb = std::mem::replace(buf, vec![0u8; w * h * 3]);
+        verdict == Verdict::Keep
+    }
+
+    /// Queues a kept frame: waits for room for a file read at the service's pace, drops
+    /// (and counts) it when a live stream's queue is full.
+    fn queue(&self, index: u64, t: f64, rgb: Vec<u8>, (w, h): (usize, usize)) -> Result<(), Stop> {
+        let s = &self.stats;
         let msg = Msg::Frame { index, t, key: false, width: w, height: h, rgb, arrived: Instant::now() };
         if !self.src.realtime {
             // A file read at the service's pace: wait for room.
@@ -338,6 +403,15 @@ impl Decoder {
             Err(TrySendError::Disconnected(_)) => Err(Stop::Gone),
         }
     }
+}
+
+/// A frame of the warm-up, held until the sharpness level is known; without pixels, the
+/// keyframe candidate's place.
+pub(super) struct Held {
+    index: u64,
+    t: f64,
+    measure: FrameMeasure,
+    rgb: Option<Vec<u8>>,
 }
 
 #[cfg(test)]
@@ -371,11 +445,14 @@ mod tests {
         let mut selector = FrameSelector::new(decoder.src.select.clone());
         let mut pick = KeyPick::new(VideoKeyframe::First, 0.5, 5);
         pick.done = true;
+        let mut held = Vec::new();
         let start = Instant::now();
         for i in 0..3u64 {
             let mut buf: Vec<u8> =
                 (0..w * h * 3).map(|k| if (k / 3 + k / (3 * w)) % 2 == 0 { 220 } else { 30 }).collect();
-            assert!(decoder.offer(&mut selector, &mut pick, &mut buf, i, i as f64, (w, h)).is_ok());
+            assert!(
+                decoder.offer(&mut selector, &mut pick, &mut held, &mut buf, i, i as f64, (w, h)).is_ok()
+            );
         }
         assert!(start.elapsed() < Duration::from_millis(100), "the decoder waited");
         assert_eq!(decoder.stats.kept.load(Ordering::Relaxed), 3);

@@ -84,6 +84,8 @@ pub struct Probe {
 #[derive(Debug, Default)]
 pub struct VideoStats {
     pub read: AtomicU64,
+    /// Frames of the warm-up never judged (the stream ended during it); the others are
+    /// counted by their verdict once judged.
     pub warmup: AtomicU64,
     pub before_key: AtomicU64,
     pub blurred: AtomicU64,
