@@ -887,14 +887,23 @@ fn fit(
         stages.push((0, 2));
         stages.push((0, 2));
     }
+    // One tolerance for every stage, in full-resolution pixels: the detection octave's.
+    // The finer octaves place the matches more precisely but do not redefine which of them
+    // lie on the plane: at a threshold halved with each octave, a scene that is not one
+    // plane kept ever fewer of the chosen plane's points, and the settled fit narrowed to
+    // a part of it (building1→building2 at 12 MP: 192 of 195 octave-1 matches within the
+    // detection tolerance of the finer fit, 82 within its own threshold, and the octave
+    // refused; ece1→ece2 5.2 px from the reference after the finer octaves, 3.2 px now).
+    let fine = RobustParams {
+        threshold_px: params.fine.threshold_px * (1u32 << key.detect_octave) as f64,
+        ..params.fine.clone()
+    };
     let mut best: Option<Stage> = None;
     let mut h = h;
     for (i, &(octave, search)) in stages.iter().enumerate() {
         let gp = GuidedParams { search, ..params.guided.clone() };
         let found = guided_match(&key.octaves, &view.octaves, &points, &h, octave, &gp);
         let checked = points.iter().filter(|&&p| lands_inside(&h, p, view)).count();
-        let scale = (1u32 << octave) as f64;
-        let fine = RobustParams { threshold_px: params.fine.threshold_px * scale, ..params.fine.clone() };
         // The detection octave chooses the model (LMedS with bucketing on every guided
         // match); the finer octaves and settling passes only sharpen it. Run again there,
         // LMedS chose afresh which plane of a scene with depth wins, and on the finer
@@ -907,7 +916,7 @@ fn fit(
             }
         } else {
             let rng = ChaCha8Rng::seed_from_u64(params.seed.wrapping_add(1 + i as u64));
-            match Consensus::new(fine, rng).estimate(&found) {
+            match Consensus::new(fine.clone(), rng).estimate(&found) {
                 Ok(e) => e,
                 Err(e) => return Err((e, h)),
             }
