@@ -24,7 +24,9 @@
 //!   once, by LMedS at the detection octave; the finer octaves settle it
 //!   ([`crate::geometry::robust::settle`]) rather than choose again: on a scene that is not
 //!   one plane LMedS re-run on the finer matches fitted a narrower plane (ece5→ece6 at
-//!   12 MP: 1.7 px from the reference at the detection octave, 4.9 px after the finer ones).
+//!   12 MP: 1.7 px from the reference at the detection octave, 4.9 px after the finer ones),
+//!   and they settle it at the detection octave's tolerance (in full-resolution pixels),
+//!   not at a threshold halved per octave that kept ever fewer of the plane's points.
 //! - **1500 corners instead of 500, and guided points that are both spread and strong.**
 //!   Pasted trees and cars took most of a 500-corner budget (bark 1→5/1→6, boat 1→6
 //!   refused: "of 27 details that look alike, only 6 agree"). The guided points are the
