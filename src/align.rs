@@ -101,7 +101,8 @@ pub struct AlignParams {
     /// The coarse estimate from putative matches (threshold in detection-level pixels).
     pub coarse: RobustParams,
     pub guided: GuidedParams,
-    /// The estimate from guided matches (threshold in pixels of the stage's resolution).
+    /// The estimate from guided matches (threshold in pixels of the detection octave, the
+    /// same tolerance at every finer octave).
     pub fine: RobustParams,
     /// At most this many keyframe points are matched by guided search.
     pub guided_points: usize,
