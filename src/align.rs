@@ -24,7 +24,9 @@
 //!   once, by LMedS at the detection octave; the finer octaves settle it
 //!   ([`crate::geometry::robust::settle`]) rather than choose again: on a scene that is not
 //!   one plane LMedS re-run on the finer matches fitted a narrower plane (ece5→ece6 at
-//!   12 MP: 1.7 px from the reference at the detection octave, 4.9 px after the finer ones).
+//!   12 MP: 1.7 px from the reference at the detection octave, 4.9 px after the finer ones),
+//!   and they settle it at the detection octave's tolerance (in full-resolution pixels),
+//!   not at a threshold halved per octave that kept ever fewer of the plane's points.
 //! - **1500 corners instead of 500, and guided points that are both spread and strong.**
 //!   Pasted trees and cars took most of a 500-corner budget (bark 1→5/1→6, boat 1→6
 //!   refused: "of 27 details that look alike, only 6 agree"). The guided points are the
@@ -99,7 +101,8 @@ pub struct AlignParams {
     /// The coarse estimate from putative matches (threshold in detection-level pixels).
     pub coarse: RobustParams,
     pub guided: GuidedParams,
-    /// The estimate from guided matches (threshold in pixels of the stage's resolution).
+    /// The estimate from guided matches (threshold in pixels of the detection octave, the
+    /// same tolerance at every finer octave).
     pub fine: RobustParams,
     /// At most this many keyframe points are matched by guided search.
     pub guided_points: usize,
@@ -887,14 +890,23 @@ fn fit(
         stages.push((0, 2));
         stages.push((0, 2));
     }
+    // One tolerance for every stage, in full-resolution pixels: the detection octave's.
+    // The finer octaves place the matches more precisely but do not redefine which of them
+    // lie on the plane: at a threshold halved with each octave, a scene that is not one
+    // plane kept ever fewer of the chosen plane's points, and the settled fit narrowed to
+    // a part of it (building1→building2 at 12 MP: 192 of 195 octave-1 matches within the
+    // detection tolerance of the finer fit, 82 within its own threshold, and the octave
+    // refused; ece1→ece2 5.2 px from the reference after the finer octaves, 3.2 px now).
+    let fine = RobustParams {
+        threshold_px: params.fine.threshold_px * (1u32 << key.detect_octave) as f64,
+        ..params.fine.clone()
+    };
     let mut best: Option<Stage> = None;
     let mut h = h;
     for (i, &(octave, search)) in stages.iter().enumerate() {
         let gp = GuidedParams { search, ..params.guided.clone() };
         let found = guided_match(&key.octaves, &view.octaves, &points, &h, octave, &gp);
         let checked = points.iter().filter(|&&p| lands_inside(&h, p, view)).count();
-        let scale = (1u32 << octave) as f64;
-        let fine = RobustParams { threshold_px: params.fine.threshold_px * scale, ..params.fine.clone() };
         // The detection octave chooses the model (LMedS with bucketing on every guided
         // match); the finer octaves and settling passes only sharpen it. Run again there,
         // LMedS chose afresh which plane of a scene with depth wins, and on the finer
@@ -907,7 +919,7 @@ fn fit(
             }
         } else {
             let rng = ChaCha8Rng::seed_from_u64(params.seed.wrapping_add(1 + i as u64));
-            match Consensus::new(fine, rng).estimate(&found) {
+            match Consensus::new(fine.clone(), rng).estimate(&found) {
                 Ok(e) => e,
                 Err(e) => return Err((e, h)),
             }
