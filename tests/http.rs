@@ -277,7 +277,9 @@ fn every_endpoint_on_a_live_session() {
     assert!(samples.contains_key("clearview_queue_depth{worker=\"0\"}"));
     assert!(samples.contains_key("clearview_frames_dropped_total{reason=\"buffer_full\"}"));
     let cov = v("clearview_session_mask_coverage{session=\"facade\"}");
-    assert_eq!(cov, after["coverage"].as_f64().unwrap());
+    // The same share, computed on each side (they may differ in the last bit).
+    let json_cov = after["coverage"].as_f64().unwrap();
+    assert!((cov - json_cov).abs() < 1e-9, "metrics {cov}, status {json_cov}");
 
     // Choosing the keyframe: the old one stays as a view, nothing is overwritten.
     let choose = |t: Option<&str>, file: &str| {

@@ -368,13 +368,9 @@ pub(super) fn view_gone(ctx: &Ctx, slot: &mut Slot, name: &str, path: &Path) {
 
 #[cfg(test)]
 mod tests {
-    use std::sync::Arc;
-
-    use tokio_util::sync::CancellationToken;
 
     use super::*;
     use crate::config::Config;
-    use crate::daemon::emit::Emitter;
     use crate::daemon::engine::publish::FillStep;
     use crate::imaging::convert::{mask_to_luma8, to_rgb8};
 
@@ -385,16 +381,7 @@ mod tests {
             state_dir: root.join("state"),
             ..Config::default()
         };
-        std::fs::create_dir_all(&config.out_dir).unwrap();
-        let config = Arc::new(config);
-        Ctx {
-            emitter: Arc::new(Emitter::open(&config).unwrap()),
-            config,
-            cancel: CancellationToken::new(),
-            backlog: Arc::default(),
-            stats: Arc::default(),
-            registry: Arc::default(),
-        }
+        Ctx::for_test(config)
     }
 
     fn give(ctx: &Ctx, slot: &mut Slot, name: &str) {

@@ -166,14 +166,11 @@ impl Slot {
 
 #[cfg(test)]
 mod tests {
-    use std::sync::Arc;
 
     use image::DynamicImage;
-    use tokio_util::sync::CancellationToken;
 
     use super::*;
     use crate::config::Config;
-    use crate::daemon::emit::Emitter;
     use crate::daemon::engine::{MaskOrigin, rgb8};
     use crate::daemon::policy::KeySource;
     use crate::geometry::Homography;
@@ -210,16 +207,7 @@ mod tests {
             ..Config::default()
         };
         config.session.buffer = 1;
-        std::fs::create_dir_all(&config.out_dir).unwrap();
-        let config = Arc::new(config);
-        let ctx = Ctx {
-            emitter: Arc::new(Emitter::open(&config).unwrap()),
-            config,
-            cancel: CancellationToken::new(),
-            backlog: Arc::default(),
-            stats: Arc::default(),
-            registry: Arc::default(),
-        };
+        let ctx = Ctx::for_test(config);
         let mut slot = Slot::new(&ctx, "video", PathBuf::new());
         let key = DynamicImage::ImageRgb8(to_rgb8(&crate::synth::facade(W, H, 1)));
         let input = Some((0, 0.0, "walk.mp4"));

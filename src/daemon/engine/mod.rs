@@ -66,6 +66,23 @@ pub(crate) struct Ctx {
     pub(crate) registry: Arc<Registry>,
 }
 
+#[cfg(test)]
+impl Ctx {
+    /// A context over `config` (its out folder made), for the shell's unit tests.
+    pub(crate) fn for_test(config: Config) -> Self {
+        std::fs::create_dir_all(&config.out_dir).unwrap();
+        let config = Arc::new(config);
+        Self {
+            emitter: Arc::new(Emitter::open(&config).unwrap()),
+            config,
+            cancel: CancellationToken::new(),
+            backlog: Arc::default(),
+            stats: Arc::default(),
+            registry: Arc::default(),
+        }
+    }
+}
+
 /// Where a view stands, as `result.json` and the status API list it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
