@@ -300,14 +300,20 @@ impl Intake {
         match self.files.get_mut(&path) {
             Some(t) if t.size == size && t.mtime == mtime && t.inode == inode => {}
             Some(t) => {
-                if t.status == Status::Ready {
-                    self.backlog.done(&t.session);
+                // A settling or ready file is counted already; a queued one is counted by
+                // its job until its worker has it, and this new version is counted again.
+                if matches!(t.status, Status::Queued | Status::Failed) {
+                    self.backlog.add(&t.session);
                 }
                 (t.size, t.mtime, t.inode, t.since, t.status) =
                     (size, mtime, inode, Instant::now(), Status::Settling);
             }
             None => {
                 tracing::debug!(file = %watch::shown_path(&path), session = %watch::shown(&candidate.session), "noticed");
+                // Counted from now: the session does not fill while a file of it is still
+                // being written (the files of a burst, or of a restart, noticed a little
+                // apart, make one fill).
+                self.backlog.add(&candidate.session);
                 self.files.insert(
                     path,
                     Tracked {
@@ -329,7 +335,7 @@ impl Intake {
     /// worker took is reported to it.
     fn forget(&mut self, path: &std::path::Path) {
         let Some(t) = self.files.remove(path) else { return };
-        if t.status == Status::Ready {
+        if matches!(t.status, Status::Settling | Status::Ready) {
             self.backlog.done(&t.session);
         }
         // A deleted mask is no mask; a deleted view's pixels are no file's any more. A mask
@@ -420,7 +426,6 @@ impl Intake {
                 && t.since.elapsed() >= quiet
             {
                 t.status = Status::Ready;
-                self.backlog.add(&t.session);
             }
         }
     }
@@ -516,7 +521,6 @@ impl Intake {
                     (room[w], given_back) = (room[w] + 1, true);
                     t.status = Status::Settling;
                     t.since = Instant::now();
-                    self.backlog.done(&session);
                 }
                 Err(
                     DecodeOutcome::Failed(reason) | DecodeOutcome::Io(reason) | DecodeOutcome::Gone(reason),
@@ -570,4 +574,46 @@ fn special_kind(t: &std::fs::FileType) -> &'static str {
 /// Time a test or a caller may wait for a file to be taken: quiet period plus two ticks.
 pub fn settle_time(config: &Config) -> Duration {
     config.quiet_period + 2 * super::tick_interval(config)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A file counts in its session's backlog from the moment it is noticed, not only once
+    /// it has been quiet for the quiet period: files of a burst (or of a restart) noticed a
+    /// few milliseconds apart become ready in different ticks, and a session that filled
+    /// between them published a result of some of them over one of all (seen in
+    /// tests/faults.rs under load). A file deleted while it settles leaves the count.
+    #[test]
+    fn a_file_waits_in_the_backlog_from_when_it_is_noticed() {
+        let tmp = tempfile::tempdir().unwrap();
+        let config = Config {
+            watch_dir: tmp.path().join("inbox"),
+            out_dir: tmp.path().join("out"),
+            state_dir: tmp.path().join("state"),
+            quiet_period: Duration::from_secs(3600),
+            ..Config::default()
+        };
+        let session = config.watch_dir.join("s");
+        std::fs::create_dir_all(&session).unwrap();
+        std::fs::create_dir_all(&config.out_dir).unwrap();
+        let emitter = Arc::new(Emitter::open(&config).unwrap());
+        let backlog = Arc::new(Backlog::default());
+        let (tx, _rx) = crossbeam_channel::bounded(4);
+        let mut intake = Intake::new(Arc::new(config), vec![tx], backlog.clone(), emitter, Arc::default());
+        for name in ["v1.png", "v2.png"] {
+            std::fs::write(session.join(name), b"not yet a whole file").unwrap();
+            intake.observe(session.join(name));
+        }
+        assert_eq!(backlog.get("s"), 2, "both files wait, though neither has settled");
+        intake.settle();
+        assert_eq!(backlog.get("s"), 2, "settling again does not count them twice");
+        std::fs::write(session.join("v1.png"), b"written to again").unwrap();
+        intake.observe(session.join("v1.png"));
+        assert_eq!(backlog.get("s"), 2, "a new version of a waiting file is one file");
+        std::fs::remove_file(session.join("v2.png")).unwrap();
+        intake.forget(&session.join("v2.png"));
+        assert_eq!(backlog.get("s"), 1, "a file deleted while it settles no longer waits");
+    }
 }

@@ -77,8 +77,9 @@ pub enum DaemonError {
     Video(#[from] video::VideoError),
 }
 
-/// Files of each session that are complete on disk but not yet handled by a worker. A
-/// session's fill waits while it has some (they are filled together).
+/// Files of each session that the intake has noticed (still being written, complete, or
+/// queued) but no worker has handled yet. A session's fill waits while it has some (they
+/// are filled together, up to `session.batch_max` views).
 #[derive(Debug, Default)]
 pub struct Backlog(Mutex<HashMap<String, usize>>);
 
