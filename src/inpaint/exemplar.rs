@@ -21,7 +21,14 @@
 //!    entry whose priority is no longer the pixel's is skipped, and stale entries are
 //!    pruned whenever the heap doubles);
 //! 3. its best exemplar is the fully known source patch with the least SSD over the known
-//!    (or already filled) pixels of `Ψp̂`;
+//!    (or already filled) pixels of `Ψp̂`; with a *guide* ([`exemplar_fill_guided`], a
+//!    smooth prediction of the hole: the single-image fallback uses the membrane
+//!    interpolation of the hole's border), plus `guide_weight` times its SSD against the
+//!    guide over the pixels of `Ψp̂` it would fill. The known pixels at the front say which
+//!    texture continues; the guide says what the hole holds further in. Without it, a
+//!    texture the front happens to meet first (the sky at the top of a strip along the
+//!    image's border, a trunk's edge beside a patch of sky) is grown across the whole
+//!    region, because nothing in Criminisi's loop looks past the patch;
 //! 4. the unknown pixels of `Ψp̂` are copied from it and take `C(p̂)` as confidence; the
 //!    gradients and the priorities that the copy changed (within `2r + 1`) are updated.
 //!
@@ -101,6 +108,10 @@ pub struct ExemplarParams {
     /// Without it the fill order is by confidence alone ("onion peel") and structure no
     /// longer propagates into the hole; kept switchable to show exactly that.
     pub data_term: bool,
+    /// With a guide ([`exemplar_fill_guided`]): the weight, per pixel, of a candidate's
+    /// difference from the guide over the target patch's unknown pixels, against 1 for
+    /// its difference from the known ones.
+    pub guide_weight: f32,
 }
 
 impl Default for ExemplarParams {
@@ -112,6 +123,7 @@ impl Default for ExemplarParams {
             random_samples: 96,
             search_rounds: 4,
             data_term: true,
+            guide_weight: 0.5,
         }
     }
 }
@@ -138,6 +150,39 @@ pub fn exemplar_fill_until(
     seed: u64,
     stop: &dyn Fn() -> bool,
 ) -> usize {
+    fill_groups(image, hole, None, params, seed, stop)
+}
+
+/// [`exemplar_fill_until`] steered by `guide`, a smooth prediction of the hole (the
+/// image's size; read only at hole pixels): a candidate patch also pays, with
+/// [`ExemplarParams::guide_weight`], for its difference from the guide over the pixels it
+/// would fill. The known pixels around the front say which texture continues; the guide
+/// says which colour the hole holds further in, so a texture at the front's edge (brick
+/// beside the sky, a trunk beside a wall) is not grown across a region whose border says
+/// otherwise.
+///
+/// # Panics
+/// If `hole` or `guide` is not the size of `image`.
+pub fn exemplar_fill_guided(
+    image: &mut RgbF32,
+    hole: &Mask,
+    guide: &RgbF32,
+    params: &ExemplarParams,
+    seed: u64,
+    stop: &dyn Fn() -> bool,
+) -> usize {
+    assert_eq!((guide.width(), guide.height()), (image.width(), image.height()), "guide size");
+    fill_groups(image, hole, Some(guide), params, seed, stop)
+}
+
+fn fill_groups(
+    image: &mut RgbF32,
+    hole: &Mask,
+    guide: Option<&RgbF32>,
+    params: &ExemplarParams,
+    seed: u64,
+    stop: &dyn Fn() -> bool,
+) -> usize {
     assert_eq!((hole.width(), hole.height()), (image.width(), image.height()), "hole mask size");
     if image.is_empty() {
         return 0;
@@ -150,7 +195,7 @@ pub fn exemplar_fill_until(
         if stop() {
             break;
         }
-        filled += fill_group(image, hole, *bbox, params, &mut rng, stop);
+        filled += fill_group(image, hole, guide, *bbox, params, &mut rng, stop);
     }
     filled
 }
@@ -440,6 +485,13 @@ impl PartialOrd for Entry {
     }
 }
 
+/// A search's per-step lists, kept between steps: a target patch's known pixels and, with a
+/// guide, its unknown ones, each as (offset in the window, 8-bit colour).
+struct Scratch {
+    target: Vec<(isize, [i32; 3])>,
+    guided: Vec<(isize, [i32; 3])>,
+}
+
 /// How many recent copy offsets a search tries.
 const RECENT: usize = 8;
 
@@ -451,6 +503,9 @@ const FILLED: u8 = 2;
 /// pixel the fill reads or writes, other than source patches, lies in it.
 struct Group<'a> {
     image: &'a mut RgbF32,
+    guide: Option<&'a RgbF32>,
+    /// The guide's weight against a known pixel's, in sixteenths.
+    guide_weight: i32,
     /// The group's hole pixels lie in here.
     bbox: Rect,
     region: Rect,
@@ -624,22 +679,28 @@ impl Group<'_> {
         sources: &Sources,
         params: &ExemplarParams,
         rng: &mut ChaCha8Rng,
-        target: &mut Vec<(isize, [i32; 3])>,
+        scratch: &mut Scratch,
     ) -> Option<(isize, isize)> {
+        let Scratch { target, guided } = scratch;
         let w = self.image.width();
         let pixels = self.image.as_slice();
         let p = self.patch(px, py);
         let win = sources.window;
         let ww = win.width() as isize;
         target.clear();
+        guided.clear();
         let mut proposals: Vec<(isize, isize)> = Vec::with_capacity(16);
         for y in p.y0..p.y1 {
             for x in p.x0..p.x1 {
                 let i = self.local(x, y);
+                let (dx, dy) = (x as isize - px as isize, y as isize - py as isize);
                 if self.state[i] == UNKNOWN {
+                    if let Some(guide) = self.guide.filter(|_| self.guide_weight > 0) {
+                        let t = quantise(guide.get(x, y));
+                        guided.push((dy * ww + dx, [t[0] as i32, t[1] as i32, t[2] as i32]));
+                    }
                     continue;
                 }
-                let (dx, dy) = (x as isize - px as isize, y as isize - py as isize);
                 let t = quantise(pixels[y * w + x]);
                 target.push((dy * ww + dx, [t[0] as i32, t[1] as i32, t[2] as i32]));
                 // Propagation: where this pixel's copy came from, moved back to the centre.
@@ -652,24 +713,29 @@ impl Group<'_> {
                 }
             }
         }
-        // SSD on the 8-bit copy of the window, stopping once it exceeds the best so far.
+        // SSD on the 8-bit copy of the window (in sixteenths, the guide's pixels weighted),
+        // stopping once it exceeds the best so far. The known pixels come first: they
+        // decide most candidates.
         let packed = &sources.packed;
-        let ssd = |cx: isize, cy: isize, limit: i32| -> i32 {
+        let gw = self.guide_weight;
+        let ssd = |cx: isize, cy: isize, limit: i64| -> i64 {
             let centre = (cy - win.y0 as isize) * ww + (cx - win.x0 as isize);
-            let mut sum = 0;
-            for &(d, t) in target.iter() {
-                let s = packed[(centre + d) as usize];
-                let (a, b, c) = (s[0] as i32 - t[0], s[1] as i32 - t[1], s[2] as i32 - t[2]);
-                sum += a * a + b * b + c * c;
-                if sum >= limit {
-                    break;
+            let mut sum = 0i64;
+            for (list, weight) in [(&*target, 16), (&*guided, gw)] {
+                for &(d, t) in list.iter() {
+                    let s = packed[(centre + d) as usize];
+                    let (a, b, c) = (s[0] as i32 - t[0], s[1] as i32 - t[1], s[2] as i32 - t[2]);
+                    sum += i64::from(weight * (a * a + b * b + c * c));
+                    if sum >= limit {
+                        return sum;
+                    }
                 }
             }
             sum
         };
         let mut best: Option<(isize, isize)> = None;
-        let mut best_cost = i32::MAX;
-        let consider = |c: (isize, isize), best: &mut Option<(isize, isize)>, best_cost: &mut i32| {
+        let mut best_cost = i64::MAX;
+        let consider = |c: (isize, isize), best: &mut Option<(isize, isize)>, best_cost: &mut i64| {
             if !sources.is_valid(c.0, c.1) {
                 return;
             }
@@ -771,6 +837,7 @@ impl Group<'_> {
 fn fill_group(
     image: &mut RgbF32,
     hole: &Mask,
+    guide: Option<&RgbF32>,
     bbox: Rect,
     params: &ExemplarParams,
     rng: &mut ChaCha8Rng,
@@ -798,6 +865,8 @@ fn fill_group(
     let n = region.width() * region.height();
     let mut g = Group {
         image,
+        guide,
+        guide_weight: (params.guide_weight.max(0.0) * 16.0).round() as i32,
         bbox,
         region,
         r,
@@ -831,7 +900,10 @@ fn fill_group(
     }
     g.refresh_priorities(bbox);
 
-    let mut target = Vec::with_capacity((2 * r + 1) * (2 * r + 1));
+    let mut scratch = Scratch {
+        target: Vec::with_capacity((2 * r + 1) * (2 * r + 1)),
+        guided: Vec::with_capacity((2 * r + 1) * (2 * r + 1)),
+    };
     let mut filled = 0;
     let mut copies = 0usize;
     while let Some(Entry { priority, index }) = g.heap.pop() {
@@ -843,7 +915,7 @@ fn fill_group(
             break;
         }
         let (px, py) = (region.x0 + index % region.width(), region.y0 + index / region.width());
-        let Some(source) = g.search(px, py, &sources, params, rng, &mut target) else {
+        let Some(source) = g.search(px, py, &sources, params, rng, &mut scratch) else {
             break; // cannot happen: `sources` has a valid centre
         };
         let c = g.confidence_at(px, py);
@@ -1158,5 +1230,64 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A textured bar (a trunk, a brick pier) enters a hole in a flat sky from below and
+    /// ends inside it: the hole's border is sky everywhere but where the bar comes in.
+    /// Criminisi's order follows the bar's strong isophotes and grows it across the hole;
+    /// with the membrane as the guide the bar stops and the sky closes over it.
+    #[test]
+    fn a_guided_fill_does_not_grow_a_texture_across_a_hole_its_border_says_is_sky() {
+        let (w, h) = (120, 120);
+        let sky = [0.62, 0.72, 0.86];
+        let image = RgbF32::from_fn(w, h, |x, y| {
+            let noise = (((x * 31 + y * 17) % 7) as f32) * 0.03;
+            if (54..66).contains(&x) && y >= 60 {
+                [0.35 + noise, 0.22 + noise, 0.12]
+            } else {
+                [sky[0] + noise * 0.1, sky[1] + noise * 0.1, sky[2]]
+            }
+        });
+        let disc = |x: usize, y: usize| {
+            let (dx, dy) = (x as f32 - 60.0, y as f32 - 52.0);
+            dx * dx + dy * dy <= 26.0 * 26.0
+        };
+        let hole = Mask::from_fn(w, h, |x, y| if disc(x, y) { 255 } else { 0 });
+        // The truth in the hole above the bar's end is sky; count the pixels far from it.
+        let not_sky = |img: &RgbF32| {
+            let (mut bad, mut n) = (0, 0);
+            for y in 26..60 {
+                for x in 0..w {
+                    if disc(x, y) {
+                        let p = img.get(x, y);
+                        n += 1;
+                        if (0..3).map(|c| (p[c] - sky[c]).abs()).fold(0.0f32, f32::max) > 0.15 {
+                            bad += 1;
+                        }
+                    }
+                }
+            }
+            bad as f32 / n as f32
+        };
+        let params = ExemplarParams { guide_weight: 2.0, ..ExemplarParams::default() };
+        let mut plain = image.clone();
+        exemplar_fill(&mut plain, &hole, &params, 5);
+        let mut guide = image.clone();
+        for (p, &m) in guide.as_mut_slice().iter_mut().zip(hole.as_slice()) {
+            if m > 127 {
+                *p = sky; // what the membrane gives, nearly: the border is sky but at the bar
+            }
+        }
+        let mut guided = image.clone();
+        let n = exemplar_fill_guided(&mut guided, &hole, &guide, &params, 5, &|| false);
+        assert_eq!(n, hole.hole_count());
+        let (before, after) = (not_sky(&plain), not_sky(&guided));
+        assert!(before > 0.08, "the unguided fill should show the failure: {:.1} % not sky", before * 100.0);
+        assert!(
+            after < 0.02,
+            "guided: {:.1} % of the hole above the bar not sky (unguided {:.1} %)",
+            after * 100.0,
+            before * 100.0
+        );
     }
 }

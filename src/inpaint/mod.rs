@@ -28,7 +28,7 @@ use occlusion::{KeyRegion, OcclusionMap, OcclusionParams, RegionInput, occlusion
 use parallax::{ParallaxParams, PlaneInput, SurfacePlane, WarpedView, choose_planes};
 
 pub use automask::{AutoMask, AutoMaskParams, auto_mask, auto_mask_report};
-pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_until};
+pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_guided, exemplar_fill_until};
 
 /// Where each pixel of a result came from: [`KEYFRAME`] outside the mask, [`FALLBACK`]
 /// for the single-image fallback, otherwise `1 + i` for `sources[i]`.
@@ -1028,7 +1028,12 @@ fn fallback(
     let crop = bounds.grown(params.fallback_margin + extent / 2, image.width(), image.height());
     let mut sub = RgbF32::from_fn(crop.width, crop.height, |x, y| image.get(crop.x + x, crop.y + y));
     let hole = Mask::from_fn(crop.width, crop.height, |x, y| pending.get(crop.x + x, crop.y + y));
-    exemplar_fill_until(&mut sub, &hole, &params.exemplar, seed, stop);
+    // The membrane over the hole is the exemplar fill's guide: it keeps the texture at the
+    // front from growing across a part whose border says otherwise (brick into the sky).
+    match harmonic(&sub, &hole, &params.blend_params) {
+        Some(guide) => exemplar_fill_guided(&mut sub, &hole, &guide, &params.exemplar, seed, stop),
+        None => exemplar_fill_until(&mut sub, &hole, &params.exemplar, seed, stop),
+    };
     let mut count = 0;
     for y in 0..crop.height {
         for x in 0..crop.width {
@@ -1041,6 +1046,47 @@ fn fallback(
         }
     }
     count
+}
+
+/// `image` with its `hole` pixels replaced by the membrane (harmonic) interpolation of the
+/// known pixels around them: the smoothest fill their border allows. `None` when no known
+/// pixel touches the hole (nothing to interpolate from).
+fn harmonic(image: &RgbF32, hole: &Mask, params: &BlendParams) -> Option<RgbF32> {
+    let (w, h) = (image.width(), image.height());
+    let omega: Vec<bool> = hole.as_slice().iter().map(|&m| m > 127).collect();
+    let mut bordered = false;
+    // b_p: the sum of p's known 4-neighbours (the Dirichlet border).
+    let b: Vec<[f32; 3]> = (0..w * h)
+        .map(|i| {
+            let mut acc = [0.0f32; 3];
+            if omega[i] {
+                let (x, y) = (i % w, i / w);
+                let neighbours = [
+                    (x > 0).then(|| i - 1),
+                    (x + 1 < w).then(|| i + 1),
+                    (y > 0).then(|| i - w),
+                    (y + 1 < h).then(|| i + w),
+                ];
+                for q in neighbours.into_iter().flatten().filter(|&q| !omega[q]) {
+                    let c = image.as_slice()[q];
+                    (0..3).for_each(|k| acc[k] += c[k]);
+                    bordered = true;
+                }
+            }
+            acc
+        })
+        .collect();
+    if !bordered {
+        return None;
+    }
+    let m = solve_membrane(w, h, &omega, &b, params);
+    let mut out = image.clone();
+    for (i, (o, &inside)) in out.as_mut_slice().iter_mut().zip(&omega).enumerate() {
+        if inside {
+            *o = m[i];
+        }
+    }
+    Some(out)
 }
 
 /// Poisson-blends one region of `image`. The guidance across an edge `p–q` is the gradient
