@@ -526,6 +526,7 @@ pub fn fill_with<P: RgbPixel>(
                 &mut image,
                 &mut pending,
                 &mut provenance,
+                &confidence,
                 part.rect,
                 params,
                 seed ^ k as u64,
@@ -1014,10 +1015,12 @@ const SEAM_STEP: f32 = 0.03;
 
 /// The single-image fallback for the pending pixels of `rect`, on a crop with context;
 /// returns how many it filled.
+#[allow(clippy::too_many_arguments)]
 fn fallback(
     image: &mut RgbF32,
     pending: &mut Mask,
     provenance: &mut Provenance,
+    confidence: &Confidence,
     rect: Rect,
     params: &FillParams,
     seed: u64,
@@ -1030,7 +1033,7 @@ fn fallback(
     let hole = Mask::from_fn(crop.width, crop.height, |x, y| pending.get(crop.x + x, crop.y + y));
     // The membrane over the hole is the exemplar fill's guide: it keeps the texture at the
     // front from growing across a part whose border says otherwise (brick into the sky).
-    match harmonic(&sub, &hole, &params.blend_params) {
+    match fallback_guide(&sub, &hole, crop, provenance, confidence, &params.blend_params) {
         Some(guide) => exemplar_fill_guided(&mut sub, &hole, &guide, &params.exemplar, seed, stop),
         None => exemplar_fill_until(&mut sub, &hole, &params.exemplar, seed, stop),
     };
@@ -1046,6 +1049,27 @@ fn fallback(
         }
     }
     count
+}
+
+/// The fallback's guide on `crop` (`sub` and `hole` are its pixels and pending pixels): the
+/// membrane from the pixels the fill is sure of. A view's pixel it strongly doubts (below
+/// half of [`CONFIDENT`]: perhaps an occluder copied) is context for the patches, not the
+/// border of the guide.
+fn fallback_guide(
+    sub: &RgbF32,
+    hole: &Mask,
+    crop: Rect,
+    provenance: &Provenance,
+    confidence: &Confidence,
+    params: &BlendParams,
+) -> Option<RgbF32> {
+    let unsure = Mask::from_fn(crop.width, crop.height, |x, y| {
+        let (kx, ky) = (crop.x + x, crop.y + y);
+        let p = provenance.get(kx, ky);
+        let doubted = p != KEYFRAME && p != FALLBACK && confidence.get(kx, ky) < CONFIDENT / 2;
+        if hole.is_hole(x, y) || doubted { 255 } else { 0 }
+    });
+    harmonic(sub, &unsure, params)
 }
 
 /// `image` with its `hole` pixels replaced by the membrane (harmonic) interpolation of the
@@ -1212,6 +1236,36 @@ mod tests {
     use super::*;
     use crate::imaging::Rgb8;
     use crate::synth::{Occluder, facade, paint_occluder, render_view};
+
+    /// A strip of view pixels beside an unseen region in the sky shows a trunk (a copied
+    /// occluder). When the fill doubts them they are not the border the fallback's guide
+    /// interpolates: the guide is sky. When it is sure of them they are the building, and
+    /// the guide carries them in.
+    #[test]
+    fn the_fallback_guide_does_not_interpolate_from_doubted_view_pixels() {
+        let (w, h) = (90, 70);
+        let sky = [0.7, 0.8, 0.92];
+        let strip = |x: usize, y: usize| (25..40).contains(&x) && (10..60).contains(&y);
+        let region = |x: usize, y: usize| (40..70).contains(&x) && (10..60).contains(&y);
+        let image = RgbF32::from_fn(w, h, |x, y| if strip(x, y) { [0.35, 0.25, 0.15] } else { sky });
+        let hole = Mask::from_fn(w, h, |x, y| if region(x, y) { 255 } else { 0 });
+        let provenance = Provenance::from_fn(w, h, |x, y| u16::from(strip(x, y)));
+        let crop = Rect { x: 0, y: 0, width: w, height: h };
+        // The guide's largest difference from the sky over the region.
+        let off_sky = |sure: u8| {
+            let confidence = Confidence::from_fn(w, h, |x, y| if strip(x, y) { sure } else { 0 });
+            let guide =
+                fallback_guide(&image, &hole, crop, &provenance, &confidence, &BlendParams::default())
+                    .expect("the region has a border");
+            (0..w * h)
+                .filter(|&i| region(i % w, i / w))
+                .map(|i| (0..3).map(|c| (guide.as_slice()[i][c] - sky[c]).abs()).fold(0.0f32, f32::max))
+                .fold(0.0f32, f32::max)
+        };
+        let (doubted, sure) = (off_sky(20), off_sky(220));
+        assert!(doubted < 0.01, "doubted strip: the guide is {doubted:.3} off the sky");
+        assert!(sure > 0.2, "a strip the fill is sure of should be carried in: {sure:.3}");
+    }
 
     #[test]
     fn eight_bit_sources_fill_exactly_as_their_f32_copies() {
