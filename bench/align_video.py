@@ -18,6 +18,11 @@ result.png and keyframe.png (the frame it chose, as decoded). Masked PSNR is ove
 pixels against the truth frame; Telea is cv2.inpaint(keyframe.png, mask, 5, INPAINT_TELEA) on
 the same pixels.
 
+Each case also lists every frame the run aligned (from events.jsonl): accepted or not, from
+the prior or not, its support, and the found homography's median transfer error against the
+truth (`view_to_world`) over the keyframe points the frame sees; accepted frames more than a
+few pixels off are false accepts.
+
 Usage:
   bench/.venv/bin/python bench/align_video.py [--work DIR] [--binary PATH] [--frames N] [--seed S]
       [--occluders all|trees]
@@ -156,6 +161,41 @@ def breakdown(result, truth, mask, provenance, seen_any, seen_kept):
     return out
 
 
+def true_error(key, frame, h):
+    """Median transfer error (view px) of a found keyframe -> view homography `h` against the
+    truth, over a grid of keyframe points (every 16 px) that the true map sends inside the
+    view; infinite when there is no homography."""
+    if h is None:
+        return float("inf")
+    truth = np.linalg.inv(view_to_world(frame)) @ view_to_world(key)
+    xs, ys = np.meshgrid(np.arange(8, W, 16), np.arange(8, H, 16))
+    pts = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)]).astype(np.float64)
+    t = truth @ pts
+    t = t[:2] / t[2]
+    inside = (t[0] >= 0) & (t[1] >= 0) & (t[0] < W) & (t[1] < H)
+    if not inside.any():
+        return float("nan")
+    f = np.asarray(h, np.float64) @ pts[:, inside]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.hypot(f[0] / f[2] - t[0, inside], f[1] / f[2] - t[1, inside])
+    d[~np.isfinite(d) | (f[2] <= 0)] = np.inf
+    return float(np.median(d))
+
+
+def view_table(key, events):
+    """Every aligned frame: accepted or not, from the prior or not, the support, and the
+    found homography's error against the truth (`true_error`)."""
+    rows = []
+    for e in events:
+        if e.get("event") not in ("view_accepted", "view_rejected") or e.get("frame") is None:
+            continue
+        fr = int(e["frame"])
+        rows.append({"frame": fr, "accepted": e["event"] == "view_accepted", "from_prior": e.get("from_prior"),
+                     "inliers": e.get("inliers"), "matches": e.get("matches"),
+                     "error_px": true_error(key, fr, e.get("homography")), "reason": e.get("reason")})
+    return rows
+
+
 def run_case(args, work, video, truths, covers, key, flag):
     mask = cv2.dilate(covers[key].astype(np.uint8) * 255, np.ones((13, 13), np.uint8))
     name = f"key{key}" + ("-flag" if flag else "-noflag")
@@ -195,7 +235,7 @@ def run_case(args, work, video, truths, covers, key, flag):
          "keyframe_psnr": masked_psnr(keyimg, truth, mask),
          "from_fallback": report.get("from_fallback", float("nan")), "doubtful": report.get("doubtful", float("nan")),
          "result_number": report.get("number"), "wall_s": wall,
-         "kept_frames": kept, "where": where}
+         "kept_frames": kept, "where": where, "views": view_table(key, events)}
     r["target"] = max(27.0, r["telea"] + 6.0)
     r["met"] = r["psnr"] >= r["target"]
     return r
@@ -232,6 +272,13 @@ def main():
         for name, c in r.get("where", {}).items():
             psnr = "–" if c["psnr"] is None else f"{c['psnr']:.2f}"
             print(f"| {r['case']} | {name} | {c['share']:.1%} | {psnr} | {c['error_share']:.0%} |")
+    print()
+    print("| case | frame | accepted | from prior | inliers / matches | true error px | reason |")
+    print("|---|---:|---|---|---:|---:|---|")
+    for r in rows:
+        for v in r.get("views", []):
+            print(f"| {r['case']} | {v['frame']} | {'yes' if v['accepted'] else 'no'} | {v['from_prior']} | "
+                  f"{v['inliers']} / {v['matches']} | {v['error_px']:.2f} | {v['reason'] or ''} |")
     (work / "results.json").write_text(json.dumps(rows, indent=1))
 
 

@@ -188,13 +188,22 @@ impl Runner {
     }
 
     /// Aligns the frames kept before the keyframe, nearest first (each one's homography
-    /// is the next one's prior), then restarts the track from the keyframe.
+    /// is the next one's prior), then restarts the track from the keyframe. The nearest
+    /// of them, when accepted, stays in the track before the keyframe: it gives the
+    /// frames after the keyframe the camera's speed, where the keyframe alone predicts no
+    /// motion at all (a walk moves 30 px between kept frames, far outside guided
+    /// matching's window).
     fn take_pre_key(&mut self) {
         let Some(&(t_key, _)) = self.track.back() else { return };
+        let mut nearest = None;
         while let Some((index, t, image, arrived)) = self.pre_key.pop_back() {
             self.take_frame(index, t, &image, arrived);
+            if nearest.is_none() {
+                nearest = Some(self.track.back().copied().filter(|&(tn, _)| tn != t_key));
+            }
         }
         self.track.clear();
+        self.track.extend(nearest.flatten());
         self.track.push_back((t_key, Homography::identity()));
     }
 
@@ -324,11 +333,13 @@ impl Runner {
 /// The prior for a frame at time `t` from the last accepted frames: the latest
 /// homography, carried on at the speed of the last two (entries extrapolated linearly in
 /// time, at most three intervals ahead). A camera panning steadily is predicted to within
-/// a few pixels, so guided matching finds it without descriptors.
+/// a few pixels, so guided matching finds it without descriptors. The track may run
+/// backwards in time (the frames before a keyframe, aligned nearest first): it is
+/// extrapolated the same way.
 fn predict(track: &VecDeque<(f64, Homography)>, t: f64) -> Option<Homography> {
     let (t2, h2) = *track.back()?;
     let Some(&(t1, h1)) = track.len().checked_sub(2).and_then(|i| track.get(i)) else { return Some(h2) };
-    if t2 - t1 <= 1e-6 {
+    if (t2 - t1).abs() <= 1e-6 {
         return Some(h2);
     }
     let r = ((t - t2) / (t2 - t1)).clamp(0.0, 3.0);
@@ -369,5 +380,21 @@ mod tests {
         // Far ahead: at most three intervals.
         let h = predict(&track, 10.0).unwrap().rows();
         assert!((h[0][2] + 90.0).abs() < 1e-9, "{h:?}");
+    }
+
+    #[test]
+    fn a_track_running_backwards_is_predicted_too() {
+        // The frames before a keyframe at t = 3, aligned nearest first.
+        let mut track = VecDeque::new();
+        track.push_back((3.0, Homography::identity()));
+        track.push_back((2.5, Homography::translation(30.0, -1.0)));
+        let h = predict(&track, 2.0).unwrap().rows();
+        assert!((h[0][2] - 60.0).abs() < 1e-9 && (h[1][2] + 2.0).abs() < 1e-9, "{h:?}");
+        // Past the keyframe, from the nearest earlier frame: the same speed, onwards.
+        let mut track = VecDeque::new();
+        track.push_back((2.5, Homography::translation(30.0, 0.0)));
+        track.push_back((3.0, Homography::identity()));
+        let h = predict(&track, 3.5).unwrap().rows();
+        assert!((h[0][2] + 30.0).abs() < 1e-9, "{h:?}");
     }
 }
