@@ -354,8 +354,14 @@ pub fn sweep_family(
         own.clone()
     } else {
         let Some(f) = s.tie(own) else { return Vec::new() };
-        let f = if params.rejoin { s.rejoin(own, f) } else { Some(f) };
-        let Some(f) = f else { return Vec::new() };
+        let votes = s.votes(&f);
+        let planes = s.surfaces_of(&f, &votes);
+        // Where the tied family finds no surface, nothing moves its epipoles (a flat wall
+        // stays as it was).
+        if planes.is_empty() || !params.rejoin {
+            return planes;
+        }
+        let Some(f) = s.rejoin(own, f, &votes) else { return Vec::new() };
         f
     };
     s.surfaces(&family)
@@ -374,7 +380,11 @@ pub fn tied_family(
 ) -> Option<ParallaxFamily> {
     let s = Sweep::new(key, views, mask, params, t)?;
     let f = s.tie(own)?;
-    if params.rejoin { s.rejoin(own, f) } else { Some(f) }
+    let votes = s.votes(&f);
+    if !params.rejoin || s.surfaces_of(&f, &votes).is_empty() {
+        return Some(f);
+    }
+    s.rejoin(own, f, &votes)
 }
 
 /// What the sweep works on: the keyframe's band and the views at the sweep resolution, and
@@ -615,21 +625,31 @@ impl<'a> Sweep<'a> {
     /// at the votes' median depth, then the pattern search of [`Band::refine_epipole`] from
     /// the best few places and from where it was. A view is kept when its agreement is
     /// clearly better than the wall's there, and dropped otherwise.
-    fn rejoin(&self, own: &ParallaxFamily, family: ParallaxFamily) -> Option<ParallaxFamily> {
+    fn rejoin(&self, own: &ParallaxFamily, family: ParallaxFamily, votes: &Votes) -> Option<ParallaxFamily> {
         let params = self.params;
         let band = &self.band;
         let nv = self.views_w.len();
-        let votes = self.votes(&family);
         let list = |kept: &[Option<usize>]| -> Vec<(usize, f64)> {
             kept.iter()
                 .enumerate()
                 .filter_map(|(j, l)| Some((votes.pixels[j], votes.labels[(*l)?])))
                 .collect()
         };
-        let all = list(&votes.kept);
-        if all.len() < params.min_votes {
+        // Only where the views together vote for a surface (as many votes as a surface
+        // needs at one depth, ±1 step): scattered votes are no evidence to move an epipole
+        // by (a flat wall stays without surfaces).
+        let mut histogram = vec![0usize; votes.labels.len()];
+        for l in votes.kept.iter().flatten() {
+            histogram[*l] += 1;
+        }
+        let peak = (0..histogram.len())
+            .map(|l| histogram[l.saturating_sub(1)..(l + 2).min(histogram.len())].iter().sum::<usize>())
+            .max()
+            .unwrap_or(0);
+        if peak < params.min_votes {
             return Some(family);
         }
+        let all = list(&votes.kept);
         let is_hole: Vec<bool> = {
             let mut m = vec![false; band.rect.area()];
             for &i in &band.inside {
@@ -728,12 +748,17 @@ impl<'a> Sweep<'a> {
     /// Step 3 and the surfaces: the depths many pixels vote for, each allowed around where
     /// it was seen.
     fn surfaces(&self, family: &ParallaxFamily) -> Vec<SurfacePlane> {
+        self.surfaces_of(family, &self.votes(family))
+    }
+
+    /// [`Sweep::surfaces`] from the family's votes.
+    fn surfaces_of(&self, family: &ParallaxFamily, votes: &Votes) -> Vec<SurfacePlane> {
         let params = self.params;
         let (rect, n) = (self.band.rect, self.band.rect.area());
         let (w, h) = (self.w, self.h);
         let (t, tm_inv, tw_inv) = (&self.t, &self.tm_inv, &self.tw_inv);
-        let Votes { labels, pixels: band_px, costs, kept: supported, .. } = self.votes(family);
-        let band_px = &band_px;
+        let Votes { labels, pixels: band_px, costs, kept: supported } = votes;
+        let supported = supported.clone();
         let nl = labels.len();
         let mut inside = vec![false; n];
         for &i in &self.band.inside {
@@ -1925,20 +1950,24 @@ mod tests {
                 .fold(0.0, f64::max)
         };
         // No epipole from the sparse matches, none from the tie.
+        let rejoin = |s: &Sweep<'_>, own: &ParallaxFamily, tied: ParallaxFamily| {
+            let votes = s.votes(&tied);
+            s.rejoin(own, tied, &votes)
+        };
         let lost = family(None);
-        let found = s.rejoin(&lost, lost.clone()).expect("two views or more");
+        let found = rejoin(&s, &lost, lost.clone()).expect("two views or more");
         let e = found.epipoles[1].expect("view 1 found again");
         assert!(off(e) < 0.5, "{:.2} px off", off(e));
         // The sparse direction right, the tie's scale wrong (sign and size).
         let own = family(Some(truth[1] * 3.0));
-        let found = s.rejoin(&own, family(Some(truth[1] * -0.3))).expect("two views or more");
+        let found = rejoin(&s, &own, family(Some(truth[1] * -0.3))).expect("two views or more");
         let e = found.epipoles[1].expect("view 1 kept");
         assert!(off(e) < 0.5, "{:.2} px off", off(e));
         // A view of something else is left out.
         let other = GrayF32::from_fn(w, h, |x, y| tex(1.7 * y as f64 + 13.0, 0.6 * x as f64 - 5.0));
         let refs = [&views[0], &other, &views[2]];
         let s = Sweep::new(&key, &refs, &mask, &params, &id).expect("a band");
-        let found = s.rejoin(&lost, family(Some(truth[1]))).expect("two views or more");
+        let found = rejoin(&s, &lost, family(Some(truth[1]))).expect("two views or more");
         assert!(found.epipoles[1].is_none(), "another texture does not agree");
     }
 
