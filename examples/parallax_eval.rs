@@ -29,7 +29,7 @@ use clearview::imaging::convert::{luminance, to_rgb8};
 use clearview::imaging::metrics::masked_psnr;
 use clearview::inpaint::parallax::{
     SurfaceParams, SurfacePlane, SweepParams, matching_map, parallax_family, surface_planes, sweep_family,
-    swept_planes,
+    swept_planes, tied_family,
 };
 use clearview::inpaint::{FillExtras, FillParams, Filled, Observer, Source, Stage, fill_with};
 use clearview::synth::facade::{ParallaxCase, parallax_case};
@@ -181,6 +181,84 @@ fn true_family(c: &ParallaxCase, walls: &[Homography], t: &Homography) -> Parall
     ParallaxFamily { walls: mats, epipoles, observed }
 }
 
+/// How far a tied family's views are from the truth, per view (keyframe-scale pixels): per
+/// true slab, the one `γ` (shared by all views, as the joint sweep takes it) that brings the
+/// family closest to the slab's true homographies over the slab's pixels within 40 px of the
+/// mask, then the mean distance there; per view, the mean over slabs weighted by their
+/// pixels. `None` for a view the family left out.
+fn epipole_errors(c: &ParallaxCase, t: &Homography, fam: &ParallaxFamily) -> Vec<Option<f64>> {
+    let (w, h) = (c.key.width(), c.key.height());
+    let t_inv = t.inverse().expect("regular");
+    let near = clearview::inpaint::automask::dilate(
+        &clearview::imaging::Plane::from_fn(w, h, |x, y| c.mask.is_hole(x, y)),
+        40,
+    );
+    let nv = fam.epipoles.len();
+    let (mut sum, mut weight) = (vec![0.0f64; nv], vec![0.0f64; nv]);
+    let centre = t.apply(nalgebra::Point2::new(0.5 * w as f64, 0.5 * h as f64)).expect("affine");
+    let rate = (0..nv).map(|v| fam.rate(v, centre)).fold(0.0f64, f64::max).max(1e-12);
+    for p in 1..c.planes[0].len() {
+        let pts: Vec<nalgebra::Point2<f64>> = (0..h)
+            .step_by(3)
+            .flat_map(|y| (0..w).step_by(3).map(move |x| (x, y)))
+            .filter(|&(x, y)| c.surface.get(x, y) == p as u16 && near.get(x, y))
+            .map(|(x, y)| nalgebra::Point2::new(x as f64, y as f64))
+            .collect();
+        if pts.len() < 10 {
+            continue;
+        }
+        let per_view = |gamma: f64| -> Vec<Option<f64>> {
+            (0..nv)
+                .map(|v| {
+                    let hm = t_inv.after(&fam.homography(v, gamma)?).after(t);
+                    let d: f64 = pts
+                        .iter()
+                        .map(|&x| (hm.apply(x).unwrap() - c.planes[v][p].apply(x).unwrap()).norm())
+                        .sum();
+                    Some(d / pts.len() as f64)
+                })
+                .collect()
+        };
+        let total = |gamma: f64| per_view(gamma).iter().flatten().sum::<f64>();
+        let mut best = (0.0, total(0.0));
+        let mut step = 0.5 / rate;
+        for pass in 0..4 {
+            let c0 = best.0;
+            let reach = if pass == 0 { 200 } else { 12 };
+            for k in -reach..=reach {
+                let g = c0 + f64::from(k) * step;
+                let e = total(g);
+                if e < best.1 {
+                    best = (g, e);
+                }
+            }
+            step /= 6.0;
+        }
+        for (v, d) in per_view(best.0).into_iter().enumerate() {
+            if let Some(d) = d {
+                sum[v] += d * pts.len() as f64;
+                weight[v] += pts.len() as f64;
+            }
+        }
+    }
+    (0..nv).map(|v| (fam.epipoles[v].is_some() && weight[v] > 0.0).then(|| sum[v] / weight[v])).collect()
+}
+
+/// [`epipole_errors`] of each view alone (its own scale of `γ`).
+fn epipole_errors_alone(c: &ParallaxCase, t: &Homography, fam: &ParallaxFamily) -> Vec<Option<f64>> {
+    (0..fam.epipoles.len())
+        .map(|v| {
+            let mut one = fam.clone();
+            for (u, e) in one.epipoles.iter_mut().enumerate() {
+                if u != v {
+                    *e = None;
+                }
+            }
+            epipole_errors(c, t, &one)[v]
+        })
+        .collect()
+}
+
 /// Share of the masked pixels (not on a slab's side) whose chosen surface is not the true
 /// one, given which true plane each chosen surface is (`None`: none).
 fn wrong_choice(c: &ParallaxCase, f: &Filled, truth_of: &[Option<u16>]) -> f64 {
@@ -242,6 +320,8 @@ fn main() {
         (8u64, 640usize, 480usize, 3usize, false, None);
     let mut first = 1u64;
     let mut oracles = false;
+    let mut epipoles = false;
+    let mut epipole_rows: Vec<String> = Vec::new();
     let mut sp = SweepParams::default();
     let mut oracle_rows: Vec<OracleRow> = Vec::new();
     let mut fp = FillParams::default();
@@ -257,9 +337,11 @@ fn main() {
             }
             "--flat" => flat = true,
             "--oracles" => oracles = true,
+            "--epipoles" => epipoles = true,
             "--no-refine" => sp.refine_epipoles = false,
             "--no-supported-ties" => sp.supported_ties = false,
             "--no-inside" => sp.inside = false,
+            "--no-rejoin" => sp.rejoin = false,
             "--penalty" => fp.parallax.penalty = it.next().and_then(|v| v.parse().ok()).expect("--penalty X"),
             "--bias" => fp.parallax.wall_bias = it.next().and_then(|v| v.parse().ok()).expect("--bias X"),
             "--truncate" => {
@@ -313,6 +395,28 @@ fn main() {
             ),
         ];
         let psnr: Vec<f64> = results.iter().map(|f| masked_psnr(&f.image, &c.truth, &c.mask)).collect();
+        if epipoles {
+            // Per view, pixels off the true slab planes: the sparse epipoles (each view at its
+            // own best depth), the tied ones the joint sweep runs on (one depth for all).
+            let key_gray = luminance(&c.key);
+            let t = matching_map(w, h, &sp.matching);
+            let fmt = |e: &[Option<f64>]| {
+                e.iter().map(|e| e.map_or("-".into(), |e| format!("{e:.2}"))).collect::<Vec<_>>().join(" / ")
+            };
+            let (sparse, tied) = match parallax_family(&key_gray, &refs, &walls, &c.mask, &sp, 1) {
+                Some((own, _)) => (
+                    fmt(&epipole_errors_alone(&c, &t, &own)),
+                    tied_family(&key_gray, &refs, &c.mask, &sp, &own, &t)
+                        .map_or("none".into(), |f| fmt(&epipole_errors(&c, &t, &f))),
+                ),
+                None => ("none".into(), "none".into()),
+            };
+            epipole_rows.push(format!(
+                "| {seed} | {sparse} | {tied} | {:.2} | {:+.2} |",
+                psnr[3],
+                psnr[3] - psnr[0]
+            ));
+        }
         if oracles {
             let key_gray = luminance(&c.key);
             let t = matching_map(w, h, &sp.matching);
@@ -454,6 +558,14 @@ fn main() {
         "| **mean** | | | | | {} |",
         sums.iter().map(|s| format!("{:.2}", s / k)).collect::<Vec<_>>().join(" | ")
     );
+    if epipoles {
+        println!("\nepipole error, px off the true slab planes near the mask, per view:");
+        println!("| seed | sparse (own depth each) | tied (one depth) | swept dB | swept − today |");
+        println!("|---:|---|---|---:|---:|");
+        for r in &epipole_rows {
+            println!("{r}");
+        }
+    }
     if oracles {
         let cols = [
             "swept",
