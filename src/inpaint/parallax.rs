@@ -1835,6 +1835,26 @@ mod tests {
         assert!(!ok, "another texture does not agree");
     }
 
+    /// The epipoles of three views around a surface off the wall (plane + parallax), apart.
+    fn surface_epipoles() -> [nalgebra::Vector3<f64>; 3] {
+        [
+            nalgebra::Vector3::new(40.0, 10.0, 0.02),
+            nalgebra::Vector3::new(-30.0, 25.0, 0.01),
+            nalgebra::Vector3::new(5.0, -35.0, 0.0),
+        ]
+    }
+
+    /// The view with epipole `e` of the textured surface (`tex`) at parallax `gamma`: the
+    /// keyframe maps into it by `I + e · z^T · gamma`.
+    fn view_of_surface(w: usize, h: usize, e: &nalgebra::Vector3<f64>, gamma: f64) -> GrayF32 {
+        let z = nalgebra::RowVector3::new(0.0, 0.0, 1.0);
+        let inv = (nalgebra::Matrix3::identity() + e * z * gamma).try_inverse().expect("invertible");
+        GrayF32::from_fn(w, h, |x, y| {
+            let p = inv * nalgebra::Vector3::new(x as f64, y as f64, 1.0);
+            tex(p.x / p.z, p.y / p.z)
+        })
+    }
+
     /// Inside the hole the keyframe says nothing: three views of a surface at a known depth
     /// (plane + parallax, their epipoles apart) agree among themselves at that depth, and the
     /// hole's pixels vote for it; with a view showing something else (its passer-by) the
@@ -1842,24 +1862,13 @@ mod tests {
     #[test]
     fn inside_the_hole_the_views_vote_among_themselves() {
         let (w, h, key, mask) = textured_square_hole();
-        let epipoles = [
-            nalgebra::Vector3::new(40.0, 10.0, 0.02),
-            nalgebra::Vector3::new(-30.0, 25.0, 0.01),
-            nalgebra::Vector3::new(5.0, -35.0, 0.0),
-        ];
+        let epipoles = surface_epipoles();
         let z = nalgebra::RowVector3::new(0.0, 0.0, 1.0);
         let at = |e: &nalgebra::Vector3<f64>, g: f64| {
             Homography::from_matrix(nalgebra::Matrix3::identity() + e * z * g).unwrap()
         };
         let truth = 0.2;
-        let view_of = |e: &nalgebra::Vector3<f64>| {
-            let inv = at(e, truth).inverse().unwrap();
-            GrayF32::from_fn(w, h, |x, y| {
-                let p = inv.apply(Point2::new(x as f64, y as f64)).unwrap();
-                tex(p.x, p.y)
-            })
-        };
-        let mut views: Vec<GrayF32> = epipoles.iter().map(view_of).collect();
+        let mut views: Vec<GrayF32> = epipoles.iter().map(|e| view_of_surface(w, h, e, truth)).collect();
         let labels: Vec<f64> = (-20..=20).map(|k| f64::from(k) * 0.02).collect();
         let wall = 20;
         let params = SweepParams::default();
@@ -1910,23 +1919,10 @@ mod tests {
     #[test]
     fn a_view_the_tie_lost_is_found_again_where_the_others_vote() {
         let (w, h, key, mask) = textured_square_hole();
-        let truth = [
-            nalgebra::Vector3::new(40.0, 10.0, 0.02),
-            nalgebra::Vector3::new(-30.0, 25.0, 0.01),
-            nalgebra::Vector3::new(5.0, -35.0, 0.0),
-        ];
+        let truth = surface_epipoles();
         let z = nalgebra::RowVector3::new(0.0, 0.0, 1.0);
         let gamma = 0.2;
-        let views: Vec<GrayF32> = truth
-            .iter()
-            .map(|e| {
-                let inv = (nalgebra::Matrix3::identity() + e * z * gamma).try_inverse().unwrap();
-                GrayF32::from_fn(w, h, |x, y| {
-                    let p = inv * nalgebra::Vector3::new(x as f64, y as f64, 1.0);
-                    tex(p.x / p.z, p.y / p.z)
-                })
-            })
-            .collect();
+        let views: Vec<GrayF32> = truth.iter().map(|e| view_of_surface(w, h, e, gamma)).collect();
         let refs: Vec<&GrayF32> = views.iter().collect();
         let params = SweepParams::default();
         let id = Homography::identity();
