@@ -1023,29 +1023,7 @@ impl Band {
         let radius = 0.5 * (rw.max(self.rect.height) as f64) / per_px;
         let q_xy = (q.x / q.z).hypot(q.y / q.z).max(radius);
         let unit = [unit_xy, unit_xy, unit_xy / q_xy];
-        let (mut e, mut best) = (start, mean(&start, true)?);
-        let mut step = 4.0;
-        while step >= 0.25 {
-            let mut moved = true;
-            let mut rounds = 0;
-            while moved && rounds < 8 {
-                moved = false;
-                rounds += 1;
-                for axis in 0..3 {
-                    for sign in [1.0, -1.0] {
-                        let mut cand = e;
-                        cand[axis] += sign * step * unit[axis];
-                        if let Some(c) = mean(&cand, true)
-                            && c < best
-                        {
-                            (e, best) = (cand, c);
-                            moved = true;
-                        }
-                    }
-                }
-            }
-            step *= 0.5;
-        }
+        let (e, best) = pattern_search(start, mean(&start, true)?, 4.0, unit, |c| mean(c, true));
         Some((e, wall_cost - best >= 0.5 * params.margin))
     }
 
@@ -1183,28 +1161,9 @@ impl Band {
             starts.extend(best.map(|b| b.1));
         }
         let search = |start: V3| -> (f32, V3) {
-            let (mut e, mut best) = (start, mean(&fine, &om_fine, &start, false));
-            let mut step = 2.0;
-            while step >= 0.25 {
-                let mut moved = true;
-                let mut rounds = 0;
-                while moved && rounds < 8 {
-                    moved = false;
-                    rounds += 1;
-                    for (axis, u) in unit.iter().enumerate() {
-                        for sign in [1.0, -1.0] {
-                            let mut cand = e;
-                            cand[axis] += sign * step * u;
-                            let c = mean(&fine, &om_fine, &cand, false);
-                            if c < best {
-                                (e, best) = (cand, c);
-                                moved = true;
-                            }
-                        }
-                    }
-                }
-                step *= 0.5;
-            }
+            let first = mean(&fine, &om_fine, &start, false);
+            let (e, best) =
+                pattern_search(start, first, 2.0, unit, |c| Some(mean(&fine, &om_fine, c, false)));
             (best, e)
         };
         // The pattern search from the two best starts (the votes' subsample).
@@ -1772,6 +1731,43 @@ fn sgm(costs: &[Vec<f32>], w: usize, h: usize, penalty: f32) -> Vec<u16> {
             best as u16
         })
         .collect()
+}
+
+/// A pattern search over an epipole's three coordinates: from `start` (whose cost is
+/// `best`), steps of `first_step` times each axis's `unit` both ways, halved down to a
+/// quarter; at each size it moves while a step lowers the cost (at most 8 rounds). `cost`
+/// `None`: the candidate cannot be judged (not taken).
+fn pattern_search(
+    start: nalgebra::Vector3<f64>,
+    best: f32,
+    first_step: f64,
+    unit: [f64; 3],
+    mut cost: impl FnMut(&nalgebra::Vector3<f64>) -> Option<f32>,
+) -> (nalgebra::Vector3<f64>, f32) {
+    let (mut e, mut best) = (start, best);
+    let mut step = first_step;
+    while step >= 0.25 {
+        let mut moved = true;
+        let mut rounds = 0;
+        while moved && rounds < 8 {
+            moved = false;
+            rounds += 1;
+            for (axis, u) in unit.iter().enumerate() {
+                for sign in [1.0, -1.0] {
+                    let mut cand = e;
+                    cand[axis] += sign * step * u;
+                    if let Some(c) = cost(&cand)
+                        && c < best
+                    {
+                        (e, best) = (cand, c);
+                        moved = true;
+                    }
+                }
+            }
+        }
+        step *= 0.5;
+    }
+    (e, best)
 }
 
 #[cfg(test)]
