@@ -689,13 +689,14 @@ impl Group<'_> {
         let ww = win.width() as isize;
         target.clear();
         guided.clear();
+        let guide = self.guide.filter(|_| self.guide_weight > 0);
         let mut proposals: Vec<(isize, isize)> = Vec::with_capacity(16);
         for y in p.y0..p.y1 {
             for x in p.x0..p.x1 {
                 let i = self.local(x, y);
                 let (dx, dy) = (x as isize - px as isize, y as isize - py as isize);
                 if self.state[i] == UNKNOWN {
-                    if let Some(guide) = self.guide.filter(|_| self.guide_weight > 0) {
+                    if let Some(guide) = guide {
                         let t = quantise(guide.get(x, y));
                         guided.push((dy * ww + dx, [t[0] as i32, t[1] as i32, t[2] as i32]));
                     }
@@ -725,7 +726,7 @@ impl Group<'_> {
                 for &(d, t) in list.iter() {
                     let s = packed[(centre + d) as usize];
                     let (a, b, c) = (s[0] as i32 - t[0], s[1] as i32 - t[1], s[2] as i32 - t[2]);
-                    sum += i64::from(weight * (a * a + b * b + c * c));
+                    sum += i64::from(weight) * i64::from(a * a + b * b + c * c);
                     if sum >= limit {
                         return sum;
                     }
@@ -1235,7 +1236,8 @@ mod tests {
     /// A textured bar (a trunk, a brick pier) enters a hole in a flat sky from below and
     /// ends inside it: the hole's border is sky everywhere but where the bar comes in.
     /// Criminisi's order follows the bar's strong isophotes and grows it across the hole;
-    /// with the membrane as the guide the bar stops and the sky closes over it.
+    /// with a guide that says sky there (nearly what the membrane of that border gives) the
+    /// bar stops and the sky closes over it.
     #[test]
     fn a_guided_fill_does_not_grow_a_texture_across_a_hole_its_border_says_is_sky() {
         let (w, h) = (120, 120);

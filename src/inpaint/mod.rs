@@ -22,7 +22,7 @@ use crate::imaging::photometric::{GainParams, fit_gain};
 use crate::imaging::warp::{Interpolation, Rect, Warped, warp};
 use crate::imaging::{Mask, Plane, RgbF32, RgbPixel};
 use automask::dilate;
-use blend::{BlendParams, guidance_rhs, solve_membrane};
+use blend::{BlendParams, guidance_rhs, poisson_blend, solve_membrane};
 use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region};
 use occlusion::{KeyRegion, OcclusionMap, OcclusionParams, RegionInput, occlusion_map};
 use parallax::{ParallaxParams, PlaneInput, SurfacePlane, WarpedView, choose_planes};
@@ -1078,38 +1078,26 @@ fn fallback_guide(
 fn harmonic(image: &RgbF32, hole: &Mask, params: &BlendParams) -> Option<RgbF32> {
     let (w, h) = (image.width(), image.height());
     let omega: Vec<bool> = hole.as_slice().iter().map(|&m| m > 127).collect();
-    let mut bordered = false;
-    // b_p: the sum of p's known 4-neighbours (the Dirichlet border).
-    let b: Vec<[f32; 3]> = (0..w * h)
-        .map(|i| {
-            let mut acc = [0.0f32; 3];
-            if omega[i] {
-                let (x, y) = (i % w, i / w);
-                let neighbours = [
-                    (x > 0).then(|| i - 1),
-                    (x + 1 < w).then(|| i + 1),
-                    (y > 0).then(|| i - w),
-                    (y + 1 < h).then(|| i + w),
-                ];
-                for q in neighbours.into_iter().flatten().filter(|&q| !omega[q]) {
-                    let c = image.as_slice()[q];
-                    (0..3).for_each(|k| acc[k] += c[k]);
-                    bordered = true;
-                }
-            }
-            acc
-        })
-        .collect();
+    let known = |x: usize, y: usize| !omega[y * w + x];
+    let bordered = (0..w * h).any(|i| {
+        let (x, y) = (i % w, i / w);
+        omega[i]
+            && ((x > 0 && known(x - 1, y))
+                || (x + 1 < w && known(x + 1, y))
+                || (y > 0 && known(x, y - 1))
+                || (y + 1 < h && known(x, y + 1)))
+    });
     if !bordered {
         return None;
     }
-    let m = solve_membrane(w, h, &omega, &b, params);
+    // With the hole at zero and no guidance, the blend's correction is the membrane itself.
     let mut out = image.clone();
-    for (i, (o, &inside)) in out.as_mut_slice().iter_mut().zip(&omega).enumerate() {
+    for (p, &inside) in out.as_mut_slice().iter_mut().zip(&omega) {
         if inside {
-            *o = m[i];
+            *p = [0.0; 3];
         }
     }
+    poisson_blend(w, h, &omega, out.as_mut_slice(), |_, _| [0.0; 3], params);
     Some(out)
 }
 

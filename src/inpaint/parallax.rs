@@ -972,6 +972,36 @@ impl Band {
         Some((1.0 - (skv - sk * sv / cnt) / den).clamp(0.0, 1.0))
     }
 
+    /// The units of an epipole's pattern search for the view whose wall is `wall` (family
+    /// coordinates): per coordinate, the step that moves the view by one sweep pixel at the
+    /// median depth of `votes` (index, depth), at the band's centre. Also that depth, the
+    /// centre (family coordinates) and sweep pixels per family pixel there. `None` without votes.
+    fn epipole_units(
+        &self,
+        votes: &[(usize, f64)],
+        wall: &nalgebra::Matrix3<f64>,
+        s_inv: &nalgebra::Matrix3<f64>,
+        to_sweep: &Homography,
+    ) -> Option<([f64; 3], f64, Point2<f64>, f64)> {
+        let mut gs: Vec<f64> = votes.iter().map(|v| v.1.abs()).collect();
+        gs.sort_by(f64::total_cmp);
+        let g_med = gs.get(gs.len() / 2).copied()?.max(1e-12);
+        let rw = self.rect.width;
+        let centre = s_inv
+            * nalgebra::Vector3::new(
+                self.rect.x as f64 + 0.5 * rw as f64,
+                self.rect.y as f64 + 0.5 * self.rect.height as f64,
+                1.0,
+            );
+        let cp = Point2::new(centre.x / centre.z, centre.y / centre.z);
+        let per_px = to_sweep.area_scale(cp).sqrt();
+        let q = wall * centre;
+        let unit_xy = q.z.abs() / (g_med * per_px);
+        let radius = 0.5 * (rw.max(self.rect.height) as f64) / per_px;
+        let q_xy = (q.x / q.z).hypot(q.y / q.z).max(radius);
+        Some(([unit_xy, unit_xy, unit_xy / q_xy], g_med, cp, per_px))
+    }
+
     /// View `v`'s epipole in the reference's scale of `γ` (`start`, in the family's
     /// coordinates; `wall` its wall there), refined so that the view agrees best with the
     /// keyframe at the band pixels `votes` (index, the reference's depth): a pattern search
@@ -1006,23 +1036,7 @@ impl Band {
             (!costs.is_empty()).then(|| costs.iter().sum::<f32>() / costs.len() as f32)
         };
         let wall_cost = mean(&start, false)?;
-        // Step sizes: one sweep pixel of displacement at the median depth, at the band's centre.
-        let mut gs: Vec<f64> = votes.iter().map(|v| v.1.abs()).collect();
-        gs.sort_by(f64::total_cmp);
-        let g_med = gs[gs.len() / 2].max(1e-12);
-        let rw = self.rect.width;
-        let centre = s_inv
-            * nalgebra::Vector3::new(
-                self.rect.x as f64 + 0.5 * rw as f64,
-                self.rect.y as f64 + 0.5 * self.rect.height as f64,
-                1.0,
-            );
-        let q = wall * centre;
-        let per_px = to_sweep.area_scale(Point2::new(centre.x / centre.z, centre.y / centre.z)).sqrt();
-        let unit_xy = q.z.abs() / (g_med * per_px);
-        let radius = 0.5 * (rw.max(self.rect.height) as f64) / per_px;
-        let q_xy = (q.x / q.z).hypot(q.y / q.z).max(radius);
-        let unit = [unit_xy, unit_xy, unit_xy / q_xy];
+        let (unit, ..) = self.epipole_units(&votes, wall, &s_inv, to_sweep)?;
         let (e, best) = pattern_search(start, mean(&start, true)?, 4.0, unit, |c| mean(c, true));
         Some((e, wall_cost - best >= 0.5 * params.margin))
     }
@@ -1097,24 +1111,7 @@ impl Band {
             total / vs.len().max(1) as f32
         };
         let (om_fine, om_coarse) = (others_at(&fine, false), others_at(&coarse, false));
-        // Units: one sweep pixel of displacement at the median depth, at the band's centre.
-        let mut gs: Vec<f64> = fine.iter().map(|v| v.1.abs()).collect();
-        gs.sort_by(f64::total_cmp);
-        let g_med = gs.get(gs.len() / 2).copied()?.max(1e-12);
-        let rw = self.rect.width;
-        let centre = s_inv
-            * V3::new(
-                self.rect.x as f64 + 0.5 * rw as f64,
-                self.rect.y as f64 + 0.5 * self.rect.height as f64,
-                1.0,
-            );
-        let cp = Point2::new(centre.x / centre.z, centre.y / centre.z);
-        let per_px = to_sweep.area_scale(cp).sqrt();
-        let q = family.walls[v] * centre;
-        let unit_xy = q.z.abs() / (g_med * per_px);
-        let radius = 0.5 * (rw.max(self.rect.height) as f64) / per_px;
-        let q_xy = (q.x / q.z).hypot(q.y / q.z).max(radius);
-        let unit = [unit_xy, unit_xy, unit_xy / q_xy];
+        let (unit, g_med, cp, per_px) = self.epipole_units(&fine, &family.walls[v], &s_inv, to_sweep)?;
         // How far the others move at the median depth (sweep pixels).
         let reach = others.iter().map(|&u| family.rate(u, cp) * per_px * g_med).fold(0.0f64, f64::max);
         let limit = params.max_reach * views[v].width() as f64;
@@ -1135,7 +1132,7 @@ impl Band {
         let mut starts: Vec<V3> = Vec::new();
         for k in order {
             let e = grid[k].1;
-            if starts.iter().all(|o| ((o - e).xy().norm() / unit_xy) > 6.0) {
+            if starts.iter().all(|o| ((o - e).xy().norm() / unit[0]) > 6.0) {
                 starts.push(e);
             }
             if starts.len() == 3 {
