@@ -205,9 +205,14 @@ fn grow_by_colour(key: &RgbF32, objects: &Plane<bool>, params: &AutoMaskParams) 
         let local = ColourHistogram::within(key, &around, |x, y| {
             !near_objects.get(x, y) && !component.contains(x, y)
         });
+        // The building's colours over the whole keyframe, but not those of the zone the
+        // object may grow into: an occluder whose inside the views could not judge (they
+        // show the same tree, displaced) is unflagged there, and would count as building.
+        let mut building = global.clone();
+        building.remove(key, &zone, |x, y| !near_objects.get(x, y));
         let likely = |x: usize, y: usize| {
             let c = key.get(x, y);
-            own.density(c) > params.colour_ratio * 0.5 * (local.density(c) + global.density(c))
+            own.density(c) > params.colour_ratio * 0.5 * (local.density(c) + building.density(c))
         };
         let mut stack: Vec<(usize, usize)> = Vec::new();
         for y in zone.y..zone.y1() {
@@ -367,6 +372,7 @@ fn shared_occluders(key: &RgbF32, ev: &Evidence, params: &AutoMaskParams) -> Pla
 }
 
 /// A 16³-bin colour histogram with add-one smoothing.
+#[derive(Clone)]
 struct ColourHistogram {
     bins: Vec<f32>,
     total: f32,
@@ -397,6 +403,19 @@ impl ColourHistogram {
             }
         }
         Self { bins, total }
+    }
+
+    /// Takes out of the histogram the pixels of `img` inside `r` where `take` holds (those
+    /// it was built with).
+    fn remove(&mut self, img: &RgbF32, r: &Rect, take: impl Fn(usize, usize) -> bool) {
+        for y in r.y..r.y1() {
+            for x in r.x..r.x1() {
+                if take(x, y) {
+                    self.bins[Self::bin(img.get(x, y))] -= 1.0;
+                    self.total -= 1.0;
+                }
+            }
+        }
     }
 
     fn density(&self, p: [f32; 3]) -> f32 {
@@ -659,6 +678,21 @@ mod tests {
                 found.certain_share
             );
             assert!(found.judged_share > 0.5, "seed {seed}: judged {:.3}", found.judged_share);
+        }
+    }
+
+    /// A tree every view shows too, displaced: the views agree with the keyframe inside its
+    /// crown, so only a crescent at its edge is flagged, and the crown must be grown from it
+    /// by its colours. The unflagged inside of the crown is not the building's colours.
+    /// (On these two cases the crown stayed a crescent while the growth compared it with
+    /// the whole keyframe's unflagged pixels: IoU 0.53 and 0.38.)
+    #[test]
+    fn a_tree_the_views_share_is_grown_whole_from_its_edge() {
+        for (seed, views) in [(2002, 2), (2005, 3)] {
+            let c = crate::synth::occlusion_case(crate::synth::CaseFamily::Shared, 320, 240, views, seed);
+            let found = auto_mask_report(&c.key, &c.sources(), &AutoMaskParams::default());
+            let score = crate::imaging::metrics::mask_iou(&found.mask, &c.mask);
+            assert!(score > 0.65, "seed {seed}, {views} views: IoU {score:.3} with the true mask");
         }
     }
 
