@@ -615,6 +615,19 @@ pub fn align(key: &Frame, view: &Frame, params: &AlignParams, prior: Option<&Hom
     plain
 }
 
+/// Guided matching and re-estimation from `prior` alone, with no race against the
+/// descriptors: for a prior known to be near, the camera's own motion between two
+/// consecutive kept frames of a video (the session thread's chaining,
+/// `daemon::video::runner`). There a near occluder that fills much of both frames moves
+/// several times faster than the facade, and the descriptors' larger consensus is its
+/// motion (a walk with a tree over 47 % of the picture: 566 inliers 62 px off the facade's
+/// motion), which guided matching within a few pixels of the prior never sees.
+pub fn align_near_prior(key: &Frame, view: &Frame, params: &AlignParams, prior: &Homography) -> Alignment {
+    let (mut out, _) = refine(key, view, params, *prior, 0);
+    out.from_prior = true;
+    out
+}
+
 /// Whether the plain path's own guided model, refused on its share, rivals what the search
 /// found: a different place for the keyframe with at least [`Acceptance::max_rival`] of its
 /// inliers is the race's ambiguity, and a repeating facade gives just that (a search

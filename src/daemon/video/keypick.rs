@@ -10,9 +10,10 @@ use crate::config::VideoKeyframe;
 /// The frame the user names (`keyframe_frame` N, or the first frame at or after
 /// `keyframe_at_s`) is the keyframe, exactly: the mask was painted on it. It is judged
 /// sharp against its neighbours (up to `window` frames before and after it): blurred when
-/// its Laplacian variance is below `min_sharpness` times theirs at best. A blurred named
-/// frame is refused with a reason, never replaced by another. Without a name, the
-/// keyframe is the first frame unless it is blurred, then the next sharp one.
+/// its sharpness ([`crate::imaging::sharpness::sharpness`]) is below `min_sharpness` times
+/// theirs at best. A blurred named frame is refused with a reason, never replaced by
+/// another. Without a name, the keyframe is the first frame unless it is blurred, then the
+/// next sharp one.
 #[derive(Debug, Clone)]
 pub(super) struct KeyPick {
     rule: VideoKeyframe,
