@@ -538,8 +538,8 @@ impl<'a> Sweep<'a> {
             return None;
         }
         // 2. The views' scales: where the reference votes for depth γ, view `v` must see the
-        //    same surface at `k·γ`; `k` is the factor under which the view confirms most of
-        //    those votes ([`tie_scale`]).
+        //    same surface at `k·γ`; `k` is the factor with the lowest mean cost there, or
+        //    (`repair_ties`) the one the view confirms most of them under ([`tie_scale`]).
         let votes_ref: Vec<(usize, f64)> = alone[reference]
             .as_ref()
             .expect("voted")
