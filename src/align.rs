@@ -779,29 +779,9 @@ fn models_differ(a: &Fitted, b: &Fitted, key: &Frame, view: &Frame) -> bool {
 /// Whether `a` and `b` send the keyframe to different places: more than 4 samples of
 /// `octave`, median over a grid of the keyframe points `a` sends inside the view.
 fn maps_differ(a: &Homography, b: &Homography, octave: usize, key: &Frame, view: &Frame) -> bool {
-    const N: usize = 8;
     let tol = 4.0 * (1u32 << octave) as f64;
-    let mut d = Vec::with_capacity(N * N);
-    for j in 0..N {
-        for i in 0..N {
-            let p = Point2::new(
-                (i as f64 + 0.5) * key.width as f64 / N as f64,
-                (j as f64 + 0.5) * key.height as f64 / N as f64,
-            );
-            if !lands_inside(a, p, view) {
-                continue;
-            }
-            match (a.apply(p), b.apply(p)) {
-                (Some(qa), Some(qb)) if b.w(p) > 0.0 => d.push((qa - qb).norm()),
-                _ => d.push(f64::INFINITY),
-            }
-        }
-    }
-    if d.is_empty() {
-        return true;
-    }
-    d.sort_by(f64::total_cmp);
-    d[d.len() / 2] > tol
+    a.median_grid_gap(b, key.width as f64, key.height as f64, |p| lands_inside(a, p, view))
+        .is_none_or(|gap| gap > tol)
 }
 
 /// Whether a rival model's inliers are largely the winner's keyframe points, sent

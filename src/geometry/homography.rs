@@ -117,6 +117,39 @@ impl Homography {
             / 4.0
     }
 
+    /// The median, over an 8 × 8 grid of cell centres of a `width × height` image that `keep`
+    /// accepts, of the distance between where `self` and `other` send them (infinite where
+    /// either sends a point nowhere, or `other` behind the camera); `None` when no point is
+    /// kept. Whether two maps place an image differently, robust to a corner far off.
+    pub fn median_grid_gap(
+        &self,
+        other: &Homography,
+        width: f64,
+        height: f64,
+        keep: impl Fn(Point2<f64>) -> bool,
+    ) -> Option<f64> {
+        const N: usize = 8;
+        let mut d = Vec::with_capacity(N * N);
+        for j in 0..N {
+            for i in 0..N {
+                let p =
+                    Point2::new((i as f64 + 0.5) * width / N as f64, (j as f64 + 0.5) * height / N as f64);
+                if !keep(p) {
+                    continue;
+                }
+                d.push(match (self.apply(p), other.apply(p)) {
+                    (Some(a), Some(b)) if other.w(p) > 0.0 => (a - b).norm(),
+                    _ => f64::INFINITY,
+                });
+            }
+        }
+        if d.is_empty() {
+            return None;
+        }
+        d.sort_by(f64::total_cmp);
+        Some(d[d.len() / 2])
+    }
+
     /// The local area scale `|det J|` of the map at `p` (how much a small patch around
     /// `p` grows).
     pub fn area_scale(&self, p: Point2<f64>) -> f64 {

@@ -401,22 +401,10 @@ fn disagree(a: &AlignRecord, b: &AlignRecord) -> bool {
     let (Some(ha), Some(hb)) = (a.homography(), b.homography()) else { return true };
     let Some(back) = hb.inverse() else { return true };
     let (w, h) = (b.view_size.0 as f64, b.view_size.1 as f64);
-    let mut d = Vec::new();
-    for j in 0..8 {
-        for i in 0..8 {
-            // Points of the frame, taken back to the keyframe, then sent by both maps.
-            let v = nalgebra::Point2::new((i as f64 + 0.5) * w / 8.0, (j as f64 + 0.5) * h / 8.0);
-            let Some(k) = back.apply(v) else { continue };
-            if let Some(p) = ha.apply(k) {
-                d.push((p - v).norm());
-            }
-        }
-    }
-    if d.is_empty() {
-        return true;
-    }
-    d.sort_by(f64::total_cmp);
-    d[d.len() / 2] > DISAGREE_PX
+    // The frame's points, taken back to the keyframe by `b` and sent again by `a`.
+    ha.after(&back)
+        .median_grid_gap(&Homography::identity(), w, h, |_| true)
+        .is_none_or(|gap| gap > DISAGREE_PX)
 }
 
 /// Median disagreement (frame pixels) beyond which two alignments of a frame differ.
