@@ -356,21 +356,14 @@ pub fn sweep_family(
     tied: bool,
 ) -> Vec<SurfacePlane> {
     let Some(s) = Sweep::new(key, views, mask, params, t) else { return Vec::new() };
-    let family = if tied {
-        own.clone()
-    } else {
-        let Some(f) = s.tie(own) else { return Vec::new() };
-        let votes = s.votes(&f);
-        let planes = s.surfaces_of(&f, &votes);
-        // Where the tied family finds no surface, nothing moves its epipoles (a flat wall
-        // stays as it was).
-        if planes.is_empty() || !params.rejoin {
-            return planes;
-        }
-        let Some(f) = s.rejoin(own, f, &votes) else { return Vec::new() };
-        f
-    };
-    s.surfaces(&family)
+    if tied {
+        return s.surfaces(own);
+    }
+    match s.joint(own) {
+        Some((_, Some(planes))) => planes,
+        Some((family, None)) => s.surfaces(&family),
+        None => Vec::new(),
+    }
 }
 
 /// The family [`sweep_family`] sweeps all views together on: `own` with the views' scales
@@ -384,13 +377,7 @@ pub fn tied_family(
     own: &ParallaxFamily,
     t: &Homography,
 ) -> Option<ParallaxFamily> {
-    let s = Sweep::new(key, views, mask, params, t)?;
-    let f = s.tie(own)?;
-    let votes = s.votes(&f);
-    if !params.rejoin || s.surfaces_of(&f, &votes).is_empty() {
-        return Some(f);
-    }
-    s.rejoin(own, f, &votes)
+    Sweep::new(key, views, mask, params, t)?.joint(own).map(|(family, _)| family)
 }
 
 /// How far (sweep pixels of displacement at the votes' median depth, per coordinate of the
@@ -622,6 +609,21 @@ impl<'a> Sweep<'a> {
     /// at the votes' median depth, then the pattern search of [`Band::refine_epipole`] from
     /// the best few places and from where it was. A view is kept when its agreement is
     /// clearly better than the wall's there, and dropped otherwise.
+    /// The family all views are swept on together: `own` with the views' scales tied
+    /// ([`Self::tie`]), then, where that family finds a surface and `rejoin` is on, every
+    /// view's epipole found again at its votes ([`Self::rejoin`]); with the tied family's
+    /// surfaces when nothing moved it after the tie (a flat wall stays as it was). `None`
+    /// when fewer than two views agree.
+    fn joint(&self, own: &ParallaxFamily) -> Option<(ParallaxFamily, Option<Vec<SurfacePlane>>)> {
+        let f = self.tie(own)?;
+        let votes = self.votes(&f);
+        let planes = self.surfaces_of(&f, &votes);
+        if planes.is_empty() || !self.params.rejoin {
+            return Some((f, Some(planes)));
+        }
+        Some((self.rejoin(own, f, &votes)?, None))
+    }
+
     fn rejoin(&self, own: &ParallaxFamily, family: ParallaxFamily, votes: &Votes) -> Option<ParallaxFamily> {
         let params = self.params;
         let band = &self.band;
@@ -1409,7 +1411,7 @@ fn tie_scale(
     let inside = |k: f64| {
         [params.scale_range.0, params.scale_range.1].iter().all(|&e| (k.abs() / e).ln().abs() >= near)
     };
-    let wall = votes.iter().zip(&walls).map(|(_, &w)| w).sum::<f32>() / votes.len().max(1) as f32;
+    let wall = walls.iter().sum::<f32>() / votes.len().max(1) as f32;
     let by_mean = scores.iter().min_by(|a, b| a.1.0.total_cmp(&b.1.0))?;
     let by_confirmed = scores.iter().max_by(|a, b| a.1.1.total_cmp(&b.1.1))?;
     let mean_holds = !params.repair_ties || by_mean.1.1 >= 0.5 * by_confirmed.1.1;
