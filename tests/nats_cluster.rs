@@ -24,6 +24,12 @@ use serde_json::Value;
 const SESSIONS: usize = 5;
 const VIEWS: u64 = 3;
 
+/// The first session's scene seed: 700, or `CLEARVIEW_TEST_SEED` to try the cluster on
+/// other scenes (`CLEARVIEW_TEST_SEED=900 cargo test --release --test nats_cluster`).
+fn seed_base() -> u64 {
+    std::env::var("CLEARVIEW_TEST_SEED").ok().and_then(|s| s.parse().ok()).unwrap_or(700)
+}
+
 struct Dropped {
     scene: Scene,
     views: Vec<String>,
@@ -126,7 +132,7 @@ fn a_three_server_cluster_survives_a_dead_worker_and_a_dead_server() {
     let mut dropped: HashMap<String, Dropped> = HashMap::new();
     for s in 0..SESSIONS / 2 {
         let name = format!("site{s}");
-        dropped.insert(name.clone(), drop_session(&inbox, &name, 700 + s as u64));
+        dropped.insert(name.clone(), drop_session(&inbox, &name, seed_base() + s as u64));
     }
     let deadline = Instant::now() + Duration::from_secs(40);
     while !events(&out).iter().any(|e| e["event"] == "result_updated") {
@@ -135,7 +141,7 @@ fn a_three_server_cluster_survives_a_dead_worker_and_a_dead_server() {
     }
     for s in SESSIONS / 2..SESSIONS - 1 {
         let name = format!("site{s}");
-        dropped.insert(name.clone(), drop_session(&inbox, &name, 700 + s as u64));
+        dropped.insert(name.clone(), drop_session(&inbox, &name, seed_base() + s as u64));
     }
     // Worker 1 dies in the middle of one of the new sessions (its first log line about
     // one: it holds the lease and the message, and has saved nothing of the step yet),
@@ -160,7 +166,7 @@ fn a_three_server_cluster_survives_a_dead_worker_and_a_dead_server() {
     println!("worker 1 killed at {killed_at:.1?} while on {busy:?}; server 0 killed");
     // A session that arrives with a server and a worker down.
     let last = format!("site{}", SESSIONS - 1);
-    dropped.insert(last.clone(), drop_session(&inbox, &last, 700 + SESSIONS as u64 - 1));
+    dropped.insert(last.clone(), drop_session(&inbox, &last, seed_base() + SESSIONS as u64 - 1));
 
     // A poison message (not a file message at all): dead-lettered with its reason, once.
     {
