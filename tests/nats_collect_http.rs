@@ -190,6 +190,33 @@ fn collect_serves_the_preview_page_of_what_it_collected() {
     assert_eq!(again["result"]["number"].as_u64(), Some(number));
     let key = ok(get(&format!("{base2}/api/sessions/{SESSION}/keyframe")), "keyframe after a restart");
     assert_eq!(key.body, std::fs::read(dir.join("key.png")).unwrap());
+
+    // An event the stream delivers again (here published twice more, without a message
+    // id, as a worker may after a leader change) is in events.jsonl once, also after the
+    // restart; a new event after them is written.
+    let log = out.join("events.jsonl");
+    let text = std::fs::read_to_string(&log).unwrap();
+    let again =
+        text.lines().find(|l| l.contains("\"view_accepted\"")).expect("a view_accepted event").to_owned();
+    let fresh = again.replacen("\"view_accepted\"", "\"view_accepted_probe\"", 1);
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    rt.block_on(async {
+        let js = async_nats::jetstream::new(async_nats::connect(urls.as_str()).await.unwrap());
+        for line in [&again, &again, &fresh] {
+            js.publish(format!("clearview.events.{SESSION}"), line.clone().into())
+                .await
+                .unwrap()
+                .await
+                .unwrap();
+        }
+    });
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while !std::fs::read_to_string(&log).unwrap().contains("view_accepted_probe") {
+        assert!(Instant::now() < deadline, "the new event was not collected:\n{}", collector.log());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert_eq!(text.lines().filter(|l| *l == again).count(), 1, "an event delivered again is written once");
     assert_eq!(collector.terminate(), Some(0));
 
     // `clearview run --http` on the same files shows the same session.

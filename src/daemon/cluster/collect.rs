@@ -20,6 +20,7 @@
 //! folder itself. Painting a mask and choosing a keyframe are refused (405): the session's
 //! files are in the folder ingest watches.
 
+use std::collections::HashSet;
 use std::future::Future;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -102,6 +103,7 @@ pub async fn run(
     let out = Collector {
         nats: nats.clone(),
         out: config.out_dir.clone(),
+        events: EventLog::open(config.out_dir.join("events.jsonl"))?,
         history: config.history,
         sessions,
         pages,
@@ -158,6 +160,7 @@ pub async fn run(
 struct Collector {
     nats: Arc<Nats>,
     out: PathBuf,
+    events: EventLog,
     history: usize,
     /// Where the latest [`SessionMsg`] of each session is kept.
     sessions: PathBuf,
@@ -199,14 +202,14 @@ impl Collector {
         }
     }
 
-    /// Appends one event line to `events.jsonl` (one write per line, as `run` does).
+    /// Appends one event line to `events.jsonl` (one write per line, as `run` does), once.
     fn event(&self, line: &[u8]) -> Result<(), OpError> {
         let Ok(mut event) = serde_json::from_slice::<serde_json::Value>(line) else {
             tracing::warn!("an event that is not JSON: skipped");
             return Ok(());
         };
         // A result's path is where this folder has it, not where the worker made it.
-        let mut line = if event["event"] == "result_updated"
+        let line = if event["event"] == "result_updated"
             && let (Some(session), Some(file)) = (event["session"].as_str(), event["result"].as_str())
         {
             let path = self.out.join(paths::session_dir_name(session)).join(file);
@@ -215,12 +218,10 @@ impl Collector {
         } else {
             line.to_vec()
         };
-        if line.last() != Some(&b'\n') {
-            line.push(b'\n');
+        if !self.events.append(&line)? {
+            tracing::debug!("an event already in events.jsonl: skipped");
         }
-        let path = self.out.join("events.jsonl");
-        let mut f = std::fs::OpenOptions::new().create(true).append(true).open(&path).ctx("events.jsonl")?;
-        f.write_all(&line).ctx("events.jsonl")
+        Ok(())
     }
 
     /// Writes a result's files into the session's folder, `result.json` last; nothing when
@@ -290,6 +291,72 @@ impl Collector {
 }
 
 /// A session name that is one plain folder name.
+/// `DIR/events.jsonl` as the collector writes it: each event line once.
+///
+/// The OUT stream delivers at least once: a collector that dies between its write and its
+/// acknowledgement, or whose acknowledgement is lost with a server, is given the event
+/// again, and message ids guard a stream only while it keeps its duplicate window (seen
+/// with a server killed while a worker published: four `result_updated` lines twice, the
+/// same bytes). A user's script reads a line twice as two events, so the
+/// digest of every line in the file is kept, read back at start, and a line already there is
+/// not appended again. Two events never make the same line: each carries its time to the
+/// millisecond, its session and its step's numbers.
+struct EventLog {
+    path: PathBuf,
+    written: std::sync::Mutex<HashSet<[u8; 16]>>,
+}
+
+impl EventLog {
+    /// Reads the digests of the lines `path` has. A last line without its newline (a
+    /// collector killed in its write) is cut off: its event was not acknowledged and comes
+    /// again.
+    fn open(path: PathBuf) -> Result<Self, ClusterError> {
+        let io = |source| ClusterError::Io { path: path.clone(), source };
+        let mut text = match std::fs::read(&path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
+            Err(e) => return Err(io(e)),
+        };
+        let whole = text.iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1);
+        if whole < text.len() {
+            tracing::warn!(path = %path.display(), bytes = text.len() - whole, "a torn last event line: cut off (it comes again)");
+            let f = std::fs::OpenOptions::new().write(true).open(&path).map_err(io)?;
+            f.set_len(whole as u64).map_err(io)?;
+            f.sync_all().map_err(io)?;
+            text.truncate(whole);
+        }
+        let written = text.split(|&b| b == b'\n').filter(|l| !l.is_empty()).map(digest).collect();
+        Ok(Self { path, written: std::sync::Mutex::new(written) })
+    }
+
+    /// Appends `line` (without its newline) unless the file has it; whether it did.
+    fn append(&self, line: &[u8]) -> Result<bool, OpError> {
+        let line = line.strip_suffix(b"\n").unwrap_or(line);
+        let mut written = self.written.lock().expect("event log lock");
+        let d = digest(line);
+        if written.contains(&d) {
+            return Ok(false);
+        }
+        let mut bytes = Vec::with_capacity(line.len() + 1);
+        bytes.extend_from_slice(line);
+        bytes.push(b'\n');
+        let mut f =
+            std::fs::OpenOptions::new().create(true).append(true).open(&self.path).ctx("events.jsonl")?;
+        f.write_all(&bytes).ctx("events.jsonl")?;
+        written.insert(d);
+        Ok(true)
+    }
+}
+
+/// The first 128 bits of a line's SHA-256.
+fn digest(line: &[u8]) -> [u8; 16] {
+    use sha2::Digest as _;
+    let full = sha2::Sha256::digest(line);
+    let mut d = [0; 16];
+    d.copy_from_slice(&full[..16]);
+    d
+}
+
 fn folder_name(session: &str) -> bool {
     !session.contains(['/', '\\']) && !session.starts_with('.')
 }
@@ -426,4 +493,40 @@ impl Pages {
 fn number_on_disk(dir: &Path) -> Option<u64> {
     let bytes = std::fs::read(dir.join("result.json")).ok()?;
     serde_json::from_slice::<serde_json::Value>(&bytes).ok()?["number"].as_u64()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn lines(path: &Path) -> Vec<String> {
+        std::fs::read_to_string(path).unwrap().lines().map(str::to_owned).collect()
+    }
+
+    #[test]
+    fn an_event_delivered_again_is_written_once_even_by_a_restarted_collector() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("events.jsonl");
+        let a = br#"{"event":"result_updated","number":1,"session":"s","time":"2026-11-25T00:16:32.005Z"}"#;
+        let b =
+            br#"{"event":"view_accepted","file":"v.png","session":"s","time":"2026-11-25T00:16:32.006Z"}"#;
+        let log = EventLog::open(path.clone()).unwrap();
+        assert!(log.append(a).unwrap());
+        assert!(!log.append(a).unwrap(), "a redelivery is not appended");
+        assert!(log.append(b).unwrap());
+        drop(log);
+        // A collector killed in its next write left a torn line; the restarted one cuts it
+        // off, knows what the file has, and writes the torn event whole when it comes again.
+        let mut f = std::fs::OpenOptions::new().append(true).open(&path).unwrap();
+        f.write_all(br#"{"event":"view_acc"#).unwrap();
+        drop(f);
+        let log = EventLog::open(path.clone()).unwrap();
+        assert!(!log.append(a).unwrap() && !log.append(b).unwrap());
+        let c =
+            br#"{"event":"view_accepted","file":"w.png","session":"s","time":"2026-11-25T00:16:33.000Z"}"#;
+        assert!(log.append(&[&c[..], b"\n"].concat()).unwrap());
+        let want: Vec<String> =
+            [&a[..], &b[..], &c[..]].iter().map(|l| String::from_utf8(l.to_vec()).unwrap()).collect();
+        assert_eq!(lines(&path), want);
+    }
 }
