@@ -203,6 +203,14 @@ pub struct FillParams {
     /// The fallback sees this many pixels of context around what it fills (plus half the
     /// unseen area's extent).
     pub fallback_margin: usize,
+    /// The fallback's guide (the membrane of its region's border, `fallback_guide`)
+    /// interpolates from the keyframe, from what the fallback made already and from the
+    /// view pixels the fill gives at least this confidence; `None`: from no view pixel.
+    /// The views' pixels next to what no view saw clear are the ones most likely to show
+    /// a piece of an occluder; with few views they are mostly right, so the default keeps
+    /// the fairly sure ones. A video walk says otherwise (BENCHMARKS.md, "Video target,
+    /// ninth pass").
+    pub fallback_guide_from: Option<u8>,
     /// Which surface each pixel shows, where [`FillExtras::planes`] gives surfaces off the
     /// wall.
     pub parallax: ParallaxParams,
@@ -227,6 +235,7 @@ impl Default for FillParams {
             view_error_weight: 30.0,
             exemplar: ExemplarParams::default(),
             fallback_margin: 32,
+            fallback_guide_from: Some(CONFIDENT / 2),
             parallax: ParallaxParams::default(),
         }
     }
@@ -1033,7 +1042,15 @@ fn fallback(
     let hole = Mask::from_fn(crop.width, crop.height, |x, y| pending.get(crop.x + x, crop.y + y));
     // The membrane over the hole is the exemplar fill's guide: it keeps the texture at the
     // front from growing across a part whose border says otherwise (brick into the sky).
-    match fallback_guide(&sub, &hole, crop, provenance, confidence, &params.blend_params) {
+    match fallback_guide(
+        &sub,
+        &hole,
+        crop,
+        provenance,
+        confidence,
+        params.fallback_guide_from,
+        &params.blend_params,
+    ) {
         Some(guide) => exemplar_fill_guided(&mut sub, &hole, &guide, &params.exemplar, seed, stop),
         None => exemplar_fill_until(&mut sub, &hole, &params.exemplar, seed, stop),
     };
@@ -1052,21 +1069,22 @@ fn fallback(
 }
 
 /// The fallback's guide on `crop` (`sub` and `hole` are its pixels and pending pixels): the
-/// membrane from the pixels the fill is sure of. A view's pixel it strongly doubts (below
-/// half of [`CONFIDENT`]: perhaps an occluder copied) is context for the patches, not the
-/// border of the guide.
+/// membrane from the pixels the fill is sure of. A view's pixel below `from` (by default
+/// half of [`CONFIDENT`]: perhaps an occluder copied; every view pixel when `from` is
+/// `None`) is context for the patches, not the border of the guide.
 fn fallback_guide(
     sub: &RgbF32,
     hole: &Mask,
     crop: Rect,
     provenance: &Provenance,
     confidence: &Confidence,
+    from: Option<u8>,
     params: &BlendParams,
 ) -> Option<RgbF32> {
     let unsure = Mask::from_fn(crop.width, crop.height, |x, y| {
         let (kx, ky) = (crop.x + x, crop.y + y);
         let p = provenance.get(kx, ky);
-        let doubted = p != KEYFRAME && p != FALLBACK && confidence.get(kx, ky) < CONFIDENT / 2;
+        let doubted = p != KEYFRAME && p != FALLBACK && from.is_none_or(|c| confidence.get(kx, ky) < c);
         if hole.is_hole(x, y) || doubted { 255 } else { 0 }
     });
     harmonic(sub, &unsure, params)
@@ -1240,19 +1258,23 @@ mod tests {
         let provenance = Provenance::from_fn(w, h, |x, y| u16::from(strip(x, y)));
         let crop = Rect { x: 0, y: 0, width: w, height: h };
         // The guide's largest difference from the sky over the region.
-        let off_sky = |sure: u8| {
+        let off_sky_from = |sure: u8, from: Option<u8>| {
             let confidence = Confidence::from_fn(w, h, |x, y| if strip(x, y) { sure } else { 0 });
             let guide =
-                fallback_guide(&image, &hole, crop, &provenance, &confidence, &BlendParams::default())
+                fallback_guide(&image, &hole, crop, &provenance, &confidence, from, &BlendParams::default())
                     .expect("the region has a border");
             (0..w * h)
                 .filter(|&i| region(i % w, i / w))
                 .map(|i| (0..3).map(|c| (guide.as_slice()[i][c] - sky[c]).abs()).fold(0.0f32, f32::max))
                 .fold(0.0f32, f32::max)
         };
+        let off_sky = |sure: u8| off_sky_from(sure, FillParams::default().fallback_guide_from);
         let (doubted, sure) = (off_sky(20), off_sky(220));
         assert!(doubted < 0.01, "doubted strip: the guide is {doubted:.3} off the sky");
         assert!(sure > 0.2, "a strip the fill is sure of should be carried in: {sure:.3}");
+        // Told to take no view pixel (a video walk), not even one the fill is sure of.
+        let none = off_sky_from(220, None);
+        assert!(none < 0.01, "with no view pixel on the border the guide is {none:.3} off the sky");
     }
 
     #[test]

@@ -26,7 +26,7 @@ use crate::daemon::state;
 use crate::geometry::Homography;
 use crate::imaging::convert::to_luminance;
 use crate::imaging::{GrayF32, Mask, RgbF32};
-use crate::session::{AlignRecord, Rgb8};
+use crate::session::{AlignRecord, Rgb8, Session, SessionParams};
 
 /// Kept frames from before the keyframe that wait for it (the latest ones).
 const PRE_KEY_FRAMES: usize = 8;
@@ -67,7 +67,8 @@ pub(super) struct Runner {
 
 impl Runner {
     pub(super) fn new(ctx: Ctx, src: VideoSource, stats: Arc<VideoStats>, mask: Option<Mask>) -> Self {
-        let slot = Slot::new(&ctx, &src.session, PathBuf::new());
+        let mut slot = Slot::new(&ctx, &src.session, PathBuf::new());
+        slot.session = Session::new(walk_params(slot.session.params().clone()));
         let run_id = SystemTime::now().duration_since(SystemTime::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
         Self {
             ctx,
@@ -392,6 +393,23 @@ impl Runner {
     }
 }
 
+/// The session's parameters for a walk: where every view doubts a pixel, the fill leaves
+/// it to the fallback rather than copying the least doubtful view (`sure` down to `cut`),
+/// and the fallback's guide interpolates from the keyframe alone. A walk's frames come
+/// from one camera along one path, so a pixel all of them doubt is a near occluder they
+/// all passed, not a view's light (the folder service keeps copying it: a darker view is
+/// doubted over a ledge there and was right, BENCHMARKS.md "Does every view make the
+/// one-shot fill better?"); and the view pixels next to what no frame saw clear are the
+/// fringe of those occluders. Measured on the rendered walks (BENCHMARKS.md, "Video
+/// target, ninth pass"): first frame of seeds 13–24 +0.2 to +2.7 dB on seven, −0.1 to
+/// −1.1 dB on four.
+fn walk_params(mut params: SessionParams) -> SessionParams {
+    let fill = &mut params.fill;
+    fill.occlusion_model.sure = fill.occlusion_model.cut;
+    fill.fallback_guide_from = None;
+    params
+}
+
 /// Whether two alignments of one frame place the keyframe differently: a grid of the
 /// frame's points, taken back to the keyframe by `b` and sent to the frame again by `a`,
 /// lands more than [`DISAGREE_PX`] away from where it started (median). A direct alignment
@@ -446,6 +464,20 @@ fn rgb8_to_f32(px: &Rgb8) -> RgbF32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_walk_leaves_what_every_frame_doubts_to_a_fallback_guided_by_the_keyframe() {
+        let base = SessionParams::default();
+        let walk = walk_params(base.clone());
+        let (model, fill) = (&walk.fill.occlusion_model, &walk.fill);
+        assert_eq!(model.sure, model.cut, "a pixel every frame doubts is not copied");
+        assert_eq!(fill.fallback_guide_from, None, "the guide takes no view pixel");
+        // The rest is the service's.
+        let mut back = walk.clone();
+        back.fill.occlusion_model.sure = base.fill.occlusion_model.sure;
+        back.fill.fallback_guide_from = base.fill.fallback_guide_from;
+        assert_eq!(back, base);
+    }
 
     #[test]
     fn a_steady_pan_is_predicted() {
