@@ -162,7 +162,16 @@ pub fn auto_mask_report<P: RgbPixel>(
     let seeds = dilate(&erode(&seeds, params.open_radius), params.open_radius);
     let reach = keep(&Plane::from_fn(rw, rh, |x, y| ev.strong.get(x, y) || ev.weak.get(x, y)));
     let grown = grow_from(&seeds, &reach);
-    let grown = grow_by_colour(&key_b, &grown, &ev.judged, params);
+    let mut grown = grow_by_colour(&key_b, &grown, &ev.judged, params, Growth::Around);
+    // An object grown from crescents at a crown's edge is one object only now: grown again
+    // within its own box, through what the views could not judge, it fills the crown.
+    for _ in 0..2 {
+        let next = grow_by_colour(&key_b, &grown, &ev.judged, params, Growth::WithinUnjudged);
+        if next == grown {
+            break;
+        }
+        grown = next;
+    }
     let closed = erode(&dilate(&grown, params.close_radius), params.close_radius);
     let max_hole = (params.max_hole_share.max(0.0) as f64 * (rw * rh) as f64) as usize;
     // Holes are looked for with the objects grown by 2 px, so that a hole joined to the
@@ -195,6 +204,7 @@ fn grow_by_colour(
     objects: &Plane<bool>,
     judged: &Plane<bool>,
     params: &AutoMaskParams,
+    growth: Growth,
 ) -> Plane<bool> {
     let (w, h) = (key.width(), key.height());
     let near_objects = dilate(objects, 2);
@@ -207,7 +217,10 @@ fn grow_by_colour(
     for component in components(objects) {
         let own = ColourHistogram::within(key, &component, |x, y| objects.get(x, y));
         let margin = (component.width.max(component.height) / 4).max(2);
-        let zone = component.grown(margin, w, h);
+        let zone = match growth {
+            Growth::Around => component.grown(margin, w, h),
+            Growth::WithinUnjudged => component,
+        };
         // The building as it looks around this object (a cloud is compared with the sky
         // about it, a tree with the wall behind it), outside the object's box only: what
         // lies within it may be more of the object that the views could not judge.
@@ -231,9 +244,20 @@ fn grow_by_colour(
                 }
             }
         }
-        grow_into(&mut out, stack, |x, y| zone.contains(x, y) && likely(x, y));
+        let open = |x: usize, y: usize| growth == Growth::Around || !judged.get(x, y);
+        grow_into(&mut out, stack, |x, y| zone.contains(x, y) && open(x, y) && likely(x, y));
     }
     out
+}
+
+/// Where [`grow_by_colour`] may take an object.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Growth {
+    /// Into its surroundings, up to a quarter of its size beyond its box.
+    Around,
+    /// Within its box, through pixels no two views agreed on only (a later pass: the
+    /// object's parts joined by the first pass; the views' judgement still stands).
+    WithinUnjudged,
 }
 
 /// Bounding boxes of the 8-connected components of `m`.
@@ -699,8 +723,10 @@ mod tests {
     fn a_tree_the_views_share_is_grown_whole_from_its_edge() {
         // (2005, 4): the four views' crowns, displaced four ways, agree on no colour inside
         // the keyframe's crown, so nothing there is flagged or judged; it was counted as
-        // building until only judged pixels were (IoU 0.53 then, 0.79 now).
-        for (seed, views) in [(2002, 2), (2005, 3), (2005, 4)] {
+        // building until only judged pixels were (IoU 0.53 then, 0.79 now). (2002, 4): the
+        // first growth joins crescents at the crown's edge; only the passes within the
+        // object's box through unjudged pixels fill the crown (IoU 0.58 without them, 0.76).
+        for (seed, views) in [(2002, 2), (2005, 3), (2005, 4), (2002, 4)] {
             let c = crate::synth::occlusion_case(crate::synth::CaseFamily::Shared, 320, 240, views, seed);
             let found = auto_mask_report(&c.key, &c.sources(), &AutoMaskParams::default());
             let score = crate::imaging::metrics::mask_iou(&found.mask, &c.mask);
