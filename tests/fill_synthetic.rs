@@ -12,7 +12,7 @@ use rand_chacha::ChaCha8Rng;
 use clearview::geometry::Homography;
 use clearview::imaging::metrics::masked_psnr;
 use clearview::imaging::{Mask, RgbF32};
-use clearview::inpaint::{FALLBACK, FillParams, Filled, KEYFRAME, Source, fill};
+use clearview::inpaint::{FALLBACK, FillExtras, FillParams, Filled, KEYFRAME, Source, fill, fill_with};
 use clearview::synth::{self, Occluder, half};
 
 const W: usize = 480;
@@ -286,6 +286,36 @@ fn what_no_view_saw_comes_from_the_fallback() {
     assert_eq!(r.fallback, r.masked);
     assert!(r.sources.iter().all(|s| s.filled == 0 && s.covered == 0));
     assert_eq!(out.provenance.as_slice().iter().filter(|&&p| p == FALLBACK).count(), r.masked);
+}
+
+/// A source the choice keeps out (the service's view judged worse before) makes no pixel of
+/// the result, but is still heard; one already in is not tried again; candidates are.
+#[test]
+fn a_source_kept_out_makes_no_pixel_and_one_in_is_not_tried_again() {
+    let s = scene(3);
+    let sources = s.sources();
+    let n = sources.len();
+    assert!(n >= 3);
+    let run = |choice: &[Option<bool>]| {
+        let extras = FillExtras { choice, ..FillExtras::default() };
+        fill_with(&s.key, &s.mask, &sources, &extras, &FillParams::default(), 1, &mut ())
+    };
+    let mut choice = vec![None; n];
+    choice[0] = Some(true);
+    choice[1] = Some(false);
+    let out = run(&choice);
+    let from = |v: usize| out.provenance.as_slice().iter().filter(|&&p| usize::from(p) == 1 + v).count();
+    assert_eq!(from(1), 0, "a source kept out filled pixels");
+    assert_eq!(out.report.sources[1].filled, 0);
+    assert!(!out.report.sources[1].joined);
+    assert!(out.report.sources[0].joined, "a source in the result was left out");
+    assert!(from(0) > 0);
+    // Every source kept out but one: the fill is that one's, whatever the others show.
+    let mut only = vec![Some(false); n];
+    only[2] = Some(true);
+    let out = run(&only);
+    assert!(out.report.sources.iter().enumerate().all(|(v, r)| r.joined == (v == 2)));
+    assert_eq!(out.report.sources.iter().map(|r| r.filled).sum::<usize>(), out.report.sources[2].filled);
 }
 
 /// The stages are reported in order, with progress: with several views the fill, fallback

@@ -114,6 +114,9 @@ pub struct SourceReport {
     /// Photometric compensation applied: `key ≈ gain · view + offset`, per channel.
     pub gain: [f32; 3],
     pub offset: [f32; 3],
+    /// Whether the result was made from this source; one the choice kept out is still a
+    /// witness ([`FillParams::select_views`]).
+    pub joined: bool,
 }
 
 /// What a result is made of.
@@ -289,6 +292,16 @@ pub struct FillExtras<'a> {
     /// Another result of the same keyframe and mask (keyframe-sized), to be judged on the
     /// same evidence as this fill ([`Filled::rival_quality`]).
     pub rival: Option<&'a RgbF32>,
+    /// Per source (or empty: every source is a candidate), with
+    /// [`FillParams::select_views`]: `Some(true)` a source already in the result, `None` a
+    /// candidate, tried in the order given, `Some(false)` a source kept out (a witness
+    /// only: the model and the judge still hear it). Without the choice, every source but
+    /// those kept out makes the fill.
+    pub choice: &'a [Option<bool>],
+    /// The whole keyframe's size when `key` is a part of it (the service fills the mask's
+    /// neighbourhood only): what scales with the keyframe (parallax, misregistration) is
+    /// measured on the whole, so that the part is filled as the whole would be.
+    pub whole: Option<(usize, usize)>,
 }
 
 /// A filled keyframe: the image, where each pixel came from, how sure the fill is of it,
@@ -491,10 +504,12 @@ pub fn fill_with<P: RgbPixel>(
     }
     observer.stage(Stage::Occlusion);
     let all: Vec<usize> = (0..nv).collect();
+    let (ww, wh) = extras.whole.unwrap_or((w, h));
+    let diagonal = (ww as f32).hypot(wh as f32);
     let maps: Vec<OcclusionMap> = parts
         .par_iter()
         .zip(warps.par_iter())
-        .map(|(part, ws)| region_model(key, part, &pick_views(ws, &all), params))
+        .map(|(part, ws)| region_model(key, part, &pick_views(ws, &all), diagonal, params))
         .collect();
 
     let errors: Vec<Vec<f32>> =
@@ -512,42 +527,85 @@ pub fn fill_with<P: RgbPixel>(
             .sum();
         sum / masked as f64
     };
-    let stage =
-        Staged { key, mask, parts: &parts, warps: &warps, maps: &maps, errors: &errors, params, seed };
+    let stage = Staged {
+        key,
+        mask,
+        parts: &parts,
+        warps: &warps,
+        maps: &maps,
+        errors: &errors,
+        diagonal,
+        params,
+        seed,
+    };
     if observer.cancelled() {
         return unfinished(surface, report);
     }
-    let (made, quality) = if params.select_views && nv >= 2 && masked * (nv - 1) <= params.select_budget {
-        // Views join in the order given, each only when the fill it makes with the views
-        // kept so far agrees with the evidence at least as well as the fill without it.
-        // Each trial is blended before it is judged: unblended, a view's exposure residue
-        // along the seams crossed the judge's gross difference and kept a good view out
-        // (hpatches-wormhole-3: 1.7 dB lost).
+    // Which sources may make the fill: those already in it, then the candidates (in the
+    // order given); a source kept out is a witness only.
+    let choice = |v: usize| extras.choice.get(v).copied().flatten();
+    let fixed: Vec<usize> = (0..nv).filter(|&v| choice(v) == Some(true)).collect();
+    let candidates: Vec<usize> =
+        (0..nv).filter(|&v| extras.choice.get(v).is_none_or(Option::is_none)).collect();
+    let rival_quality = extras.rival.filter(|r| (r.width(), r.height()) == (w, h)).map(judge);
+    // The bar a candidate must clear: the current result's, else the fill of the sources
+    // already in it, else none (the first candidate joins).
+    let base_trial = rival_quality.is_none() && !fixed.is_empty();
+    let trials = candidates.len() + usize::from(base_trial);
+    let choose = params.select_views
+        && !candidates.is_empty()
+        && (trials >= 2 || rival_quality.is_some())
+        && masked * trials <= params.select_budget;
+    let (made, quality) = if choose {
+        // Candidates join one by one, each only when the fill it makes with the sources in
+        // so far agrees with the evidence at least as well as the best result so far
+        // (the current one included), less the margin. Each trial is blended before it is
+        // judged: unblended, a view's exposure residue along the seams crossed the judge's
+        // gross difference and kept a good view out (hpatches-wormhole-3: 1.7 dB lost).
         observer.stage(Stage::Select);
         let trial = |views: &[usize], observer: &dyn Observer| {
             let made = stage.compose(views, &mut Quiet(observer));
             stage.blend(made, &mut Quiet(observer))
         };
-        let mut kept = vec![0];
-        let mut best = trial(&kept, &*observer);
-        let mut q = judge(&best.image);
-        observer.progress(1, nv);
-        for v in 1..nv {
+        let mut kept = fixed.clone();
+        let mut best: Option<(Made, f64)> = None;
+        let mut bar = rival_quality;
+        if base_trial {
+            let made = trial(&kept, &*observer);
+            let q = judge(&made.image);
+            bar = Some(q);
+            best = Some((made, q));
+        }
+        // With nothing joining, the best of the refused trials is returned: judged below
+        // the current result, it is not published.
+        let mut refused: Option<(Made, f64)> = None;
+        for (k, &v) in candidates.iter().enumerate() {
             if observer.cancelled() {
                 break;
             }
             let mut tried = kept.clone();
             tried.push(v);
+            tried.sort_unstable();
             let made = trial(&tried, &*observer);
-            let qt = judge(&made.image);
-            if qt >= q - params.select_margin {
-                (kept, best, q) = (tried, made, qt);
+            let q = judge(&made.image);
+            if bar.is_none_or(|b| q >= b - params.select_margin) {
+                kept = tried;
+                bar = Some(bar.map_or(q, |b| b.max(q)));
+                best = Some((made, q));
+            } else if refused.as_ref().is_none_or(|(_, r)| q > *r) {
+                refused = Some((made, q));
             }
-            observer.progress(v + 1, nv);
+            observer.progress(k + 1, candidates.len());
         }
-        (best, q)
+        match best.or(refused) {
+            Some(b) => b,
+            None => return unfinished(surface, report),
+        }
     } else {
-        let made = stage.compose(&all, observer);
+        let mut views = fixed.clone();
+        views.extend(&candidates);
+        views.sort_unstable();
+        let made = stage.compose(&views, observer);
         let made = stage.blend(made, observer);
         let q = if observer.cancelled() { 0.0 } else { judge(&made.image) };
         (made, q)
@@ -558,6 +616,9 @@ pub fn fill_with<P: RgbPixel>(
     for (s, &f) in report.sources.iter_mut().zip(&made.filled) {
         s.filled = f;
     }
+    for &v in &made.views {
+        report.sources[v].joined = true;
+    }
     report.fallback = made.fallback;
     for (&m, &c) in mask.as_slice().iter().zip(made.confidence.as_slice()) {
         if m > 127 {
@@ -565,7 +626,6 @@ pub fn fill_with<P: RgbPixel>(
             report.confidence_sum += f64::from(c) / 255.0;
         }
     }
-    let rival_quality = extras.rival.filter(|r| (r.width(), r.height()) == (w, h)).map(judge);
     report.witnessed_quality = quality;
     Filled {
         image: made.image,
@@ -607,6 +667,8 @@ struct Staged<'a> {
     maps: &'a [OcclusionMap],
     /// Per part, per source ([`view_errors`]: each view's own, whatever the others).
     errors: &'a [Vec<f32>],
+    /// The whole keyframe's diagonal ([`FillExtras::whole`]).
+    diagonal: f32,
     params: &'a FillParams,
     seed: u64,
 }
@@ -648,7 +710,7 @@ impl Staged<'_> {
             own = parts
                 .par_iter()
                 .zip(warps.par_iter())
-                .map(|(part, ws)| region_model(key, part, ws, params))
+                .map(|(part, ws)| region_model(key, part, ws, self.diagonal, params))
                 .collect();
             &own
         };
@@ -1057,7 +1119,13 @@ struct RegionFill {
 }
 
 /// The occlusion model over one region (all zeros with the model switched off).
-fn region_model(key: &RgbF32, part: &Part, warps: &[&Warped], params: &FillParams) -> OcclusionMap {
+fn region_model(
+    key: &RgbF32,
+    part: &Part,
+    warps: &[&Warped],
+    diagonal: f32,
+    params: &FillParams,
+) -> OcclusionMap {
     let r = part.rect;
     let n = r.area();
     if !params.occlusion {
@@ -1068,7 +1136,6 @@ fn region_model(key: &RgbF32, part: &Part, warps: &[&Warped], params: &FillParam
     }
     let pixels = key.crop(r).into_vec();
     let refs: Vec<_> = warps.iter().map(|wv| (wv.image.as_slice(), wv.valid.as_slice())).collect();
-    let diagonal = (key.width() as f32).hypot(key.height() as f32);
     let input = RegionInput { region: part.region(&pixels), views: &refs, diagonal };
     occlusion_map(&input, &params.occlusion_model)
 }
