@@ -722,7 +722,8 @@ impl Session {
         let rival = previous
             .and(self.result.as_ref())
             .map(|r| RgbF32::from_fn(r.width(), r.height(), |x, y| r.get(x, y).to_f32()));
-        let choice = self.choice(&used);
+        let choosing = self.params.fill.select_views;
+        let choice = if choosing { self.choice(&used) } else { Vec::new() };
         let extras = inpaint::FillExtras {
             rival: rival.as_ref(),
             choice: &choice,
@@ -763,7 +764,8 @@ impl Session {
         let mut confidence = Confidence::new(key.rgb.width(), key.rgb.height(), 0);
         confidence.paste(&filled.confidence, region);
         // A view tried and not in the published result is kept out of the next fills (a
-        // witness only) until it is tried again.
+        // witness only) until it is tried again. Without the choice (`choice` empty) no view
+        // is kept out.
         for ((&i, c), &j) in used.iter().zip(&choice).zip(&joined) {
             if better {
                 self.buffer[i].joined = Some(j);
