@@ -10,7 +10,8 @@
 //!     case folders as `fill_cases` writes them (key.png, mask.png, truth.png, view-N.png),
 //!     the views aligned as the fill command aligns them.
 //! `--dump DIR` writes each result and a map of its honesty there; `--prior X`, `--cut X`
-//! try other values of the model's parameters.
+//! try other values of the model's parameters; `--select off` uses every view, `--select M`
+//! lets a view into the fill unless it costs more than M of the judge's agreement.
 //!
 //! The targets: confident error rate <= 8 %, flagged recall >= 60 %, confident share
 //! >= 50 %.
@@ -170,6 +171,10 @@ fn main() {
             "--cut" => on.occlusion_model.cut = args[i + 1].parse().expect("--cut X"),
             "--weight" => on.occlusion_weight = args[i + 1].parse().expect("--weight X"),
             "--view-error" => on.view_error_weight = args[i + 1].parse().expect("--view-error X"),
+            "--select" => match args[i + 1].as_str() {
+                "off" => on.select_views = false,
+                m => on.select_margin = m.parse().expect("--select off|MARGIN"),
+            },
             "--dump" => dump = Some(PathBuf::from(&args[i + 1])),
             "--interpolation" => {
                 on.interpolation = match args[i + 1].as_str() {
@@ -210,7 +215,7 @@ fn main() {
     } else {
         dirs.iter().map(|d| load_dir(d)).collect()
     };
-    let off = FillParams { occlusion: false, view_error_weight: 0.0, ..on.clone() };
+    let off = FillParams { occlusion: false, view_error_weight: 0.0, select_views: false, ..on.clone() };
     println!(
         "| case | views | PSNR model | PSNR bypassed | confident | confident wrong | flagged recall | bypassed: confident wrong / recall | fill ms |"
     );

@@ -154,7 +154,7 @@ impl Default for AlignParams {
             hypotheses: 3,
             acceptance: Acceptance::default(),
             search: SearchParams::default(),
-            seed: 0x00c1_ea4e,
+            seed: crate::DEFAULT_SEED,
         }
     }
 }

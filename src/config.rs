@@ -125,7 +125,7 @@ impl Default for RawSession {
             batch_max: 8,
             margin_px: p.margin_px,
             auto_mask_views: 2,
-            seed: 1,
+            seed: p.seed,
         }
     }
 }

@@ -28,6 +28,10 @@
 //! The edges (`main.rs`, [`cli`], [`config`]) parse arguments and TOML, read files and
 //! print; [`fsio`] is their and the service's crash-safe file write.
 
+/// The seed of every random choice unless told otherwise: the one-shot fill, the service
+/// and the alignment share it, so that they make the same result of the same views.
+pub const DEFAULT_SEED: u64 = 0x00c1_ea4e;
+
 pub mod align;
 pub mod cli;
 pub mod config;

@@ -88,6 +88,9 @@ pub struct SessionParams {
     pub margin_px: usize,
     /// Seed of the fill.
     pub seed: u64,
+    /// Views kept out of the result that each fill tries again (the
+    /// newest first): the views that arrived since may back them.
+    pub retries: usize,
     pub align: AlignParams,
     pub fill: FillParams,
     pub auto_mask: AutoMaskParams,
@@ -100,7 +103,8 @@ impl Default for SessionParams {
             min_new_pixels: 64,
             witnesses: 3,
             margin_px: 48,
-            seed: 1,
+            seed: crate::DEFAULT_SEED,
+            retries: 2,
             align: AlignParams::default(),
             fill: FillParams::default(),
             auto_mask: AutoMaskParams::default(),
@@ -179,6 +183,9 @@ pub struct Buffered {
     crop: Option<Crop>,
     /// Masked pixels the last fill took from this view (`None`: not in a fill yet).
     pub contribution: Option<usize>,
+    /// Whether the current result is made from this view (`Some(true)`), was judged better
+    /// without it (`Some(false)`: a witness only), or the view was not tried yet.
+    pub joined: Option<bool>,
     seq: u64,
 }
 
@@ -385,6 +392,7 @@ impl Session {
         for b in &mut self.buffer {
             b.crop = None;
             b.contribution = None;
+            b.joined = None;
         }
     }
 
@@ -485,7 +493,15 @@ impl Session {
         }
         self.seq += 1;
         let ready = crop.is_some();
-        self.buffer.push(Buffered { id, record, homography, crop, contribution: None, seq: self.seq });
+        self.buffer.push(Buffered {
+            id,
+            record,
+            homography,
+            crop,
+            contribution: None,
+            joined: None,
+            seq: self.seq,
+        });
         let dropped = self.evict(improves);
         if improves && ready {
             self.dirty = true;
@@ -701,9 +717,19 @@ impl Session {
                 Source { image: &crop.image, homography: crop.homography.after(&into_region) }
             })
             .collect();
-        let rival =
-            self.result.as_ref().map(|r| RgbF32::from_fn(r.width(), r.height(), |x, y| r.get(x, y).to_f32()));
-        let extras = inpaint::FillExtras { rival: rival.as_ref(), ..inpaint::FillExtras::default() };
+        // The current result is the bar a new view must clear, unless it no longer stands
+        // (a view it took pixels from was forgotten).
+        let rival = previous
+            .and(self.result.as_ref())
+            .map(|r| RgbF32::from_fn(r.width(), r.height(), |x, y| r.get(x, y).to_f32()));
+        let choosing = self.params.fill.select_views;
+        let choice = if choosing { self.choice(&used) } else { Vec::new() };
+        let extras = inpaint::FillExtras {
+            rival: rival.as_ref(),
+            choice: &choice,
+            whole: Some((key.rgb.width(), key.rgb.height())),
+            ..inpaint::FillExtras::default()
+        };
         let filled = inpaint::fill_with(
             &key_region,
             &mask_region,
@@ -722,6 +748,7 @@ impl Session {
         for (&i, s) in used.iter().zip(&filled.report.sources) {
             self.buffer[i].contribution = Some(s.filled);
         }
+        let joined: Vec<bool> = filled.report.sources.iter().map(|s| s.joined).collect();
         let views = used.iter().map(|&i| self.buffer[i].id.clone()).collect();
         let score = filled.report.expected_quality();
         // The current result and the new fill judged on the same views (the new ones
@@ -736,6 +763,16 @@ impl Session {
         };
         let mut confidence = Confidence::new(key.rgb.width(), key.rgb.height(), 0);
         confidence.paste(&filled.confidence, region);
+        // A view tried and not in the published result is kept out of the next fills (a
+        // witness only) until it is tried again. Without the choice (`choice` empty) no view
+        // is kept out.
+        for ((&i, c), &j) in used.iter().zip(&choice).zip(&joined) {
+            if better {
+                self.buffer[i].joined = Some(j);
+            } else if c.is_none() {
+                self.buffer[i].joined = Some(false);
+            }
+        }
         let image = if better {
             self.best = Some(score);
             self.provenance = Some(filled.provenance);
@@ -758,6 +795,19 @@ impl Session {
             digest,
             confidence: Some(confidence),
         })
+    }
+
+    /// What the next fill may do with each of the buffered views `used` (indices): those in
+    /// the current result stay, new ones are tried, and of those kept out the
+    /// [`SessionParams::retries`] newest are tried again.
+    fn choice(&self, used: &[usize]) -> Vec<Option<bool>> {
+        let mut out: Vec<Option<bool>> = used.iter().map(|&i| self.buffer[i].joined).collect();
+        let mut out_of_it: Vec<usize> = (0..used.len()).filter(|&k| out[k] == Some(false)).collect();
+        out_of_it.sort_by_key(|&k| std::cmp::Reverse(self.buffer[used[k]].seq));
+        for k in out_of_it.into_iter().take(self.params.retries) {
+            out[k] = None;
+        }
+        out
     }
 
     /// The current result (`result`, as [`FillOutcome::image`] gave it) with the keyframe's
@@ -1091,6 +1141,36 @@ mod tests {
         let third = s.fill(&mut ()).unwrap();
         assert!(third.image.is_some(), "a result the views contradict was kept");
         assert!(third.score < 2.0);
+    }
+
+    #[test]
+    fn a_view_kept_out_stays_out_of_the_next_fills_until_it_is_tried_again() {
+        let mut s = Session::new(SessionParams { retries: 0, ..params() });
+        s.set_key("key".into(), synth::facade(W, H, 5));
+        s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+        let view = to8(&synth::facade(W, H, 9));
+        for id in ["a", "b"] {
+            s.admit(id.into(), record(&Homography::identity()), Some(&view)).unwrap();
+        }
+        assert!(s.buffer.iter().all(|b| b.joined.is_none()));
+        assert!(s.fill(&mut ()).unwrap().image.is_some());
+        assert!(s.buffer.iter().all(|b| b.joined == Some(true)), "both views are in the first result");
+        // As if b had been judged worse at its fill: the next fills leave it out.
+        s.buffer[1].joined = Some(false);
+        s.dirty = true;
+        let second = s.fill(&mut ()).unwrap();
+        assert!(!second.report.sources[1].joined);
+        assert_eq!(second.report.sources[1].filled, 0, "a view kept out filled pixels");
+        assert_eq!(s.buffer[1].joined, Some(false));
+        // Tried again (as good as a, whose pixels it repeats), it joins.
+        s.params.retries = 1;
+        s.dirty = true;
+        let third = s.fill(&mut ()).unwrap();
+        assert!(third.report.sources[1].joined, "a view tried again was left out");
+        assert_eq!(s.buffer[1].joined, Some(true));
+        // A new mask: every view is tried afresh.
+        s.set_mask("mask2".into(), square_mask(30, 20, 12)).unwrap();
+        assert!(s.buffer.iter().all(|b| b.joined.is_none()));
     }
 
     #[test]

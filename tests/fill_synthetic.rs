@@ -12,7 +12,7 @@ use rand_chacha::ChaCha8Rng;
 use clearview::geometry::Homography;
 use clearview::imaging::metrics::masked_psnr;
 use clearview::imaging::{Mask, RgbF32};
-use clearview::inpaint::{FALLBACK, FillParams, Filled, KEYFRAME, Source, fill};
+use clearview::inpaint::{FALLBACK, FillExtras, FillParams, Filled, KEYFRAME, Source, fill, fill_with};
 use clearview::synth::{self, Occluder, half};
 
 const W: usize = 480;
@@ -187,13 +187,13 @@ fn views_that_reproduce_the_keyframe_badly_around_the_hole_are_avoided() {
     for hm in &mut s.homographies[2..] {
         *hm = Homography::translation(3.5, -3.0).after(hm);
     }
-    let on = masked_psnr(&s.run(&FillParams::default()).image, &s.truth, &s.mask);
-    let off = masked_psnr(
-        &s.run(&FillParams { view_error_weight: 0.0, ..FillParams::default() }).image,
-        &s.truth,
-        &s.mask,
-    );
-    eprintln!("expected view errors on {on:.1} dB, off {off:.1} dB");
+    // Every view in the fill (the choice of views by the judge would leave these two out
+    // too, and this test is about the expected error).
+    let all = FillParams { select_views: false, ..FillParams::default() };
+    let on = masked_psnr(&s.run(&all).image, &s.truth, &s.mask);
+    let off = masked_psnr(&s.run(&FillParams { view_error_weight: 0.0, ..all }).image, &s.truth, &s.mask);
+    let chosen = masked_psnr(&s.run(&FillParams::default()).image, &s.truth, &s.mask);
+    eprintln!("expected view errors on {on:.1} dB, off {off:.1} dB; views chosen {chosen:.1} dB");
     assert!(on > off + 0.5, "on {on:.1} dB, off {off:.1} dB");
 }
 
@@ -288,7 +288,38 @@ fn what_no_view_saw_comes_from_the_fallback() {
     assert_eq!(out.provenance.as_slice().iter().filter(|&&p| p == FALLBACK).count(), r.masked);
 }
 
-/// The stages are reported in order, with progress.
+/// A source the choice keeps out (the service's view judged worse before) makes no pixel of
+/// the result, but is still heard; one already in is not tried again; candidates are.
+#[test]
+fn a_source_kept_out_makes_no_pixel_and_one_in_is_not_tried_again() {
+    let s = scene(3);
+    let sources = s.sources();
+    let n = sources.len();
+    assert!(n >= 3);
+    let run = |choice: &[Option<bool>]| {
+        let extras = FillExtras { choice, ..FillExtras::default() };
+        fill_with(&s.key, &s.mask, &sources, &extras, &FillParams::default(), 1, &mut ())
+    };
+    let mut choice = vec![None; n];
+    choice[0] = Some(true);
+    choice[1] = Some(false);
+    let out = run(&choice);
+    let from = |v: usize| out.provenance.as_slice().iter().filter(|&&p| usize::from(p) == 1 + v).count();
+    assert_eq!(from(1), 0, "a source kept out filled pixels");
+    assert_eq!(out.report.sources[1].filled, 0);
+    assert!(!out.report.sources[1].joined);
+    assert!(out.report.sources[0].joined, "a source in the result was left out");
+    assert!(from(0) > 0);
+    // Every source kept out but one: the fill is that one's, whatever the others show.
+    let mut only = vec![Some(false); n];
+    only[2] = Some(true);
+    let out = run(&only);
+    assert!(out.report.sources.iter().enumerate().all(|(v, r)| r.joined == (v == 2)));
+    assert_eq!(out.report.sources.iter().map(|r| r.filled).sum::<usize>(), out.report.sources[2].filled);
+}
+
+/// The stages are reported in order, with progress: with several views the fill, fallback
+/// and blend run inside the choice of views (one trial per view), with one view as they are.
 #[test]
 fn the_observer_sees_every_stage() {
     use clearview::inpaint::{Observer, Stage};
@@ -305,6 +336,10 @@ fn the_observer_sees_every_stage() {
     let s = scene(3);
     let mut log = Log::default();
     fill(&s.key, &s.mask, &s.sources(), &FillParams::default(), 1, &mut log);
+    assert_eq!(log.0, vec![Stage::Warp, Stage::Photometric, Stage::Occlusion, Stage::Select]);
+    assert!(log.1 >= 4);
+    let mut log = Log::default();
+    fill(&s.key, &s.mask, &s.sources()[..1], &FillParams::default(), 1, &mut log);
     assert_eq!(
         log.0,
         vec![Stage::Warp, Stage::Photometric, Stage::Occlusion, Stage::Fill, Stage::Fallback, Stage::Blend]

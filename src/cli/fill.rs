@@ -73,7 +73,7 @@ pub struct FillArgs {
     #[arg(long, default_value_t = DecodeLimits::default().max_pixels)]
     pub max_pixels: u64,
     /// Seed for every random choice.
-    #[arg(long, default_value_t = 0x00c1_ea4e)]
+    #[arg(long, default_value_t = crate::DEFAULT_SEED)]
     pub seed: u64,
     /// Also sweep the surfaces standing off the wall (balconies, pilasters, signs) and fill
     /// each masked pixel through the one the views agree on. Off by default: on generated

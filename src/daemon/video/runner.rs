@@ -403,10 +403,15 @@ impl Runner {
 /// fringe of those occluders. Measured on the rendered walks (BENCHMARKS.md, "Video
 /// target, ninth pass"): first frame of seeds 13–24 +0.2 to +2.7 dB on seven, −0.1 to
 /// −1.1 dB on four.
+///
+/// A walk's fill uses every buffered frame (no choice of views, `FillParams::select_views`):
+/// frames come in batches between fills, and each candidate would cost a trial fill; the
+/// choice was measured on the folder service's cases, not yet on walks.
 fn walk_params(mut params: SessionParams) -> SessionParams {
     let fill = &mut params.fill;
     fill.occlusion_model.sure = fill.occlusion_model.cut;
     fill.fallback_guide_from = None;
+    fill.select_views = false;
     params
 }
 
@@ -472,10 +477,12 @@ mod tests {
         let (model, fill) = (&walk.fill.occlusion_model, &walk.fill);
         assert_eq!(model.sure, model.cut, "a pixel every frame doubts is not copied");
         assert_eq!(fill.fallback_guide_from, None, "the guide takes no view pixel");
+        assert!(!fill.select_views, "a walk's fill chooses no frames");
         // The rest is the service's.
         let mut back = walk.clone();
         back.fill.occlusion_model.sure = base.fill.occlusion_model.sure;
         back.fill.fallback_guide_from = base.fill.fallback_guide_from;
+        back.fill.select_views = base.fill.select_views;
         assert_eq!(back, base);
     }
 
