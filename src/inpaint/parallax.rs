@@ -408,6 +408,10 @@ struct Sweep<'a> {
     per_px: f64,
 }
 
+/// One view swept alone ([`Sweep::tie`]): its depths (its own scale of `γ`), its costs per
+/// depth and band pixel, and each band pixel's supported vote (a depth).
+type Alone = (Vec<f64>, Vec<Vec<f32>>, Vec<Option<f64>>);
+
 /// The joint sweep's evidence: per depth (`labels`), per scored pixel (`pixels`: the band's,
 /// then the hole's; indices into the band's rect) the cost, and each pixel's supported vote.
 struct Votes {
@@ -498,7 +502,6 @@ impl<'a> Sweep<'a> {
         let nv = views_w.len();
         // 1. Each view on its own (its own scale of γ): its costs at its depths, and the depth
         //    each band pixel votes for.
-        type Alone = (Vec<f64>, Vec<Vec<f32>>, Vec<Option<f64>>);
         let alone: Vec<Option<Alone>> = (0..nv)
             .map(|v| {
                 let rate = own.rate(v, self.centre) * self.per_px;
@@ -520,10 +523,24 @@ impl<'a> Sweep<'a> {
             })
             .collect();
         let count = |v: usize| alone[v].as_ref().map_or(0, |a| a.2.iter().flatten().count());
-        let reference = (0..nv).max_by_key(|&v| (count(v), std::cmp::Reverse(v))).expect("views");
-        if count(reference) < params.min_votes {
-            return None;
-        }
+        // The reference: the view with the most supported votes; when fewer than two views
+        // tie to it (its epipole from the sparse matches is wrong, and its many votes are
+        // repeats the others cannot confirm), the next one, and so on.
+        let counts: Vec<usize> = (0..nv).map(count).collect();
+        by_votes(&counts, params.min_votes, |reference| self.tie_to(own, &alone, reference))
+    }
+
+    /// Steps 2–2b of [`Self::tie`] with view `reference` as the reference, from each view's
+    /// sweep alone (`alone`: its depths, costs and supported votes); `None` when fewer than
+    /// two views are left.
+    fn tie_to(
+        &self,
+        own: &ParallaxFamily,
+        alone: &[Option<Alone>],
+        reference: usize,
+    ) -> Option<ParallaxFamily> {
+        let (params, band, views_w) = (self.params, &self.band, &self.views_w);
+        let nv = views_w.len();
         // 2. The views' scales: where the reference votes for depth γ, view `v` must see the
         //    same surface at `k·γ`; `k` is the factor with the lowest mean cost there, or
         //    (`repair_ties`) the one the view confirms most of them under ([`tie_scale`]).
@@ -1349,6 +1366,14 @@ fn scale_factor(i: usize, params: &SweepParams) -> f64 {
     sign * (lo.ln() + t * (hi / lo).ln()).exp()
 }
 
+/// `tie(reference)` for the views with at least `min_votes` votes (`counts`), most votes
+/// first (ties to the lower index), until one gives a result.
+fn by_votes<T>(counts: &[usize], min_votes: usize, tie: impl FnMut(usize) -> Option<T>) -> Option<T> {
+    let mut order: Vec<usize> = (0..counts.len()).filter(|&v| counts[v] >= min_votes).collect();
+    order.sort_by_key(|&v| (std::cmp::Reverse(counts[v]), v));
+    order.into_iter().find_map(tie)
+}
+
 /// A view's scale of `γ` against the reference's ([`tie_scale`]).
 #[derive(Debug, Clone, PartialEq)]
 struct Tie {
@@ -2067,6 +2092,29 @@ mod tests {
     /// the reference's repeats of the wall's texture, where the view agrees fairly (0.35)
     /// just off the wall and worse farther. The lowest mean cost over all votes lies near the
     /// wall (asserted: the trap); the factor most votes confirm is the surface's.
+    /// Fresh seed 12's pattern: the view with the most votes (its sparse epipole wrong, its
+    /// votes repeats) ties no other view; the next view by votes is the reference then. A
+    /// view with too few votes is never one.
+    #[test]
+    fn when_no_view_ties_to_the_reference_the_next_by_votes_is_tried() {
+        let mut tried = Vec::new();
+        let tie = by_votes(&[4161, 3504, 6484], 150, |r| {
+            tried.push(r);
+            (r != 2).then_some(r)
+        });
+        assert_eq!(tie, Some(0));
+        assert_eq!(tried, [2, 0]);
+        let mut tried = Vec::new();
+        let none: Option<usize> = by_votes(&[100, 3504, 3504], 150, |r| {
+            tried.push(r);
+            None
+        });
+        assert_eq!(none, None);
+        assert_eq!(tried, [1, 2]);
+        // The first that ties is kept (the others are not swept).
+        assert_eq!(by_votes(&[10, 500, 900], 150, Some), Some(2));
+    }
+
     #[test]
     fn the_scale_tie_follows_the_votes_the_view_confirms_not_the_mean() {
         let params = SweepParams { repair_ties: true, ..SweepParams::default() };
