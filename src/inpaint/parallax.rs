@@ -2086,12 +2086,6 @@ mod tests {
         assert!(found.epipoles[1].is_none(), "another texture does not agree");
     }
 
-    /// The tie of a view's scale of `γ` to the reference's, on costs built to the pattern
-    /// the generated facades show: 40 % of the reference's votes are on a surface the view
-    /// sees (at `k = −1.5` it agrees closely, elsewhere not, the wall worst), the rest are
-    /// the reference's repeats of the wall's texture, where the view agrees fairly (0.35)
-    /// just off the wall and worse farther. The lowest mean cost over all votes lies near the
-    /// wall (asserted: the trap); the factor most votes confirm is the surface's.
     /// Fresh seed 12's pattern: the view with the most votes (its sparse epipole wrong, its
     /// votes repeats) ties no other view; the next view by votes is the reference then. A
     /// view with too few votes is never one.
@@ -2115,6 +2109,12 @@ mod tests {
         assert_eq!(by_votes(&[10, 500, 900], 150, Some), Some(2));
     }
 
+    /// The tie of a view's scale of `γ` to the reference's, on costs built to the pattern
+    /// the generated facades show: 40 % of the reference's votes are on a surface the view
+    /// sees (at `k = −1.5` it agrees closely, elsewhere not, the wall worst), the rest are
+    /// the reference's repeats of the wall's texture, where the view agrees fairly (0.35)
+    /// just off the wall and worse farther. The lowest mean cost over all votes lies near the
+    /// wall (asserted: the trap); the factor most votes confirm is the surface's.
     #[test]
     fn the_scale_tie_follows_the_votes_the_view_confirms_not_the_mean() {
         let params = SweepParams { repair_ties: true, ..SweepParams::default() };
