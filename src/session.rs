@@ -171,6 +171,11 @@ struct Crop {
     image: Rgb8,
     /// Keyframe → crop coordinates.
     homography: Homography,
+    /// Where the crop is in the view.
+    rect: Rect,
+    /// Crop-sized: the view's own pixels known to show an occluder (never copied; see
+    /// [`Session::set_view_occluders`]).
+    occluders: Option<Mask>,
 }
 
 /// One buffered view.
@@ -488,7 +493,12 @@ impl Session {
             }
             improves = fallback_px.max(weak_px).max(doubtful_px) >= self.params.min_new_pixels;
             if let Some(p) = pixels {
-                crop = Some(Crop { image: p.crop(rect), homography: into_crop(&homography, &rect) });
+                crop = Some(Crop {
+                    image: p.crop(rect),
+                    homography: into_crop(&homography, &rect),
+                    rect,
+                    occluders: None,
+                });
             }
         }
         self.seq += 1;
@@ -508,6 +518,21 @@ impl Session {
             self.admitted_since_fill += 1;
         }
         Ok(Admission::Accepted { improves, fallback_px, weak_px, doubtful_px, dropped })
+    }
+
+    /// Marks the pixels of buffered view `id` that show an occluder of its own
+    /// (`occluders`: view-sized, 255 = occluder, found by the caller from other evidence,
+    /// such as the frames of a walk around it): the fill never copies them
+    /// ([`inpaint::FillExtras::occluders`]). Whether the view is buffered with pixels and
+    /// the mask fits it.
+    pub fn set_view_occluders(&mut self, id: &str, occluders: &Mask) -> bool {
+        let Some(b) = self.buffer.iter_mut().find(|b| b.id == id) else { return false };
+        let Some(crop) = b.crop.as_mut() else { return false };
+        if (occluders.width(), occluders.height()) != b.record.view_size {
+            return false;
+        }
+        crop.occluders = Some(occluders.crop(crop.rect));
+        true
     }
 
     /// Forgets buffered view `id` (its file now holds other pixels, or none): its pixels
@@ -667,6 +692,19 @@ impl Session {
             h.write(id.as_bytes());
             h.write(&[0]);
         }
+        // Views' own occluders (set by the caller after admission) change the fill too.
+        let mut marked: Vec<&str> = self
+            .buffer
+            .iter()
+            .filter(|b| b.crop.as_ref().is_some_and(|c| c.occluders.is_some()))
+            .map(|b| b.id.as_str())
+            .collect();
+        marked.sort_unstable();
+        for id in marked {
+            h.write(b"occluders:");
+            h.write(id.as_bytes());
+            h.write(&[0]);
+        }
         h.write(&self.params.seed.to_le_bytes());
         h.write(SCORE_RULE);
         h.finish()
@@ -724,10 +762,14 @@ impl Session {
             .map(|r| RgbF32::from_fn(r.width(), r.height(), |x, y| r.get(x, y).to_f32()));
         let choosing = self.params.fill.select_views;
         let choice = if choosing { self.choice(&used) } else { Vec::new() };
+        let occluders: Vec<Option<&Mask>> =
+            used.iter().map(|&i| self.buffer[i].crop.as_ref().and_then(|c| c.occluders.as_ref())).collect();
+        let occluders = if occluders.iter().any(Option::is_some) { &occluders[..] } else { &[] };
         let extras = inpaint::FillExtras {
             rival: rival.as_ref(),
             choice: &choice,
             whole: Some((key.rgb.width(), key.rgb.height())),
+            occluders,
             ..inpaint::FillExtras::default()
         };
         let filled = inpaint::fill_with(
@@ -962,6 +1004,43 @@ mod tests {
         assert!(s.mask().is_none() && !s.needs_fill());
         assert_eq!(s.buffered().len(), 1);
         assert!(!s.buffered()[0].has_pixels());
+    }
+
+    /// Three views show a red board over the mask (their own occluder, at the same place).
+    /// Taken at their word, they agree and the board is copied; with their boards marked
+    /// ([`Session::set_view_occluders`]) no pixel of it is.
+    #[test]
+    fn a_views_own_occluders_are_not_copied_once_marked() {
+        let facade = synth::facade(W, H, 5);
+        let board = |x: usize, y: usize| (41..49).contains(&x) && (31..39).contains(&y);
+        let boarded =
+            |c: [f32; 3]| RgbF32::from_fn(W, H, |x, y| if board(x, y) { c } else { facade.get(x, y) });
+        let mask = square_mask(40, 30, 10);
+        let marks = Mask::from_fn(W, H, |x, y| if board(x, y) { 255 } else { 0 });
+        let red_in_hole = |marked: bool| {
+            let mut s = Session::new(SessionParams { buffer: 8, ..params() });
+            s.set_key("key".into(), boarded([0.1, 0.1, 0.9]));
+            s.set_mask("mask".into(), mask.clone()).unwrap();
+            let h = Homography::identity();
+            for v in ["a", "b", "c"] {
+                s.admit(v.into(), record(&h), Some(&to8(&boarded([0.9, 0.1, 0.1])))).unwrap();
+                if marked {
+                    assert!(s.set_view_occluders(v, &marks));
+                }
+            }
+            assert_eq!(s.buffered().len(), 3);
+            s.fill(&mut ()).unwrap();
+            let p = s.provenance().unwrap();
+            // Sources in buffer order, from 1: the boarded views are 1..=3.
+            let from_boards = (0..W * H)
+                .filter(|&i| mask.as_slice()[i] > 127 && board(i % W, i / W))
+                .filter(|&i| (1..=3).contains(&p.as_slice()[i]))
+                .count();
+            from_boards as f64 / 64.0
+        };
+        let (plain, marked) = (red_in_hole(false), red_in_hole(true));
+        assert!(plain > 0.5, "unmarked, the three boards should win: {plain:.2} from them");
+        assert!(marked < 0.01, "marked, the boards were copied: {marked:.2} from them");
     }
 
     #[test]

@@ -26,6 +26,7 @@ use crate::daemon::state;
 use crate::geometry::Homography;
 use crate::imaging::convert::to_luminance;
 use crate::imaging::{GrayF32, Mask, RgbF32};
+use crate::inpaint::{Source, auto_mask};
 use crate::session::{AlignRecord, Rgb8, Session, SessionParams};
 
 /// Kept frames from before the keyframe that wait for it (the latest ones).
@@ -33,6 +34,10 @@ const PRE_KEY_FRAMES: usize = 8;
 
 /// Frames buffered without calling for a fill after which a video refills anyway.
 const REFILL_AFTER: usize = 4;
+
+/// The latest accepted frames (the keyframe among them) against which a new frame's own
+/// occluders are found ([`Runner::own_occluders`]).
+const NEIGHBOURS: usize = 3;
 
 /// An accepted frame waiting for the automatic mask: its id, index and time, alignment,
 /// pixels and alignment time.
@@ -55,6 +60,9 @@ pub(super) struct Runner {
     /// its stream time, keyframe → frame map and grey pixels. A frame the keyframe alone
     /// cannot place is aligned to it and the two maps chained ([`Self::chain`]).
     last_accepted: Option<(f64, Homography, GrayF32)>,
+    /// The latest accepted frames (at most [`NEIGHBOURS`], the keyframe first): their
+    /// keyframe → frame maps and pixels, the evidence for a new frame's own occluders.
+    neighbours: VecDeque<(Homography, RgbF32)>,
     /// Kept frames that arrived before the keyframe (at most [`PRE_KEY_FRAMES`], the
     /// latest): aligned once it is set, since they saw what the keyframe's occluders hide.
     pre_key: VecDeque<(u64, f64, DynamicImage, Instant)>,
@@ -80,6 +88,7 @@ impl Runner {
             stash: Vec::new(),
             pre_key: VecDeque::new(),
             last_accepted: None,
+            neighbours: VecDeque::new(),
             buffered_since_fill: 0,
             pending_since: None,
             run_id,
@@ -180,6 +189,8 @@ impl Runner {
         self.track.clear();
         self.track.push_back((t, Homography::identity()));
         self.last_accepted = None;
+        self.neighbours.clear();
+        self.neighbours.push_back((Homography::identity(), rgb8_to_f32(&rgb8(image))));
         let (w, h) = (image.width(), image.height());
         tracing::info!(key = %name, t, width = w, height = h, "keyframe set");
         self.write_keyframe(image);
@@ -218,6 +229,8 @@ impl Runner {
         self.track.push_back((t_key, Homography::identity()));
         // The frames after the keyframe chain from those after it, never across it.
         self.last_accepted = None;
+        // Their own occluders are judged against the keyframe and the frames after it.
+        self.neighbours.truncate(1);
     }
 
     fn take_frame(&mut self, index: u64, t: f64, image: &DynamicImage, arrived: Instant) {
@@ -275,9 +288,14 @@ impl Runner {
             return;
         }
         let pixels = record.accepted.then(|| rgb8(image));
+        let h = record.homography().filter(|_| record.accepted);
         let before = self.slot.session.inputs_digest();
+        let key = id.as_str().to_owned();
         if self.admit(id, (index, t), record, pixels.as_ref(), align_ms, arrived) {
             self.pending_since.get_or_insert(arrived);
+        }
+        if let (Some(h), Some(px)) = (h, pixels) {
+            self.own_occluders(&key, h, rgb8_to_f32(&px));
         }
         if self.slot.session.inputs_digest() != before {
             self.buffered_since_fill += 1;
@@ -323,6 +341,39 @@ impl Runner {
         };
         record.homography = Some(h.after(to_last).rows());
         Some(record)
+    }
+
+    /// Finds the occluders of buffered frame `id` (keyframe → frame map `h`, pixels `rgb`)
+    /// against the latest accepted frames, as the automatic mask finds a keyframe's
+    /// ([`crate::inpaint::auto_mask`], the frame in the keyframe's place), and has the
+    /// fill never copy them; then the frame joins those neighbours. A walk's near trees,
+    /// cars and people move against the facade from one frame to the next, so each frame's
+    /// own occluders disagree with the facade its neighbours show there; the occlusion
+    /// model, judging every frame's pixel against the others, doubts them but not always
+    /// enough when several frames carry pieces of occluders over one pixel (BENCHMARKS.md,
+    /// "Video target, tenth pass").
+    fn own_occluders(&mut self, id: &str, h: Homography, rgb: RgbF32) {
+        let buffered = self.slot.session.buffered().iter().any(|b| b.id == id && b.has_pixels());
+        if buffered && let Some(back) = h.inverse() {
+            let sources: Vec<Source<'_>> = self
+                .neighbours
+                .iter()
+                .map(|(g, image)| Source { image, homography: g.after(&back) })
+                .collect();
+            let mut params = self.slot.session.params().auto_mask.clone();
+            params.min_views = params.min_views.min(sources.len());
+            let mask = auto_mask(&rgb, &sources, &params);
+            drop(sources);
+            let share = mask.as_slice().iter().filter(|&&v| v > 127).count() as f64
+                / mask.as_slice().len().max(1) as f64;
+            tracing::debug!(view = id, share, "a frame's own occluders");
+            self.slot.session.set_view_occluders(id, &mask);
+        }
+        if self.neighbours.len() >= NEIGHBOURS {
+            // The keyframe stays: it is the one every frame overlaps most with the mask.
+            self.neighbours.remove(1);
+        }
+        self.neighbours.push_back((h, rgb));
     }
 
     /// The automatic mask from the stashed frames, then their admission with pixels.
@@ -412,8 +463,15 @@ fn walk_params(mut params: SessionParams) -> SessionParams {
     fill.occlusion_model.sure = fill.occlusion_model.cut;
     fill.fallback_guide_from = None;
     fill.select_views = false;
+    fill.occluders_where_alone = Some(WALK_ALONE);
     params
 }
+
+/// A pixel that at least this many frames see, and all of them mark as their own
+/// occluder ([`Runner::own_occluders`]), is copied all the same
+/// ([`crate::inpaint::FillParams::occluders_where_alone`]): near occluders move across the
+/// facade from frame to frame, so few of them hide one spot from that many frames.
+const WALK_ALONE: usize = 9;
 
 /// Whether two alignments of one frame place the keyframe differently: a grid of the
 /// frame's points, taken back to the keyframe by `b` and sent to the frame again by `a`,
@@ -478,11 +536,13 @@ mod tests {
         assert_eq!(model.sure, model.cut, "a pixel every frame doubts is not copied");
         assert_eq!(fill.fallback_guide_from, None, "the guide takes no view pixel");
         assert!(!fill.select_views, "a walk's fill chooses no frames");
+        assert_eq!(fill.occluders_where_alone, Some(WALK_ALONE), "what every frame marks");
         // The rest is the service's.
         let mut back = walk.clone();
         back.fill.occlusion_model.sure = base.fill.occlusion_model.sure;
         back.fill.fallback_guide_from = base.fill.fallback_guide_from;
         back.fill.select_views = base.fill.select_views;
+        back.fill.occluders_where_alone = base.fill.occluders_where_alone;
         assert_eq!(back, base);
     }
 
