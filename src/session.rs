@@ -62,12 +62,10 @@ pub use crate::imaging::Rgb8;
 pub const SAME_AS_KEY: f64 = 0.02;
 
 /// The current result stays against a new fill only when the views back it on at least
-/// this share of the mask more than the new fill ([`FillReport::witnessed_quality`]). The
-/// judge cannot see the blur and sub-pixel placement that separate two good fills, and the
-/// new fill is the one `clearview fill` makes of the same views: on a near tie it is
-/// published, so that where views arrive one by one or in batches the session ends with
-/// the same result.
-pub const KEEP_MARGIN: f64 = 0.005;
+/// this share of the mask more than the new fill: the default of the fill's own margin for
+/// a view to join (`FillParams::select_margin`), which the publish rule uses, so that a view
+/// the fill lets join is one the session publishes.
+pub use crate::inpaint::KEEP_MARGIN;
 
 /// Goes into [`Session::inputs_digest`]: a result saved under another score rule (the share
 /// from views, before the occlusion model) is not taken as this rule's score after an
@@ -800,7 +798,9 @@ impl Session {
         // from before a restart) the scores are compared.
         let better = match (previous, filled.rival_quality) {
             (None, _) => true,
-            (Some(_), Some(rival)) => filled.report.witnessed_quality >= rival - KEEP_MARGIN,
+            (Some(_), Some(rival)) => {
+                filled.report.witnessed_quality >= rival - self.params.fill.select_margin
+            }
             (Some(b), None) => score >= b - 1e-9,
         };
         let mut confidence = Confidence::new(key.rgb.width(), key.rgb.height(), 0);

@@ -104,6 +104,13 @@ pub trait Observer {
 /// An observer that ignores everything.
 impl Observer for () {}
 
+/// How much less than the current result (a share of the mask, [`FillReport::witnessed_quality`])
+/// a fill with a new view may be judged and still win. The judge cannot see the blur and
+/// sub-pixel placement that separate two good fills, and the new fill has the evidence as it
+/// now is: on a near tie it wins, so that where views arrive one by one or in batches a
+/// session ends with the result `clearview fill` makes of them.
+pub const KEEP_MARGIN: f64 = 0.005;
+
 /// Per-source figures of a result.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct SourceReport {
@@ -234,7 +241,7 @@ pub struct FillParams {
     /// well as the fill without it, less `select_margin`. Off, every view is used.
     pub select_views: bool,
     /// How much of the judge's agreement (a share of the mask) a view may cost and still
-    /// join: the service's own margin (`session::KEEP_MARGIN`), below which the judge does
+    /// join ([`KEEP_MARGIN`]; the service's publish rule uses the same), below which the judge does
     /// not tell two good fills apart (at 0.001 a view worth 3.7 dB was kept out).
     pub select_margin: f64,
     /// The choice costs one trial fill per view after the first; it is made only while
@@ -266,7 +273,7 @@ impl Default for FillParams {
             occluders_where_alone: None,
             parallax: ParallaxParams::default(),
             select_views: true,
-            select_margin: 0.005,
+            select_margin: KEEP_MARGIN,
             select_budget: 4_000_000,
         }
     }
