@@ -48,6 +48,17 @@ pub struct AutoMaskParams {
     /// An object grows into neighbouring pixels whose colour is this many times more likely
     /// under the object's own colours than under the building's.
     pub colour_ratio: f32,
+    /// After the first growth by colour, up to this many more around each object, each from
+    /// the object as grown so far: an occluder the views share is found a crescent at a time
+    /// (where its displaced copies in the views do not cover it), and the crescent's box is
+    /// too small to reach across the crown.
+    pub regrowth_passes: usize,
+    /// In those passes, a pixel the views judged (they agree with each other there) is
+    /// joined only when its colour is this many times likelier still: the views agreeing
+    /// with the keyframe on a colour of the object is what an occluder they all show looks
+    /// like, and also what the building looks like where it shares the object's colours
+    /// (a dark car's road, a cloud's sky).
+    pub judged_colour_factor: f32,
     /// The keyframe is also compared with the consensus moved by up to this many work
     /// pixels, patch against patch: what matches a little further along is the building seen
     /// with parallax or a slightly imperfect alignment (a pier standing off the wall, the
@@ -72,6 +83,8 @@ impl Default for AutoMaskParams {
             max_hole_share: 0.06,
             background_ratio: 4.0,
             colour_ratio: 4.0,
+            regrowth_passes: 2,
+            judged_colour_factor: 16.0,
             parallax_radius: 3,
             dilate_radius: 3,
             work_pixels: 1_500_000,
@@ -163,6 +176,13 @@ pub fn auto_mask_report<P: RgbPixel>(
     let reach = keep(&Plane::from_fn(rw, rh, |x, y| ev.strong.get(x, y) || ev.weak.get(x, y)));
     let grown = grow_from(&seeds, &reach);
     let mut grown = grow_by_colour(&key_b, &grown, &ev.judged, params, Growth::Around);
+    for _ in 0..params.regrowth_passes {
+        let next = grow_by_colour(&key_b, &grown, &ev.judged, params, Growth::Regrowth);
+        if next == grown {
+            break;
+        }
+        grown = next;
+    }
     // An object grown from crescents at a crown's edge is one object only now: grown again
     // within its own box, through what the views could not judge, it fills the crown.
     for _ in 0..2 {
@@ -218,7 +238,7 @@ fn grow_by_colour(
         let own = ColourHistogram::within(key, &component, |x, y| objects.get(x, y));
         let margin = (component.width.max(component.height) / 4).max(2);
         let zone = match growth {
-            Growth::Around => component.grown(margin, w, h),
+            Growth::Around | Growth::Regrowth => component.grown(margin, w, h),
             Growth::WithinUnjudged => component,
         };
         // The building as it looks around this object (a cloud is compared with the sky
@@ -234,7 +254,11 @@ fn grow_by_colour(
         building.remove(key, &zone, building_px);
         let likely = |x: usize, y: usize| {
             let c = key.get(x, y);
-            own.density(c) > params.colour_ratio * 0.5 * (local.density(c) + building.density(c))
+            let factor = match growth {
+                Growth::Regrowth if judged.get(x, y) => params.judged_colour_factor,
+                _ => 1.0,
+            };
+            own.density(c) > factor * params.colour_ratio * 0.5 * (local.density(c) + building.density(c))
         };
         let mut stack: Vec<(usize, usize)> = Vec::new();
         for y in zone.y..zone.y1() {
@@ -244,7 +268,7 @@ fn grow_by_colour(
                 }
             }
         }
-        let open = |x: usize, y: usize| growth == Growth::Around || !judged.get(x, y);
+        let open = |x: usize, y: usize| growth != Growth::WithinUnjudged || !judged.get(x, y);
         grow_into(&mut out, stack, |x, y| zone.contains(x, y) && open(x, y) && likely(x, y));
     }
     out
@@ -255,6 +279,9 @@ fn grow_by_colour(
 enum Growth {
     /// Into its surroundings, up to a quarter of its size beyond its box.
     Around,
+    /// The same again from the object as grown (`AutoMaskParams::regrowth_passes`), through
+    /// judged pixels only on stronger colour evidence.
+    Regrowth,
     /// Within its box, through pixels no two views agreed on only (a later pass: the
     /// object's parts joined by the first pass; the views' judgement still stands).
     WithinUnjudged,
@@ -731,6 +758,19 @@ mod tests {
             let found = auto_mask_report(&c.key, &c.sources(), &AutoMaskParams::default());
             let score = crate::imaging::metrics::mask_iou(&found.mask, &c.mask);
             assert!(score > 0.65, "seed {seed}, {views} views: IoU {score:.3} with the true mask");
+        }
+    }
+
+    #[test]
+    fn a_tree_the_views_share_is_grown_across_the_crown_from_a_crescent() {
+        // Where the views' displaced crowns cover the keyframe's, they agree with it and only
+        // a crescent is found; grown once, its box is too small to reach across the crown.
+        // Without the regrowth passes: IoU 0.49, 0.64 and 0.49 (0.86, 0.89, 0.85 with them).
+        for (seed, views) in [(2001, 4), (2003, 3), (2010, 2)] {
+            let c = crate::synth::occlusion_case(crate::synth::CaseFamily::Shared, 320, 240, views, seed);
+            let found = auto_mask_report(&c.key, &c.sources(), &AutoMaskParams::default());
+            let score = crate::imaging::metrics::mask_iou(&found.mask, &c.mask);
+            assert!(score > 0.75, "seed {seed}, {views} views: IoU {score:.3} with the true mask");
         }
     }
 

@@ -362,6 +362,9 @@ impl Runner {
                 .collect();
             let mut params = self.slot.session.params().auto_mask.clone();
             params.min_views = params.min_views.min(sources.len());
+            // The walk's marks were measured without the regrowth (BENCHMARKS.md, "Video
+            // target, tenth pass"), and they already cover too much on some walks.
+            params.regrowth_passes = 0;
             let mask = auto_mask(&rgb, &sources, &params);
             drop(sources);
             let share = mask.as_slice().iter().filter(|&&v| v > 127).count() as f64
