@@ -34,7 +34,11 @@ pub struct SelectParams {
     /// Mean absolute difference (0..=1 grey levels) of the frame's thumbnail from the last
     /// kept frame's below which the frame adds nothing (0: no motion test).
     pub min_motion: f32,
-    /// Frames kept per second of stream time at most (0: no cap).
+    /// Frames kept per second of stream time at most (0: no cap). The default, 5, keeps
+    /// every other frame of a 10 fps walk: each frame's own occluders are marked
+    /// (`daemon::video::runner`), so frames close together no longer vote a near occluder
+    /// in as one, and the denser frames see the pixels each occluder hides only briefly
+    /// (BENCHMARKS.md, "Video target, eleventh pass"; 2 before).
     pub max_kept_fps: f32,
     /// Frames that set the running level before any is judged (see [`FrameSelector::observe`]).
     pub warmup_frames: usize,
@@ -48,7 +52,7 @@ impl Default for SelectParams {
             min_sharpness: 0.5,
             level_half_life_s: 2.0,
             min_motion: 0.02,
-            max_kept_fps: 2.0,
+            max_kept_fps: 5.0,
             warmup_frames: 5,
             thumb_width: 64,
         }
@@ -329,6 +333,26 @@ mod tests {
         // The keyframe is kept whatever its motion, but never blurred.
         assert_eq!(s.offer(0.75, &f(9), true), Verdict::Keep);
         assert_eq!(s.offer(0.8, &blurred, true), Verdict::Blurred);
+    }
+
+    /// A 10 fps walk gives its frames a few tenths of a second apart: by default at
+    /// least one in three is kept (one in five with the former cap of 2 per second, which
+    /// left the pixels a near occluder hides only briefly to the fallback; BENCHMARKS.md,
+    /// "Video target, eleventh pass").
+    #[test]
+    fn a_ten_fps_walk_keeps_at_least_one_frame_in_three_by_default() {
+        let mut s = FrameSelector::new(SelectParams::default());
+        let mut judged = 0;
+        let mut kept = 0;
+        for i in 0..40 {
+            let v = s.offer(i as f64 / 10.0, &measure(&texture(80, 60, 4 * i)), false);
+            if v != Verdict::Warmup {
+                judged += 1;
+                kept += usize::from(v == Verdict::Keep);
+            }
+        }
+        assert!(judged >= 30, "{judged} judged");
+        assert!(3 * kept >= judged, "{kept} of {judged} kept");
     }
 
     #[test]

@@ -29,8 +29,11 @@ use crate::imaging::{GrayF32, Mask, RgbF32};
 use crate::inpaint::{Source, auto_mask};
 use crate::session::{AlignRecord, Rgb8, Session, SessionParams};
 
-/// Kept frames from before the keyframe that wait for it (the latest ones).
-const PRE_KEY_FRAMES: usize = 8;
+/// Kept frames from before the keyframe that wait for it (the latest ones): four seconds
+/// of a walk at the default kept rate (`SelectParams::max_kept_fps`, 5), so that with the
+/// keyframe at frame 30 of a 10 fps walk the frames from its start, which saw what only
+/// they saw, are still there. Bounded: a full frame each.
+const PRE_KEY_FRAMES: usize = 20;
 
 /// Frames buffered without calling for a fill after which a video refills anyway.
 const REFILL_AFTER: usize = 4;
@@ -547,6 +550,36 @@ mod tests {
         back.fill.select_views = base.fill.select_views;
         back.fill.occluders_where_alone = base.fill.occluders_where_alone;
         assert_eq!(back, base);
+    }
+
+    /// With the keyframe named at frame 30 of a 10 fps walk (three seconds in), the
+    /// default selection keeps many of the frames before it (the pixels a near occluder
+    /// hides only briefly are seen by few frames), and every one it keeps (the warm-up's
+    /// included) waits for the keyframe: the first ones saw what only they saw. At 2 kept
+    /// frames a second and a bound of 8, 5 frames were kept after the warm-up.
+    #[test]
+    fn the_frames_of_a_walks_first_three_seconds_wait_for_its_keyframe() {
+        use crate::imaging::sharpness::{FrameMeasure, FrameSelector, SelectParams, Verdict};
+        let params = SelectParams::default();
+        let warmup = params.warmup_frames;
+        let mut selector = FrameSelector::new(params);
+        let (w, h) = (80, 60);
+        let mut kept = 0;
+        for i in 0..30 {
+            // A textured facade panning 4 px a frame.
+            let rgb: Vec<u8> = (0..w * h)
+                .flat_map(|p| {
+                    let (u, v) = (p % w + 4 * i, p / w);
+                    let g =
+                        if (u / 5 + v / 7) % 2 == 0 { 204 } else { 51 + ((u * 13 + v * 7) % 11) as u8 * 5 };
+                    [g; 3]
+                })
+                .collect();
+            let m = FrameMeasure::of_rgb24(&rgb, w, h, 16);
+            kept += usize::from(selector.offer(i as f64 / 10.0, &m, false) == Verdict::Keep);
+        }
+        assert!(kept >= 8, "{kept} frames kept after the warm-up");
+        assert!(kept + warmup <= PRE_KEY_FRAMES, "{kept} + {warmup} frames for {PRE_KEY_FRAMES}");
     }
 
     #[test]
