@@ -16,7 +16,7 @@
 //! tied by the truth, and the true slab planes on the estimated walls; and, per fill, the
 //! share of masked pixels whose chosen surface is not the one the truth shows there.
 //!
-//! `cargo run --release --example parallax_eval -- [--seeds N] [--first K] [--size WxH] [--views N] [--flat] [--dump DIR] [--oracles] [--epipoles] [--split] [--no-refine] [--no-supported-ties] [--no-inside] [--no-rejoin] [--repair]`
+//! `cargo run --release --example parallax_eval -- [--seeds N] [--first K] [--size WxH] [--views N] [--flat] [--dump DIR] [--oracles] [--epipoles] [--split] [--no-refine] [--no-supported-ties] [--no-inside] [--no-rejoin] [--repair] [--no-across]`
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -423,6 +423,7 @@ fn main() {
             "--no-inside" => sp.inside = false,
             "--no-rejoin" => sp.rejoin = false,
             "--repair" => sp.repair_ties = true,
+            "--no-across" => sp.across_hole = false,
             "--penalty" => fp.parallax.penalty = it.next().and_then(|v| v.parse().ok()).expect("--penalty X"),
             "--bias" => fp.parallax.wall_bias = it.next().and_then(|v| v.parse().ok()).expect("--bias X"),
             "--truncate" => {

@@ -280,6 +280,9 @@ pub struct SweepParams {
     /// A surface may be chosen around its support grown by half its size, and at least this
     /// many (full-resolution) pixels.
     pub min_grow: usize,
+    /// Where the hole cannot vote (fewer than three views tied), a surface may be chosen
+    /// across the hole along the rows and columns the band saw it in ([`along_hole`]).
+    pub across_hole: bool,
 }
 
 impl Default for SweepParams {
@@ -310,6 +313,7 @@ impl Default for SweepParams {
             repair_ties: false,
             inside: true,
             min_grow: 24,
+            across_hole: true,
         }
     }
 }
@@ -780,6 +784,10 @@ impl<'a> Sweep<'a> {
         for &i in &self.band.inside {
             inside[i] = true;
         }
+        // The hole votes only with three views or more: with fewer, a surface seen in the
+        // band beside it is carried across it ([`along_hole`]), as far as the hole reaches
+        // along the rows and columns it was seen in.
+        let across = params.across_hole && (!params.inside || family.epipoles.iter().flatten().count() < 3);
         // Stray votes out: a vote stands with enough neighbours voting alike (across the
         // mask's edge too).
         let mut histogram = vec![0usize; nl];
@@ -852,7 +860,32 @@ impl<'a> Sweep<'a> {
                 let Some((x0, y0, x1, y1)) = dense_box(&part, rect, params.min_density) else { continue };
                 let a = tw_inv.apply(Point2::new(x0 - 0.5, y0 - 0.5)).expect("affine");
                 let b = tw_inv.apply(Point2::new(x1 + 0.5, y1 + 0.5)).expect("affine");
-                let region = grown_region(a, b, params.min_grow, w, h);
+                let mut region = grown_region(a, b, params.min_grow, w, h);
+                if across {
+                    // The box (`rect` coordinates) carried over the hole along its rows and
+                    // columns, in full-resolution pixels.
+                    let local = |v: f64, o: usize| (v as usize).saturating_sub(o);
+                    let (ex0, ey0, ex1, ey1) = along_hole(
+                        (local(x0, rect.x), local(y0, rect.y), local(x1, rect.x), local(y1, rect.y)),
+                        &inside,
+                        rect.width,
+                        rect.height,
+                        params.gap + params.window + 1,
+                    );
+                    let to_full = |x: usize, y: usize, d: f64| {
+                        tw_inv
+                            .apply(Point2::new((rect.x + x) as f64 + d, (rect.y + y) as f64 + d))
+                            .expect("affine")
+                    };
+                    let (ea, eb) = (to_full(ex0, ey0, -0.5), to_full(ex1, ey1, 0.5));
+                    let clip = |v: f64, hi: usize| v.clamp(0.0, hi as f64) as usize;
+                    region = Rect::from_corners(
+                        region.x.min(clip(ea.x, w)),
+                        region.y.min(clip(ea.y, h)),
+                        region.x1().max(clip(eb.x + 1.0, w)),
+                        region.y1().max(clip(eb.y + 1.0, h)),
+                    );
+                }
                 planes.push(SurfacePlane { views: hv.clone(), region });
             }
         }
@@ -1539,6 +1572,63 @@ fn dense_box(support: &[usize], rect: Rect, min_density: f64) -> Option<(f64, f6
     ((support.len() as f64) >= min_density * (x1 - x0 + 1.0) * (y1 - y0 + 1.0)).then_some((x0, y0, x1, y1))
 }
 
+/// The box `b` (inclusive corners `x0, y0, x1, y1` on a `w × h` grid) carried over the hole
+/// (`hole`, row-major `w × h`) along its rows and its columns: per row the box spans, a run
+/// of hole pixels that starts within `reach` of the box's left or right side is taken in
+/// whole; per column, the same above and below. A surface the band sees beside the hole,
+/// where the hole itself cannot vote (fewer than three views), reaches across the hole as
+/// the slab behind the occluder does (a balcony seen at one end).
+fn along_hole(
+    b: (usize, usize, usize, usize),
+    hole: &[bool],
+    w: usize,
+    h: usize,
+    reach: usize,
+) -> (usize, usize, usize, usize) {
+    let (x0, y0, x1, y1) = (b.0.min(w - 1), b.1.min(h - 1), b.2.min(w - 1), b.3.min(h - 1));
+    let (mut nx0, mut ny0, mut nx1, mut ny1) = (x0, y0, x1, y1);
+    // From `from` stepping by `step` (±1) along a line of `len` pixels (`at(k)` is the
+    // hole at pixel `k`): the far end of a hole run starting within `reach`, if any.
+    let run = |from: isize, step: isize, len: usize, at: &dyn Fn(usize) -> bool| -> Option<usize> {
+        let inside = |k: isize| k >= 0 && (k as usize) < len;
+        let mut k = from;
+        let mut gone = 0;
+        while inside(k) && !at(k as usize) {
+            gone += 1;
+            if gone > reach {
+                return None;
+            }
+            k += step;
+        }
+        if !inside(k) {
+            return None;
+        }
+        while inside(k + step) && at((k + step) as usize) {
+            k += step;
+        }
+        Some(k as usize)
+    };
+    for y in y0..=y1 {
+        let at = |x: usize| hole[y * w + x];
+        if let Some(e) = run(x1 as isize + 1, 1, w, &at) {
+            nx1 = nx1.max(e);
+        }
+        if let Some(e) = run(x0 as isize - 1, -1, w, &at) {
+            nx0 = nx0.min(e);
+        }
+    }
+    for x in x0..=x1 {
+        let at = |y: usize| hole[y * w + x];
+        if let Some(e) = run(y1 as isize + 1, 1, h, &at) {
+            ny1 = ny1.max(e);
+        }
+        if let Some(e) = run(y0 as isize - 1, -1, h, &at) {
+            ny0 = ny0.min(e);
+        }
+    }
+    (nx0, ny0, nx1, ny1)
+}
+
 /// Bounding box of the `true` pixels.
 fn bool_bounds(m: &Plane<bool>) -> Option<Rect> {
     let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
@@ -2084,6 +2174,56 @@ mod tests {
         let s = Sweep::new(&key, &refs, &mask, &params, &id).expect("a band");
         let found = rejoin(&s, &lost, family(Some(truth[1]))).expect("two views or more");
         assert!(found.epipoles[1].is_none(), "another texture does not agree");
+    }
+
+    /// Fresh seed 21's pattern: a balcony crosses the hole and ends in the band on the
+    /// right; only two views are tied, so the hole cannot vote, and the band sees the
+    /// balcony only at its right end. The surface is found there and may be chosen across
+    /// the hole along the rows it was seen in (not beyond the hole, nor above or below it);
+    /// without that, its region ends short of the hole's far side.
+    #[test]
+    fn a_surface_the_band_sees_beside_the_hole_reaches_across_it_when_the_hole_cannot_vote() {
+        let (w, h, key, mask) = textured_square_hole();
+        let epipoles = surface_epipoles();
+        let gamma = 0.2;
+        let z = nalgebra::RowVector3::new(0.0, 0.0, 1.0);
+        // The slab: keyframe rows 50–70 from x = 70 (inside the hole) to 130.
+        let on_slab = |x: f64, y: f64| (70.0..130.0).contains(&x) && (50.0..70.0).contains(&y);
+        let views: Vec<GrayF32> = epipoles[..2]
+            .iter()
+            .map(|e| {
+                let inv = (nalgebra::Matrix3::identity() + e * z * gamma).try_inverse().expect("invertible");
+                GrayF32::from_fn(w, h, |x, y| {
+                    let p = inv * nalgebra::Vector3::new(x as f64, y as f64, 1.0);
+                    let (px, py) = (p.x / p.z, p.y / p.z);
+                    if on_slab(px, py) { tex(px, py) } else { tex(x as f64, y as f64) }
+                })
+            })
+            .collect();
+        let refs: Vec<&GrayF32> = views.iter().collect();
+        let family = ParallaxFamily {
+            walls: vec![nalgebra::Matrix3::identity(); 2],
+            epipoles: vec![Some(epipoles[0]), Some(epipoles[1])],
+            observed: vec![vec![gamma]; 2],
+        };
+        let id = Homography::identity();
+        let sweep = |params: &SweepParams| sweep_family(&key, &refs, &mask, params, &family, &id, true);
+        let params = SweepParams::default();
+        let found = sweep(&params);
+        assert_eq!(found.len(), 1, "{found:?}");
+        let r = found[0].region;
+        assert!(r.x <= 60 && r.x + 24 >= 60, "across the hole to its left side: {r:?}");
+        assert!(r.y > 20 && r.y1() < 100, "rows around the slab's only: {r:?}");
+        let before = sweep(&SweepParams { across_hole: false, ..params.clone() });
+        assert_eq!(before.len(), 1);
+        assert!(before[0].region.x > 60, "without, it ends short: {:?}", before[0].region);
+        // On a grid: runs of hole pixels within reach are taken in, farther ones not.
+        let (gw, gh) = (20, 10);
+        let hole: Vec<bool> =
+            (0..gw * gh).map(|i| (5..10).contains(&(i % gw)) && (2..6).contains(&(i / gw))).collect();
+        assert_eq!(along_hole((12, 3, 14, 4), &hole, gw, gh, 2), (5, 3, 14, 4));
+        assert_eq!(along_hole((13, 3, 14, 4), &hole, gw, gh, 2), (13, 3, 14, 4));
+        assert_eq!(along_hole((6, 7, 8, 8), &hole, gw, gh, 2), (6, 2, 8, 8));
     }
 
     /// Fresh seed 12's pattern: the view with the most votes (its sparse epipole wrong, its
