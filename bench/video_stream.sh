@@ -43,8 +43,15 @@ acc = [e for e in ev if e["event"] == "view_accepted"]
 keys = ["frames_read", "warmup", "blurred", "still", "rate_capped", "kept", "dropped", "aligned",
         "mean_update_latency_ms"]
 print({k: end[k] for k in keys})
-print("results:", len(upd), " accepted frames:", len(acc))
-aligns = sorted(e["align_ms"] for e in acc if "align_ms" in e)
+rej = [e for e in ev if e["event"] == "view_rejected"]
+print("results:", len(upd), " accepted frames:", len(acc), " rejected:", len(rej))
+reasons = {}
+for e in rej:
+    reasons[e.get("reason", "?")] = reasons.get(e.get("reason", "?"), 0) + 1
+for r, n in sorted(reasons.items(), key=lambda kv: -kv[1]):
+    print("  rejected %d: %s" % (n, r))
+# Every aligned frame, accepted or not: the service keeps up only if these do.
+aligns = sorted(e["align_ms"] for e in acc + rej if "align_ms" in e)
 fills = sorted(e["fill_ms"] for e in upd)
 if aligns: print("align ms median:", aligns[len(aligns) // 2])
 if fills: print("fill ms median:", fills[len(fills) // 2])
