@@ -258,12 +258,14 @@ impl FrameSelector {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::imaging::filter::gaussian_blur;
 
     /// A checkerboard-ish texture shifted by `dx`, as RGB24.
-    fn texture(w: usize, h: usize, dx: usize) -> GrayF32 {
+    /// A textured facade (rectangles of two greys, the darker ones speckled) moved `dx`
+    /// pixels to the left: the frames of a pan.
+    pub(crate) fn texture(w: usize, h: usize, dx: usize) -> GrayF32 {
         GrayF32::from_fn(w, h, |x, y| {
             let (u, v) = (x + dx, y);
             if ((u / 5) + (v / 7)) % 2 == 0 { 0.8 } else { 0.2 + ((u * 13 + v * 7) % 11) as f32 * 0.02 }
@@ -274,7 +276,7 @@ mod tests {
         g.as_slice().iter().flat_map(|v| [(v * 255.0).round() as u8; 3]).collect()
     }
 
-    fn measure(g: &GrayF32) -> FrameMeasure {
+    pub(crate) fn measure(g: &GrayF32) -> FrameMeasure {
         FrameMeasure::of_rgb24(&rgb24(g), g.width(), g.height(), 16)
     }
 

@@ -175,23 +175,22 @@ pub fn auto_mask_report<P: RgbPixel>(
     let seeds = dilate(&erode(&seeds, params.open_radius), params.open_radius);
     let reach = keep(&Plane::from_fn(rw, rh, |x, y| ev.strong.get(x, y) || ev.weak.get(x, y)));
     let grown = grow_from(&seeds, &reach);
-    let mut grown = grow_by_colour(&key_b, &grown, &ev.judged, params, Growth::Around);
-    for _ in 0..params.regrowth_passes {
-        let next = grow_by_colour(&key_b, &grown, &ev.judged, params, Growth::Regrowth);
-        if next == grown {
-            break;
+    // Up to `passes` growths of one kind, each from the objects as the last left them.
+    let regrow = |mut objects: Plane<bool>, growth: Growth, passes: usize| {
+        for _ in 0..passes {
+            let next = grow_by_colour(&key_b, &objects, &ev.judged, params, growth);
+            if next == objects {
+                break;
+            }
+            objects = next;
         }
-        grown = next;
-    }
+        objects
+    };
+    let grown = regrow(grown, Growth::Around, 1);
+    let grown = regrow(grown, Growth::Regrowth, params.regrowth_passes);
     // An object grown from crescents at a crown's edge is one object only now: grown again
     // within its own box, through what the views could not judge, it fills the crown.
-    for _ in 0..2 {
-        let next = grow_by_colour(&key_b, &grown, &ev.judged, params, Growth::WithinUnjudged);
-        if next == grown {
-            break;
-        }
-        grown = next;
-    }
+    let grown = regrow(grown, Growth::WithinUnjudged, 2);
     let closed = erode(&dilate(&grown, params.close_radius), params.close_radius);
     let max_hole = (params.max_hole_share.max(0.0) as f64 * (rw * rh) as f64) as usize;
     // Holes are looked for with the objects grown by 2 px, so that a hole joined to the

@@ -1586,7 +1586,6 @@ fn along_hole(
     reach: usize,
 ) -> (usize, usize, usize, usize) {
     let (x0, y0, x1, y1) = (b.0.min(w - 1), b.1.min(h - 1), b.2.min(w - 1), b.3.min(h - 1));
-    let (mut nx0, mut ny0, mut nx1, mut ny1) = (x0, y0, x1, y1);
     // From `from` stepping by `step` (±1) along a line of `len` pixels (`at(k)` is the
     // hole at pixel `k`): the far end of a hole run starting within `reach`, if any.
     let run = |from: isize, step: isize, len: usize, at: &dyn Fn(usize) -> bool| -> Option<usize> {
@@ -1608,25 +1607,24 @@ fn along_hole(
         }
         Some(k as usize)
     };
+    // Along one line (`at`, `len` pixels) whose box side pixels are `lo..=hi`: the runs
+    // beyond each side widen `(first, last)`.
+    let widen = |lo: usize, hi: usize, len: usize, at: &dyn Fn(usize) -> bool, span: &mut (usize, usize)| {
+        if let Some(e) = run(hi as isize + 1, 1, len, at) {
+            span.1 = span.1.max(e);
+        }
+        if let Some(e) = run(lo as isize - 1, -1, len, at) {
+            span.0 = span.0.min(e);
+        }
+    };
+    let (mut xs, mut ys) = ((x0, x1), (y0, y1));
     for y in y0..=y1 {
-        let at = |x: usize| hole[y * w + x];
-        if let Some(e) = run(x1 as isize + 1, 1, w, &at) {
-            nx1 = nx1.max(e);
-        }
-        if let Some(e) = run(x0 as isize - 1, -1, w, &at) {
-            nx0 = nx0.min(e);
-        }
+        widen(x0, x1, w, &|x| hole[y * w + x], &mut xs);
     }
     for x in x0..=x1 {
-        let at = |y: usize| hole[y * w + x];
-        if let Some(e) = run(y1 as isize + 1, 1, h, &at) {
-            ny1 = ny1.max(e);
-        }
-        if let Some(e) = run(y0 as isize - 1, -1, h, &at) {
-            ny0 = ny0.min(e);
-        }
+        widen(y0, y1, h, &|y| hole[y * w + x], &mut ys);
     }
-    (nx0, ny0, nx1, ny1)
+    (xs.0, ys.0, xs.1, ys.1)
 }
 
 /// Bounding box of the `true` pixels.

@@ -559,23 +559,15 @@ mod tests {
     /// frames a second and a bound of 8, 5 frames were kept after the warm-up.
     #[test]
     fn the_frames_of_a_walks_first_three_seconds_wait_for_its_keyframe() {
-        use crate::imaging::sharpness::{FrameMeasure, FrameSelector, SelectParams, Verdict};
+        use crate::imaging::sharpness::tests::{measure, texture};
+        use crate::imaging::sharpness::{FrameSelector, SelectParams, Verdict};
         let params = SelectParams::default();
         let warmup = params.warmup_frames;
         let mut selector = FrameSelector::new(params);
-        let (w, h) = (80, 60);
         let mut kept = 0;
         for i in 0..30 {
             // A textured facade panning 4 px a frame.
-            let rgb: Vec<u8> = (0..w * h)
-                .flat_map(|p| {
-                    let (u, v) = (p % w + 4 * i, p / w);
-                    let g =
-                        if (u / 5 + v / 7) % 2 == 0 { 204 } else { 51 + ((u * 13 + v * 7) % 11) as u8 * 5 };
-                    [g; 3]
-                })
-                .collect();
-            let m = FrameMeasure::of_rgb24(&rgb, w, h, 16);
+            let m = measure(&texture(80, 60, 4 * i));
             kept += usize::from(selector.offer(i as f64 / 10.0, &m, false) == Verdict::Keep);
         }
         assert!(kept >= 8, "{kept} frames kept after the warm-up");
