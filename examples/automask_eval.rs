@@ -4,7 +4,7 @@
 //! (masked PSNR over the true mask, where the occluder stands).
 //!
 //! `cargo run --release --example automask_eval -- [--seeds N] [--first SEED] [--size WxH] [--views 2,3,4]
-//!  [--align] [--dump DIR] [--parallax N] [--colour X] [--background X]`
+//!  [--align] [--dump DIR (masks, fills, keyframe, truth, views)] [--parallax N] [--colour X] [--background X]`
 //!
 //! With `--align` the views are aligned as the fill command aligns them (otherwise the true
 //! homographies are used, so that only the mask is judged). The targets: mean IoU
@@ -100,6 +100,12 @@ fn main() {
                     });
                     to_rgb8(&overlay).save(d.join(format!("{name}-v{n}-mask.png"))).unwrap();
                     to_rgb8(&with_auto.image).save(d.join(format!("{name}-v{n}-fill.png"))).unwrap();
+                    to_rgb8(&with_true.image).save(d.join(format!("{name}-v{n}-fill-true.png"))).unwrap();
+                    to_rgb8(&c.key).save(d.join(format!("{name}-v{n}-key.png"))).unwrap();
+                    to_rgb8(&c.truth).save(d.join(format!("{name}-v{n}-truth.png"))).unwrap();
+                    for (k, v) in c.views.iter().enumerate() {
+                        to_rgb8(v).save(d.join(format!("{name}-v{n}-view-{}.png", k + 1))).unwrap();
+                    }
                 }
                 println!(
                     "| {name} | {n} | {} | {} | {score:.3} | {p_true:.2} | {p_auto:.2} | {:.2} |",

@@ -66,7 +66,8 @@ pub struct FillArgs {
     pub save_mask: Option<PathBuf>,
     /// Also write the confidence map: 8-bit, the keyframe's size, 0 outside the mask, inside
     /// how sure the fill is that the pixel shows the building (>= 128: sure; below: the
-    /// fallback invented it, or the views disagree or may show an occluder there).
+    /// fallback invented it, the views disagree or may show an occluder there, or a sharp
+    /// edge there may be a fraction of a pixel off).
     #[arg(long)]
     pub confidence: Option<PathBuf>,
     /// Refuse images with more pixels than this (decompression bombs).

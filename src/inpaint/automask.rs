@@ -167,6 +167,7 @@ pub fn auto_mask_report<P: RgbPixel>(
     let all = Plane::new(rw, rh, true);
     let key_b = box_blur(&key_r, &all, params.blur_radius);
     let mut ev = evidence(&key_b, &warped, params);
+    explain_by_own_occluders(&key_b, &warped, &mut ev, params);
     explain_by_parallax(&key_b, &mut ev, params);
 
     let veto = shared_occluders(&key_b, &ev, params);
@@ -365,6 +366,77 @@ fn evidence(key: &RgbF32, warped: &[(RgbF32, Plane<bool>)], params: &AutoMaskPar
         }
     }
     Evidence { strong, weak, judged, consensus }
+}
+
+/// Stage (2b): where no view shows what the keyframe shows and the views do not agree with
+/// each other either, each view's disagreement may be an object of its own (a passer-by in
+/// one, a car in the other) rather than the keyframe's. A view's own object is where it
+/// differs from the keyframe while another view agrees with the keyframe (the keyframe
+/// shows the building there), followed through the view's pixels that still differ from
+/// the keyframe and look like that object rather than like the building. Where every view
+/// that sees a pixel is explained so, and the keyframe's own colour there is no more like
+/// those objects than like the building (an occluder every view shows, the keyframe
+/// included, explains nothing), the pixel is not weak evidence against the keyframe.
+fn explain_by_own_occluders(
+    key: &RgbF32,
+    warped: &[(RgbF32, Plane<bool>)],
+    ev: &mut Evidence,
+    params: &AutoMaskParams,
+) {
+    let (w, h) = (key.width(), key.height());
+    let dist = |a: [f32; 3], b: [f32; 3]| ((0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>()).sqrt();
+    let differs = |v: usize, x: usize, y: usize| {
+        let (img, valid) = &warped[v];
+        valid.get(x, y) && dist(img.get(x, y), key.get(x, y)) > params.threshold
+    };
+    // Only the pixels weak for want of any view showing the keyframe's colour are in doubt.
+    let doubted = Plane::from_fn(w, h, |x, y| ev.weak.get(x, y) && !ev.judged.get(x, y));
+    if !doubted.as_slice().iter().any(|&d| d) {
+        return;
+    }
+    let building =
+        ColourHistogram::within(key, &Rect::full(w, h), |x, y| ev.judged.get(x, y) && !ev.strong.get(x, y));
+    let own: Vec<Option<(Plane<bool>, ColourHistogram)>> = (0..warped.len())
+        .map(|v| {
+            let seeds = Plane::from_fn(w, h, |x, y| {
+                differs(v, x, y)
+                    && (0..warped.len()).any(|u| {
+                        let (img, valid) = &warped[u];
+                        u != v
+                            && valid.get(x, y)
+                            && dist(img.get(x, y), key.get(x, y)) <= params.low_threshold
+                    })
+            });
+            // Thin lines of disagreement are edges a little off: an object survives opening.
+            let seeds = dilate(&erode(&seeds, params.open_radius), params.open_radius);
+            if !seeds.as_slice().iter().any(|&s| s) {
+                return None;
+            }
+            let img = &warped[v].0;
+            let object = ColourHistogram::within(img, &Rect::full(w, h), |x, y| seeds.get(x, y));
+            let reach = Plane::from_fn(w, h, |x, y| {
+                differs(v, x, y) && {
+                    let c = img.get(x, y);
+                    object.density(c) > params.colour_ratio * building.density(c)
+                }
+            });
+            Some((grow_from(&seeds, &reach), object))
+        })
+        .collect();
+    let explained = |v: usize, x: usize, y: usize| {
+        own[v].as_ref().is_some_and(|(object, colours)| {
+            let k = key.get(x, y);
+            object.get(x, y) && colours.density(k) <= building.density(k)
+        })
+    };
+    for y in 0..h {
+        for x in 0..w {
+            let mut seen = (0..warped.len()).filter(|&v| warped[v].1.get(x, y)).peekable();
+            if doubted.get(x, y) && seen.peek().is_some() && seen.all(|v| explained(v, x, y)) {
+                ev.weak.set(x, y, false);
+            }
+        }
+    }
 }
 
 /// Strong pixels whose 5×5 patch matches the consensus moved by at most `parallax_radius`
@@ -771,6 +843,55 @@ mod tests {
             let score = crate::imaging::metrics::mask_iou(&found.mask, &c.mask);
             assert!(score > 0.75, "seed {seed}, {views} views: IoU {score:.3} with the true mask");
         }
+    }
+
+    /// Two views, each with an object of its own beside the keyframe's car, where the other
+    /// view is occluded too: no view shows the keyframe's wall there, yet the wall is not
+    /// the keyframe's occluder. Each view's disagreement is its own object's, seen where the
+    /// other view agrees with the keyframe. (Without that explanation the keyframe's car
+    /// grew over the wall where the two objects overlap: 788 pixels of them; 3 with it.)
+    #[test]
+    fn the_views_own_objects_side_by_side_are_not_the_keyframes() {
+        let (w, h) = (240, 180);
+        let scene = facade(w, h, 12);
+        let mut key = scene.clone();
+        let mut truth = Mask::new(w, h, 0);
+        paint_occluder(&mut key, Some(&mut truth), Occluder::Car, 80.0, 120.0, 40.0, 5);
+        let hs = [Homography::translation(5.5, -2.0), Homography::translation(-6.0, 3.0)];
+        let mut own = Mask::new(w, h, 0);
+        let views: Vec<RgbF32> = hs
+            .iter()
+            .zip([Occluder::Person, Occluder::Car])
+            .enumerate()
+            .map(|(i, (hm, kind))| {
+                let mut v = render_view(&scene, &hm.inverse().unwrap(), w, h, [0.5; 3]);
+                // Placed in keyframe coordinates, beside the car's right end.
+                let at = hm.apply(nalgebra::Point2::new(108.0, 100.0)).unwrap();
+                paint_occluder(&mut v, None, kind, at.x as f32, at.y as f32, 70.0, 7 + i as u64);
+                let mut m = Mask::new(w, h, 0);
+                paint_occluder(
+                    &mut RgbF32::new(w, h, [0.0; 3]),
+                    Some(&mut m),
+                    kind,
+                    108.0,
+                    100.0,
+                    70.0,
+                    7 + i as u64,
+                );
+                own.as_mut_slice().iter_mut().zip(m.as_slice()).for_each(|(o, &n)| *o = (*o).max(n));
+                v
+            })
+            .collect();
+        let sources: Vec<Source<'_>> =
+            views.iter().zip(&hs).map(|(v, &homography)| Source { image: v, homography }).collect();
+        let m = auto_mask(&key, &sources, &AutoMaskParams::default());
+        let count = |f: &dyn Fn(usize) -> bool| (0..w * h).filter(|&i| f(i)).count();
+        let found = count(&|i| truth.as_slice()[i] > 127 && m.as_slice()[i] > 127);
+        let car = truth.hole_count();
+        assert!(found as f32 > 0.9 * car as f32, "found {found} of the car's {car}");
+        let ring = dilate(&truth.map(|&v| v > 127), 6);
+        let beside = count(&|i| m.as_slice()[i] > 127 && !ring.as_slice()[i] && own.as_slice()[i] > 127);
+        assert!(beside < 60, "{beside} pixels of the views' own objects flagged in the keyframe");
     }
 
     #[test]

@@ -218,7 +218,8 @@ pub struct FillParams {
     pub fallback_margin: usize,
     /// The fallback's guide (the membrane of its region's border, `fallback_guide`)
     /// interpolates from the keyframe, from what the fallback made already and from the
-    /// view pixels the fill gives at least this confidence; `None`: from no view pixel.
+    /// view pixels the fill gives at least this confidence (with edges counted as
+    /// [`occlusion::GUIDE_EDGE_SHARE`] says); `None`: from no view pixel.
     /// The views' pixels next to what no view saw clear are the ones most likely to show
     /// a piece of an occluder; with few views they are mostly right, so the default keeps
     /// the fairly sure ones. A video walk says otherwise (BENCHMARKS.md, "Video target,
@@ -718,6 +719,7 @@ impl Staged<'_> {
         let mut image = key.clone();
         let mut provenance = Provenance::new(w, h, KEYFRAME);
         let mut confidence = Confidence::new(w, h, 0);
+        let mut guiding = Confidence::new(w, h, 0);
         let mut filled = vec![0; self.warps.first().map_or(0, Vec::len)];
         let mut fallback_count = 0;
         let warps: Vec<Vec<&Warped>> = self.warps.iter().map(|ws| pick_views(ws, views)).collect();
@@ -782,6 +784,7 @@ impl Staged<'_> {
                     image.set(x, y, res.pixels[i]);
                     provenance.set(x, y, 1 + source as u16);
                     confidence.set(x, y, to_byte(res.confidence[i]));
+                    guiding.set(x, y, to_byte(res.guiding[i]));
                     filled[source] += 1;
                 }
             }
@@ -810,7 +813,7 @@ impl Staged<'_> {
                     &mut image,
                     &mut pending,
                     &mut provenance,
-                    &confidence,
+                    &guiding,
                     part.rect,
                     params,
                     self.seed ^ k as u64,
@@ -1150,8 +1153,10 @@ struct RegionFill {
     pixels: Vec<[f32; 3]>,
     state: Vec<u8>,
     pick: Vec<Pick>,
-    /// How sure the fill is of each filled pixel (0..=1).
+    /// How sure the fill is of each filled pixel (0..=1), as reported...
     confidence: Vec<f32>,
+    /// ...and as the fallback's guide takes it ([`occlusion::GUIDE_EDGE_SHARE`]).
+    guiding: Vec<f32>,
 }
 
 /// The occlusion model over one region (all zeros with the model switched off).
@@ -1258,11 +1263,11 @@ fn fill_one(
     let mut region =
         Region { width: r.width, height: r.height, pixels: &mut pixels, state: &mut state, pick: &mut pick };
     fill_region(&mut region, &views, params);
-    let confidence: Vec<f32> = (0..n)
+    let (confidence, guiding): (Vec<f32>, Vec<f32>) = (0..n)
         .into_par_iter()
         .map(|i| {
             if state[i] != multiview::FILLED {
-                return 0.0;
+                return (0.0, 0.0);
             }
             let p = pick[i];
             let at = (i as isize + p.dy as isize * r.width as isize + p.dx as isize) as usize;
@@ -1274,10 +1279,11 @@ fn fill_one(
                 .errors
                 .get(view)
                 .map_or(1.0, |&e| if e.is_finite() { occlusion::closeness(e.sqrt()) } else { 1.0 });
-            fit * occlusion::confidence(evidence.map, &refs, view, at, i, r.width, pixels[i])
+            let c = occlusion::confidence(evidence.map, &refs, view, at, i, r.width, pixels[i]);
+            (fit * c.value(occlusion::EDGE_SHARE), fit * c.value(occlusion::GUIDE_EDGE_SHARE))
         })
-        .collect();
-    RegionFill { pixels, state, pick, confidence }
+        .unzip();
+    RegionFill { pixels, state, pick, confidence, guiding }
 }
 
 /// Per view, the error it is expected to make where it fills this part: how far its warped,
