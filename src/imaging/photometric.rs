@@ -157,12 +157,24 @@ impl ToneCurve {
     }
 }
 
-/// The piecewise-linear curve through `knots` (at least two) at `x`.
+/// The piecewise-linear curve through `knots` (at least two) at `x`; beyond the end knots
+/// along the end segment, its slope at most [`MAX_END_SLOPE`] (two end knots close together
+/// must not send the view's darkest or brightest values far off).
 fn eval(knots: &[(f32, f32)], x: f32) -> f32 {
     let k = knots.partition_point(|&(kx, _)| kx <= x).clamp(1, knots.len() - 1);
     let ((x0, y0), (x1, y1)) = (knots[k - 1], knots[k]);
-    y0 + (x - x0) * (y1 - y0) / (x1 - x0)
+    let slope = (y1 - y0) / (x1 - x0);
+    if x > x1 {
+        y1 + (x - x1) * slope.min(MAX_END_SLOPE)
+    } else if x < x0 {
+        y0 + (x - x0) * slope.min(MAX_END_SLOPE)
+    } else {
+        y0 + (x - x0) * slope
+    }
 }
+
+/// The steepest a tone curve is extended beyond its end knots (the gain's own bound).
+const MAX_END_SLOPE: f32 = 4.0;
 
 /// Parameters of [`fit_tone`].
 #[derive(Debug, Clone, PartialEq)]
@@ -410,6 +422,21 @@ mod tests {
         let fit = fit_tone(&pairs, &ToneParams::default());
         assert!(fit.curve.is_none(), "{fit:?}");
         assert!(fit.line_share > 0.7, "{fit:?}");
+    }
+
+    /// Two end knots close together make a steep end segment: beyond them the curve goes
+    /// on no steeper than a gain may be, and it stays continuous at the knots.
+    #[test]
+    fn a_curve_is_extended_gently_beyond_its_ends() {
+        let knots = vec![(0.1, 0.1), (0.1002, 0.3), (0.5, 0.6), (0.5002, 0.9)];
+        let curve = ToneCurve { knots: [knots.clone(), knots.clone(), knots] };
+        let low = curve.apply([0.0; 3])[0];
+        let high = curve.apply([0.6; 3])[0];
+        assert!((low - (0.1 - 0.1 * MAX_END_SLOPE)).abs() < 1e-5, "{low}");
+        assert!((high - (0.9 + 0.0998 * MAX_END_SLOPE)).abs() < 1e-4, "{high}");
+        for &(x, y) in &curve.knots[0] {
+            assert!((curve.apply([x; 3])[0] - y).abs() < 1e-5);
+        }
     }
 
     #[test]
