@@ -100,6 +100,9 @@ struct ViewReport {
     filled_pixels: usize,
     gain: Option<[f32; 3]>,
     offset: Option<[f32; 3]>,
+    /// Whether a tone curve was applied before the gain (the view's response is not linear
+    /// in the keyframe's).
+    tone_curve: Option<bool>,
 }
 
 impl ViewReport {
@@ -116,6 +119,7 @@ impl ViewReport {
             filled_pixels: 0,
             gain: None,
             offset: None,
+            tone_curve: None,
         }
     }
 }
@@ -359,6 +363,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         r.filled_pixels = s.filled;
         r.gain = Some(s.gain);
         r.offset = Some(s.offset);
+        r.tone_curve = Some(s.tone);
     }
 
     progress.begin("write", 1);
@@ -519,6 +524,7 @@ fn align_view(
         filled_pixels: 0,
         gain: None,
         offset: None,
+        tone_curve: None,
     };
     let (mut kept, mut note) = (None, None);
     match (&a.homography, &a.rejection, &key.region) {

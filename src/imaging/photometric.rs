@@ -5,6 +5,11 @@
 //! bits of the occluder's halo, the view may have its own tree there. So the fit starts
 //! from quantiles (robust to a quarter of outliers) and refines by iteratively reweighted
 //! moment matching with Tukey's biweight, whose weight is zero for gross outliers.
+//!
+//! A line cannot follow a camera that answers the light with a curve (a view much darker
+//! than the keyframe, whose highlights the keyframe clips): [`fit_tone`] fits a monotone
+//! tone curve on the whole overlap of view and keyframe, and keeps it only where it
+//! explains clearly more of the pairs than the line.
 
 /// `key ≈ gain · view + offset`, per channel.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -134,6 +139,199 @@ fn fit_line(x: &[f32], y: &[f32], params: &GainParams) -> (f32, f32) {
     (g, b)
 }
 
+/// A monotone tone curve per channel: `key ≈ curve(view)`, piecewise linear between knots
+/// (view value, key value), extended beyond the end knots along the end segments. It
+/// follows a camera response that a line cannot (a view much darker than the keyframe,
+/// whose highlights the keyframe clips).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ToneCurve {
+    /// Per channel, knots with strictly increasing view values and non-decreasing key values.
+    pub knots: [Vec<(f32, f32)>; 3],
+}
+
+impl ToneCurve {
+    /// The view's colour `p` as the keyframe would have seen it.
+    #[inline]
+    pub fn apply(&self, p: [f32; 3]) -> [f32; 3] {
+        std::array::from_fn(|c| eval(&self.knots[c], p[c]))
+    }
+}
+
+/// The piecewise-linear curve through `knots` (at least two) at `x`; beyond the end knots
+/// along the end segment, its slope at most [`MAX_END_SLOPE`] (two end knots close together
+/// must not send the view's darkest or brightest values far off).
+fn eval(knots: &[(f32, f32)], x: f32) -> f32 {
+    let k = knots.partition_point(|&(kx, _)| kx <= x).clamp(1, knots.len() - 1);
+    let ((x0, y0), (x1, y1)) = (knots[k - 1], knots[k]);
+    let slope = (y1 - y0) / (x1 - x0);
+    if x > x1 {
+        y1 + (x - x1) * slope.min(MAX_END_SLOPE)
+    } else if x < x0 {
+        y0 + (x - x0) * slope.min(MAX_END_SLOPE)
+    } else {
+        y0 + (x - x0) * slope
+    }
+}
+
+/// The steepest a tone curve is extended beyond its end knots (the gain's own bound).
+const MAX_END_SLOPE: f32 = 4.0;
+
+/// Parameters of [`fit_tone`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct ToneParams {
+    /// Knots of the curve (equal-count bins of the view's values).
+    pub bins: usize,
+    /// Fewer pairs per bin than this and there is no curve.
+    pub min_per_bin: usize,
+    /// A pair is explained by a model when its residual is below this (0..=1 units), on
+    /// every channel.
+    pub tolerance: f32,
+    /// The curve is taken only when it explains at least this share of all pairs more than
+    /// the line does (an occluder's pairs scatter: bent towards them, a curve explains few
+    /// of them and loses the building's pairs there)...
+    pub min_gain: f32,
+    /// ...and at least this many times the pairs the line leaves unexplained are explained
+    /// by the curve (a share of those).
+    pub min_recovered: f32,
+    /// Rounds of matching again on the pairs the curve explains.
+    pub trim_rounds: usize,
+}
+
+impl Default for ToneParams {
+    fn default() -> Self {
+        Self {
+            bins: 32,
+            min_per_bin: 40,
+            tolerance: 8.0 / 255.0,
+            min_gain: 0.1,
+            min_recovered: 0.3,
+            trim_rounds: 2,
+        }
+    }
+}
+
+/// What [`fit_tone`] found: the curve when it explains the pairs clearly better than the
+/// robust line, and the shares of pairs each explains.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ToneFit {
+    pub curve: Option<ToneCurve>,
+    /// Share of the pairs the line explains (all channels within the tolerance).
+    pub line_share: f32,
+    /// The same for the curve.
+    pub curve_share: f32,
+}
+
+/// Fits a monotone tone curve per channel on `(view, key)` colour pairs taken over the
+/// whole overlap of a view and the keyframe (where the view's own occluders are a small
+/// share), and keeps it only when it explains the pairs better than the robust line
+/// ([`fit_gain`]) by a margin ([`ToneParams::min_gain`], [`ToneParams::min_recovered`]):
+/// on an exposure that is linear the line stays.
+///
+/// The curve matches the view's quantiles to the keyframe's (the spread of a texture is
+/// the same in both images, so unlike a regression of key on view it is not flattened by
+/// misregistration), then again on the pairs it explains within three robust standard
+/// deviations ([`ToneParams::trim_rounds`]), so that a view's occluder does not shift the
+/// quantiles; equal view values are merged and the knots made non-decreasing.
+pub fn fit_tone(pairs: &[([f32; 3], [f32; 3])], params: &ToneParams) -> ToneFit {
+    let none = ToneFit { curve: None, line_share: 0.0, curve_share: 0.0 };
+    let bins = params.bins.min(pairs.len() / params.min_per_bin.max(1));
+    if bins < 4 {
+        return none;
+    }
+    let line = fit_gain(pairs, &GainParams::default());
+    let Some(mut curve) = quantile_curve(pairs, bins) else { return none };
+    // Trimmed: matched again on the pairs the curve explains within a band (three robust
+    // standard deviations of its residuals, at least twice the tolerance), so that pairs
+    // of an occluder no longer shift the quantiles.
+    for _ in 0..params.trim_rounds {
+        let worst: Vec<f32> = pairs
+            .iter()
+            .map(|&(v, k)| {
+                let t = curve.apply(v);
+                (0..3).map(|c| (t[c] - k[c]).abs()).fold(0.0, f32::max)
+            })
+            .collect();
+        let band = (3.0 * 1.4826 * quantile(&worst, 0.5)).max(2.0 * params.tolerance);
+        let kept: Vec<_> = pairs.iter().zip(&worst).filter(|&(_, &r)| r < band).map(|(p, _)| *p).collect();
+        if kept.len() * 2 < pairs.len() {
+            break;
+        }
+        match quantile_curve(&kept, bins) {
+            Some(c) => curve = c,
+            None => break,
+        }
+    }
+    let (mut line_ok, mut curve_ok) = (0usize, 0usize);
+    for &(v, k) in pairs {
+        let (l, t) = (line.apply(v), curve.apply(v));
+        line_ok += usize::from((0..3).all(|c| (l[c] - k[c]).abs() < params.tolerance));
+        curve_ok += usize::from((0..3).all(|c| (t[c] - k[c]).abs() < params.tolerance));
+    }
+    let n = pairs.len() as f32;
+    let (line_share, curve_share) = (line_ok as f32 / n, curve_ok as f32 / n);
+    let gain = curve_share - line_share;
+    let better = gain >= params.min_gain && gain >= params.min_recovered * (1.0 - line_share);
+    ToneFit { curve: better.then_some(curve), line_share, curve_share }
+}
+
+/// Per channel, the view's quantiles matched to the keyframe's (`bins + 1` knots from the
+/// 1st to the 99th percentile; equal view values merged), made non-decreasing.
+fn quantile_curve(pairs: &[([f32; 3], [f32; 3])], bins: usize) -> Option<ToneCurve> {
+    let mut knots: [Vec<(f32, f32)>; 3] = Default::default();
+    for (c, out) in knots.iter_mut().enumerate() {
+        let mut xs: Vec<f32> = pairs.iter().map(|p| p.0[c]).collect();
+        let mut ys: Vec<f32> = pairs.iter().map(|p| p.1[c]).collect();
+        xs.sort_unstable_by(f32::total_cmp);
+        ys.sort_unstable_by(f32::total_cmp);
+        // (view value, key value, weight) per quantile.
+        let mut pts: Vec<(f32, f32, f32)> = Vec::with_capacity(bins + 1);
+        for b in 0..=bins {
+            let q = 0.01 + 0.98 * b as f32 / bins as f32;
+            let i = ((xs.len() - 1) as f32 * q).round() as usize;
+            let (x, y) = (xs[i], ys[i]);
+            match pts.last_mut() {
+                Some(last) if x - last.0 < 1e-4 => {
+                    last.1 = (last.1 * last.2 + y) / (last.2 + 1.0);
+                    last.2 += 1.0;
+                }
+                _ => pts.push((x, y, 1.0)),
+            }
+        }
+        if pts.len() < 2 {
+            return None;
+        }
+        *out = monotone(&pts);
+    }
+    Some(ToneCurve { knots })
+}
+
+/// Pool-adjacent-violators: the non-decreasing sequence closest (weighted least squares)
+/// to the points' key values, as knots.
+fn monotone(pts: &[(f32, f32, f32)]) -> Vec<(f32, f32)> {
+    // Blocks of (sum of weight·y, sum of weight, number of points).
+    let mut blocks: Vec<(f64, f64, usize)> = Vec::with_capacity(pts.len());
+    for &(_, y, w) in pts {
+        blocks.push((y as f64 * w as f64, w as f64, 1));
+        while blocks.len() >= 2 {
+            let (b, a) = (blocks[blocks.len() - 1], blocks[blocks.len() - 2]);
+            if a.0 / a.1 <= b.0 / b.1 {
+                break;
+            }
+            blocks.pop();
+            *blocks.last_mut().expect("two blocks") = (a.0 + b.0, a.1 + b.1, a.2 + b.2);
+        }
+    }
+    let mut out = Vec::with_capacity(pts.len());
+    let mut i = 0;
+    for (sy, sw, n) in blocks {
+        for p in &pts[i..i + n] {
+            out.push((p.0, (sy / sw) as f32));
+        }
+        i += n;
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -169,6 +367,76 @@ mod tests {
             (a.0 + dx * dy, a.1 + dx * dx)
         });
         assert!((sxy / sxx - 0.8).abs() > 0.1, "the test's outliers should matter to least squares");
+    }
+
+    /// A dark view of a bright keyframe whose highlights clip (leuven's light): the curve
+    /// is taken and follows the response where the robust line misses it by far.
+    #[test]
+    fn a_camera_response_gets_a_curve() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let response = |v: f32| (1.6 * v.powf(0.6)).min(1.0);
+        let pairs: Vec<_> = (0..20_000)
+            .map(|i| {
+                let v: [f32; 3] = std::array::from_fn(|_| rng.random_range(0.02..0.6f32));
+                let mut k = v.map(|c| response(c) + rng.random_range(-0.01..0.01));
+                if i % 10 == 0 {
+                    // A tenth of the pairs show the view's own occluder.
+                    k = [rng.random_range(0.0..1.0), rng.random_range(0.0..1.0), rng.random_range(0.0..1.0)];
+                }
+                (v, k)
+            })
+            .collect();
+        let fit = fit_tone(&pairs, &ToneParams::default());
+        assert!(fit.curve_share > fit.line_share + 0.3, "{fit:?}");
+        let curve = fit.curve.expect("a curve");
+        let line = fit_gain(&pairs, &GainParams::default());
+        let (mut worst_curve, mut worst_line) = (0.0f32, 0.0f32);
+        for v in [0.05, 0.1, 0.2, 0.3, 0.4, 0.5] {
+            worst_curve = worst_curve.max((curve.apply([v; 3])[0] - response(v)).abs());
+            worst_line = worst_line.max((line.apply([v; 3])[0] - response(v)).abs());
+        }
+        assert!(worst_curve < 0.02 && worst_line > 0.06, "curve {worst_curve}, line {worst_line}");
+        // Monotone.
+        for c in 0..3 {
+            assert!(curve.knots[c].windows(2).all(|w| w[0].0 < w[1].0 && w[0].1 <= w[1].1));
+        }
+    }
+
+    /// A linear exposure with a quarter of the pairs on the view's occluder: one dark value
+    /// of the view against the whole range of the keyframe's wall. A curve bends towards
+    /// that cluster, but explains fewer pairs than the line: no curve.
+    #[test]
+    fn an_occluder_does_not_fake_a_curve() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let pairs: Vec<_> = (0..20_000)
+            .map(|i| {
+                if i % 4 == 0 {
+                    let k: [f32; 3] = std::array::from_fn(|_| rng.random_range(0.3..0.9f32));
+                    ([0.12 + rng.random_range(-0.01..0.01f32); 3], k)
+                } else {
+                    let v: [f32; 3] = std::array::from_fn(|_| rng.random_range(0.1..0.7f32));
+                    (v, v.map(|c| 1.25 * c + 0.02 + rng.random_range(-0.01..0.01)))
+                }
+            })
+            .collect();
+        let fit = fit_tone(&pairs, &ToneParams::default());
+        assert!(fit.curve.is_none(), "{fit:?}");
+        assert!(fit.line_share > 0.7, "{fit:?}");
+    }
+
+    /// Two end knots close together make a steep end segment: beyond them the curve goes
+    /// on no steeper than a gain may be, and it stays continuous at the knots.
+    #[test]
+    fn a_curve_is_extended_gently_beyond_its_ends() {
+        let knots = vec![(0.1, 0.1), (0.1002, 0.3), (0.5, 0.6), (0.5002, 0.9)];
+        let curve = ToneCurve { knots: [knots.clone(), knots.clone(), knots] };
+        let low = curve.apply([0.0; 3])[0];
+        let high = curve.apply([0.6; 3])[0];
+        assert!((low - (0.1 - 0.1 * MAX_END_SLOPE)).abs() < 1e-5, "{low}");
+        assert!((high - (0.9 + 0.0998 * MAX_END_SLOPE)).abs() < 1e-4, "{high}");
+        for &(x, y) in &curve.knots[0] {
+            assert!((curve.apply([x; 3])[0] - y).abs() < 1e-5);
+        }
     }
 
     #[test]

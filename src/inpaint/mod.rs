@@ -18,9 +18,9 @@ pub mod region;
 use rayon::prelude::*;
 
 use crate::geometry::Homography;
-use crate::imaging::photometric::{GainParams, fit_gain};
+use crate::imaging::photometric::{GainParams, ToneParams, fit_gain, fit_tone};
 use crate::imaging::warp::{Interpolation, Rect, Warped, warp};
-use crate::imaging::{Mask, Plane, RgbF32, RgbPixel};
+use crate::imaging::{Mask, Plane, RgbF32, RgbPixel, bilinear_rgb};
 use automask::dilate;
 use blend::{BlendParams, guidance_rhs, poisson_blend, solve_membrane};
 use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region};
@@ -121,6 +121,8 @@ pub struct SourceReport {
     /// Photometric compensation applied: `key ≈ gain · view + offset`, per channel.
     pub gain: [f32; 3],
     pub offset: [f32; 3],
+    /// Whether a tone curve ([`FillParams::tone`]) was applied before the gain.
+    pub tone: bool,
     /// Whether the result was made from this source; one the choice kept out is still a
     /// witness ([`FillParams::select_views`]).
     pub joined: bool,
@@ -203,6 +205,12 @@ pub struct FillParams {
     pub ring_width: usize,
     /// The robust gain fit.
     pub gain: GainParams,
+    /// Before the ring's gain, a monotone tone curve per view fitted on the whole overlap
+    /// of the view and the keyframe (outside the mask, where neither has a strong edge),
+    /// applied only where it explains that overlap clearly better than a line
+    /// ([`ToneParams`]); the ring's gain then corrects the local level on top of it.
+    pub tone: bool,
+    pub tone_params: ToneParams,
     /// Gradient-domain (Poisson) blending of the filled region into the keyframe.
     pub blend: bool,
     pub blend_params: BlendParams,
@@ -264,6 +272,8 @@ impl Default for FillParams {
             ring_gap: 2,
             ring_width: 6,
             gain: GainParams::default(),
+            tone: true,
+            tone_params: ToneParams::default(),
             blend: true,
             blend_params: BlendParams::default(),
             interpolation: Interpolation::Bilinear,
@@ -460,6 +470,31 @@ pub fn fill_with<P: RgbPixel>(
     observer.stage(Stage::Photometric);
     if params.photometric {
         for v in 0..nv {
+            if params.tone {
+                let occluders = extras.occluders.get(v).copied().flatten();
+                let overlap = overlap_pairs(key, mask, &sources[v], occluders);
+                let fit = fit_tone(&overlap, &params.tone_params);
+                if let Some(curve) = fit.curve {
+                    report.sources[v].tone = true;
+                    let tone = |wv: &mut Warped| {
+                        wv.image.as_mut_slice().par_iter_mut().zip(wv.valid.as_slice().par_iter()).for_each(
+                            |(p, &ok)| {
+                                if ok {
+                                    *p = curve.apply(*p);
+                                }
+                            },
+                        );
+                    };
+                    for ws in &mut warps {
+                        tone(&mut ws[v]);
+                    }
+                    for pw in &mut plane_warps {
+                        for wv in pw.iter_mut().filter_map(|p| p.get_mut(v)).flatten() {
+                            tone(wv);
+                        }
+                    }
+                }
+            }
             let mut pairs = Vec::new();
             for (part, ws) in parts.iter().zip(&warps) {
                 let rw = part.rect.width;
@@ -986,6 +1021,72 @@ fn exclude(wv: &mut Warped, h: &Homography, occluders: Option<&Mask>) {
             }
         }
     }
+}
+
+/// The tone curve sees about this many pairs of the whole overlap per view (a grid).
+const TONE_SAMPLES: usize = 40_000;
+/// No pair where the keyframe or the view changes by more than this (0..=1, per channel,
+/// over two pixels) on a step of one pixel: there a misregistration of a pixel moves the
+/// value more than exposure does.
+const TONE_MAX_GRADIENT: f32 = 24.0 / 255.0;
+/// No pair within this many pixels of the keyframe's mask (the occluder's halo).
+const TONE_MASK_GAP: isize = 6;
+
+/// `(view, keyframe)` colour pairs over the whole overlap of `source` and `key`, on a grid
+/// of about [`TONE_SAMPLES`] points: outside the mask and its halo, off the view's known
+/// occluders, and only where neither image has a strong local gradient.
+fn overlap_pairs<P: RgbPixel>(
+    key: &RgbF32,
+    mask: &Mask,
+    source: &Source<'_, P>,
+    occluders: Option<&Mask>,
+) -> Vec<([f32; 3], [f32; 3])> {
+    let (w, h) = (key.width(), key.height());
+    let step = (((w * h) as f64 / TONE_SAMPLES as f64).sqrt().floor() as usize).max(1);
+    let steep = |a: [f32; 3], b: [f32; 3], c: [f32; 3], d: [f32; 3]| {
+        (0..3).any(|i| (a[i] - b[i]).abs() + (c[i] - d[i]).abs() > TONE_MAX_GRADIENT)
+    };
+    let near_hole = |x: usize, y: usize| {
+        let g = TONE_MASK_GAP;
+        [(0, 0), (-g, 0), (g, 0), (0, -g), (0, g), (-g, -g), (g, -g), (-g, g), (g, g)]
+            .iter()
+            .any(|&(dx, dy)| mask.get_checked(x as isize + dx, y as isize + dy).is_some_and(|m| m > 127))
+    };
+    let rows: Vec<usize> = (1..h.saturating_sub(1)).step_by(step).collect();
+    rows.par_iter()
+        .flat_map_iter(|&y| {
+            let mut out = Vec::new();
+            for x in (1..w.saturating_sub(1)).step_by(step) {
+                if near_hole(x, y) {
+                    continue;
+                }
+                let k = key.get(x, y);
+                if steep(key.get(x + 1, y), key.get(x - 1, y), key.get(x, y + 1), key.get(x, y - 1)) {
+                    continue;
+                }
+                let Some(p) = source.homography.apply(nalgebra::Point2::new(x as f64, y as f64)) else {
+                    continue;
+                };
+                let (u, v) = (p.x as f32, p.y as f32);
+                if occluders.is_some_and(|m| {
+                    m.get_checked(u.round() as isize, v.round() as isize).is_some_and(|o| o > 127)
+                }) {
+                    continue;
+                }
+                let at = |du: f32, dv: f32| bilinear_rgb(source.image, u + du, v + dv);
+                let (Some(c), Some(r), Some(l), Some(d), Some(t)) =
+                    (at(0.0, 0.0), at(1.0, 0.0), at(-1.0, 0.0), at(0.0, 1.0), at(0.0, -1.0))
+                else {
+                    continue;
+                };
+                if steep(r, l, d, t) {
+                    continue;
+                }
+                out.push((c, k));
+            }
+            out
+        })
+        .collect()
 }
 
 /// Whether two rectangles share a pixel.
