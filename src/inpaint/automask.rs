@@ -48,6 +48,10 @@ pub struct AutoMaskParams {
     /// An object grows into neighbouring pixels whose colour is this many times more likely
     /// under the object's own colours than under the building's.
     pub colour_ratio: f32,
+    /// Where no view shows what the keyframe shows, a view whose disagreement there is an
+    /// object of its own (found where another view agrees with the keyframe) is not evidence
+    /// against the keyframe ([`explain_by_own_occluders`]).
+    pub own_objects: bool,
     /// After the first growth by colour, up to this many more around each object, each from
     /// the object as grown so far: an occluder the views share is found a crescent at a time
     /// (where its displaced copies in the views do not cover it), and the crescent's box is
@@ -83,6 +87,7 @@ impl Default for AutoMaskParams {
             max_hole_share: 0.06,
             background_ratio: 4.0,
             colour_ratio: 4.0,
+            own_objects: true,
             regrowth_passes: 2,
             judged_colour_factor: 16.0,
             parallax_radius: 3,
@@ -167,7 +172,9 @@ pub fn auto_mask_report<P: RgbPixel>(
     let all = Plane::new(rw, rh, true);
     let key_b = box_blur(&key_r, &all, params.blur_radius);
     let mut ev = evidence(&key_b, &warped, params);
-    explain_by_own_occluders(&key_b, &warped, &mut ev, params);
+    if params.own_objects {
+        explain_by_own_occluders(&key_b, &warped, &mut ev, params);
+    }
     explain_by_parallax(&key_b, &mut ev, params);
 
     let veto = shared_occluders(&key_b, &ev, params);

@@ -366,8 +366,11 @@ impl Runner {
             let mut params = self.slot.session.params().auto_mask.clone();
             params.min_views = params.min_views.min(sources.len());
             // The walk's marks were measured without the regrowth (BENCHMARKS.md, "Video
-            // target, tenth pass"), and they already cover too much on some walks.
+            // target, tenth pass"), and they already cover too much on some walks. Neighbouring
+            // frames' own objects explaining their disagreement cost two walks 3 and 4 dB
+            // (BENCHMARKS.md, "--mask auto: the views' own objects").
             params.regrowth_passes = 0;
+            params.own_objects = false;
             let mask = auto_mask(&rgb, &sources, &params);
             drop(sources);
             let share = mask.as_slice().iter().filter(|&&v| v > 127).count() as f64
