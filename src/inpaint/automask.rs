@@ -391,29 +391,33 @@ fn explain_by_own_occluders(
     params: &AutoMaskParams,
 ) {
     let (w, h) = (key.width(), key.height());
-    let dist = |a: [f32; 3], b: [f32; 3]| ((0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>()).sqrt();
-    let differs = |v: usize, x: usize, y: usize| {
-        let (img, valid) = &warped[v];
-        valid.get(x, y) && dist(img.get(x, y), key.get(x, y)) > params.threshold
-    };
     // Only the pixels weak for want of any view showing the keyframe's colour are in doubt.
     let doubted = Plane::from_fn(w, h, |x, y| ev.weak.get(x, y) && !ev.judged.get(x, y));
     if !doubted.as_slice().iter().any(|&d| d) {
         return;
     }
+    let dist = |a: [f32; 3], b: [f32; 3]| ((0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>()).sqrt();
+    // Per view, its distance to the keyframe (infinite where it does not see the pixel)...
+    let distance: Vec<Plane<f32>> = warped
+        .iter()
+        .map(|(img, valid)| {
+            Plane::from_fn(w, h, |x, y| {
+                if valid.get(x, y) { dist(img.get(x, y), key.get(x, y)) } else { f32::INFINITY }
+            })
+        })
+        .collect();
+    let differs = |v: usize, x: usize, y: usize| {
+        let d = distance[v].get(x, y);
+        d.is_finite() && d > params.threshold
+    };
+    // ...and how many views agree with the keyframe (a view that differs is not one of them).
+    let agreeing =
+        Plane::from_fn(w, h, |x, y| distance.iter().filter(|d| d.get(x, y) <= params.low_threshold).count());
     let building =
         ColourHistogram::within(key, &Rect::full(w, h), |x, y| ev.judged.get(x, y) && !ev.strong.get(x, y));
     let own: Vec<Option<(Plane<bool>, ColourHistogram)>> = (0..warped.len())
         .map(|v| {
-            let seeds = Plane::from_fn(w, h, |x, y| {
-                differs(v, x, y)
-                    && (0..warped.len()).any(|u| {
-                        let (img, valid) = &warped[u];
-                        u != v
-                            && valid.get(x, y)
-                            && dist(img.get(x, y), key.get(x, y)) <= params.low_threshold
-                    })
-            });
+            let seeds = Plane::from_fn(w, h, |x, y| differs(v, x, y) && agreeing.get(x, y) > 0);
             // Thin lines of disagreement are edges a little off: an object survives opening.
             let seeds = dilate(&erode(&seeds, params.open_radius), params.open_radius);
             if !seeds.as_slice().iter().any(|&s| s) {
@@ -436,12 +440,11 @@ fn explain_by_own_occluders(
             object.get(x, y) && colours.density(k) <= building.density(k)
         })
     };
-    for y in 0..h {
-        for x in 0..w {
-            let mut seen = (0..warped.len()).filter(|&v| warped[v].1.get(x, y)).peekable();
-            if doubted.get(x, y) && seen.peek().is_some() && seen.all(|v| explained(v, x, y)) {
-                ev.weak.set(x, y, false);
-            }
+    for i in (0..w * h).filter(|&i| doubted.as_slice()[i]) {
+        let (x, y) = (i % w, i / w);
+        let mut seen = (0..warped.len()).filter(|&v| warped[v].1.get(x, y)).peekable();
+        if seen.peek().is_some() && seen.all(|v| explained(v, x, y)) {
+            ev.weak.set(x, y, false);
         }
     }
 }
