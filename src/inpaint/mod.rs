@@ -476,23 +476,7 @@ pub fn fill_with<P: RgbPixel>(
                 let fit = fit_tone(&overlap, &params.tone_params);
                 if let Some(curve) = fit.curve {
                     report.sources[v].tone = true;
-                    let tone = |wv: &mut Warped| {
-                        wv.image.as_mut_slice().par_iter_mut().zip(wv.valid.as_slice().par_iter()).for_each(
-                            |(p, &ok)| {
-                                if ok {
-                                    *p = curve.apply(*p);
-                                }
-                            },
-                        );
-                    };
-                    for ws in &mut warps {
-                        tone(&mut ws[v]);
-                    }
-                    for pw in &mut plane_warps {
-                        for wv in pw.iter_mut().filter_map(|p| p.get_mut(v)).flatten() {
-                            tone(wv);
-                        }
-                    }
+                    map_view(&mut warps, &mut plane_warps, v, |p| curve.apply(p));
                 }
             }
             let mut pairs = Vec::new();
@@ -510,23 +494,7 @@ pub fn fill_with<P: RgbPixel>(
             let gain = fit_gain(&sample, &params.gain);
             report.sources[v].gain = gain.gain;
             report.sources[v].offset = gain.offset;
-            let compensate = |wv: &mut Warped| {
-                wv.image.as_mut_slice().par_iter_mut().zip(wv.valid.as_slice().par_iter()).for_each(
-                    |(p, &ok)| {
-                        if ok {
-                            *p = gain.apply(*p);
-                        }
-                    },
-                );
-            };
-            for ws in &mut warps {
-                compensate(&mut ws[v]);
-            }
-            for pw in &mut plane_warps {
-                for wv in pw.iter_mut().filter_map(|p| p.get_mut(v)).flatten() {
-                    compensate(wv);
-                }
-            }
+            map_view(&mut warps, &mut plane_warps, v, |p| gain.apply(p));
             observer.progress(v + 1, nv);
         }
     }
@@ -1031,6 +999,31 @@ const TONE_SAMPLES: usize = 40_000;
 const TONE_MAX_GRADIENT: f32 = 24.0 / 255.0;
 /// No pair within this many pixels of the keyframe's mask (the occluder's halo).
 const TONE_MASK_GAP: isize = 6;
+
+/// Maps view `v`'s valid warped pixels through `f`, in every part's warps and in its
+/// surfaces' (`plane_warps`), so that all of them are compensated alike.
+fn map_view(
+    warps: &mut [Vec<Warped>],
+    plane_warps: &mut [Vec<Vec<Option<Warped>>>],
+    v: usize,
+    f: impl Fn([f32; 3]) -> [f32; 3] + Sync,
+) {
+    let apply = |wv: &mut Warped| {
+        wv.image.as_mut_slice().par_iter_mut().zip(wv.valid.as_slice().par_iter()).for_each(|(p, &ok)| {
+            if ok {
+                *p = f(*p);
+            }
+        });
+    };
+    for ws in warps.iter_mut() {
+        apply(&mut ws[v]);
+    }
+    for pw in plane_warps.iter_mut() {
+        for wv in pw.iter_mut().filter_map(|p| p.get_mut(v)).flatten() {
+            apply(wv);
+        }
+    }
+}
 
 /// `(view, keyframe)` colour pairs over the whole overlap of `source` and `key`, on a grid
 /// of about [`TONE_SAMPLES`] points: outside the mask and its halo, off the view's known
