@@ -662,7 +662,7 @@ impl PixelConfidence {
 const WITNESSES: f32 = 0.5;
 /// The share of an edge's step taken as its expected error in the confidence a result
 /// reports. At 0.25 most of the generated cases' gross errors that were marked confident lay
-/// along brick and window edges (flagged recall 60 % with 4 views); at 0.4, 69 %
+/// along brick and window edges (flagged recall 60 % with 4 views); at 0.4, 68 %
 /// (BENCHMARKS.md, "Confidence at edges").
 pub const EDGE_SHARE: f32 = 0.4;
 /// The same share in the confidence the fill decides with (which view pixels border the
