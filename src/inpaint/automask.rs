@@ -319,6 +319,12 @@ fn components(m: &Plane<bool>) -> Vec<Rect> {
     out
 }
 
+/// Euclidean RGB distance (0..=√3).
+#[inline]
+fn dist(a: [f32; 3], b: [f32; 3]) -> f32 {
+    ((0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>()).sqrt()
+}
+
 /// Stage (2): per pixel, the consensus of the views that agree with each other and the
 /// keyframe's distance to it.
 fn evidence(key: &RgbF32, warped: &[(RgbF32, Plane<bool>)], params: &AutoMaskParams) -> Evidence {
@@ -329,7 +335,6 @@ fn evidence(key: &RgbF32, warped: &[(RgbF32, Plane<bool>)], params: &AutoMaskPar
     let mut consensus = key.clone();
     let mut vals: Vec<[f32; 3]> = Vec::with_capacity(warped.len());
     let mut chan: Vec<f32> = Vec::with_capacity(warped.len());
-    let dist = |a: [f32; 3], b: [f32; 3]| ((0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>()).sqrt();
     for y in 0..h {
         for x in 0..w {
             vals.clear();
@@ -396,7 +401,6 @@ fn explain_by_own_occluders(
     if !doubted.as_slice().iter().any(|&d| d) {
         return;
     }
-    let dist = |a: [f32; 3], b: [f32; 3]| ((0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>()).sqrt();
     // Per view, its distance to the keyframe (infinite where it does not see the pixel)...
     let distance: Vec<Plane<f32>> = warped
         .iter()
