@@ -15,7 +15,8 @@
 //! [`SessionParams::min_new_pixels`] are either
 //! - filled by the single-image fallback in the current result (nobody saw them),
 //! - doubtful in the current result (confidence below [`CONFIDENT`]: the views there
-//!   disagree, or may show an occluder), or
+//!   disagree, or may show an occluder; a sharp edge's doubt counts only as much as the
+//!   fill itself weighs it, since no further view makes an edge sharper), or
 //! - seen by fewer than [`SessionParams::witnesses`] buffered views (the fill's consensus
 //!   against views occluded there is weak).
 //!
@@ -268,7 +269,9 @@ pub struct Session {
     buffer: Vec<Buffered>,
     /// Provenance of the current result over the mask's region.
     provenance: Option<Provenance>,
-    /// Confidence of the current result over the mask's region.
+    /// Confidence of the current result over the mask's region, as the fill decides with
+    /// it ([`crate::inpaint::Filled::deciding`]): the improvement rule asks whether a new
+    /// view can settle a doubt, and no view settles an edge's sub-pixel uncertainty.
     confidence: Option<Confidence>,
     /// The current result over the mask's region, as published (8-bit): the next fill
     /// judges it on its own views.
@@ -818,7 +821,7 @@ impl Session {
         let image = if better {
             self.best = Some(score);
             self.provenance = Some(filled.provenance);
-            self.confidence = Some(filled.confidence);
+            self.confidence = Some(filled.deciding);
             let mut full = key.rgb.clone();
             full.paste(&filled.image, region);
             self.result = Some(Rgb8::from_fn(region.width, region.height, |x, y| {
@@ -1128,6 +1131,48 @@ mod tests {
             other => panic!("{other:?}"),
         }
         assert!(s.needs_fill());
+    }
+
+    #[test]
+    fn a_view_no_better_than_the_ones_that_agree_on_the_walls_edges_improves_nothing() {
+        // Three views show the wall exactly; the fill takes them, and the reported confidence
+        // still doubts the wall's edges (76 levels: a fraction of a pixel off would be a
+        // gross error there). A fourth view just like them cannot settle that doubt, so it is
+        // no reason for a fill of its own.
+        let mut s = Session::new(SessionParams { buffer: 8, ..params() });
+        let wall =
+            |x: usize, y: usize| if (x / 6 + y / 9) % 2 == 0 { [0.45, 0.47, 0.5] } else { [0.7, 0.72, 0.75] };
+        let board = |x: usize, y: usize| (32..58).contains(&x) && (22..48).contains(&y);
+        s.set_key(
+            "key".into(),
+            RgbF32::from_fn(W, H, |x, y| if board(x, y) { [0.9, 0.1, 0.1] } else { wall(x, y) }),
+        );
+        let mask = square_mask(30, 20, 30);
+        s.set_mask("mask".into(), mask.clone()).unwrap();
+        // Each view lit a little differently (a gentle slope of its own), as independent
+        // shots are: views that agree to the level came from one spot and share a vote.
+        let lit = |k: f32| {
+            to8(&RgbF32::from_fn(W, H, |x, y| {
+                let slope = 0.06 * (k * x as f32 / W as f32 - (1.0 - k) * y as f32 / H as f32);
+                wall(x, y).map(|v| v + slope)
+            }))
+        };
+        let h = Homography::identity();
+        for (id, k) in [("a", 0.0), ("b", 0.25), ("c", 0.5), ("d", 0.75), ("e", 1.0)] {
+            s.admit(id.into(), record(&h), Some(&lit(k))).unwrap();
+        }
+        let out = s.fill(&mut ()).unwrap();
+        let reported = out.confidence.as_ref().unwrap();
+        let doubted =
+            (0..W * H).filter(|&i| mask.as_slice()[i] > 127 && reported.as_slice()[i] < CONFIDENT).count();
+        assert!(doubted >= 50, "the case needs edges the report doubts: {doubted}");
+        let a = s.admit("f".into(), record(&h), Some(&lit(0.4))).unwrap();
+        match a {
+            Admission::Accepted { improves: false, doubtful_px, .. } => {
+                assert!(doubtful_px < 10, "{doubtful_px}")
+            }
+            other => panic!("a view like the others was taken as an improvement: {other:?}"),
+        }
     }
 
     #[test]

@@ -344,6 +344,12 @@ pub struct Filled {
     /// Keyframe-sized: 0 outside the mask; inside, how sure the fill is that the pixel
     /// shows the building (255 · probability; see [`CONFIDENT`]).
     pub confidence: Confidence,
+    /// As `confidence`, but with a sharp edge counted as the fill decides with it
+    /// ([`occlusion::GUIDE_EDGE_SHARE`] of its step, not [`occlusion::EDGE_SHARE`]): the
+    /// doubt that another view could settle. An edge a fraction of a pixel off stays
+    /// doubtful in the reported map however many views agree, so a rule that asks whether
+    /// a new view can help (the session's improvement rule) reads this one.
+    pub deciding: Confidence,
     pub report: FillReport,
     /// How well [`FillExtras::rival`] agrees with these views, as
     /// [`FillReport::witnessed_quality`] says of this fill.
@@ -403,6 +409,7 @@ pub fn fill_with<P: RgbPixel>(
         provenance: Provenance::new(w, h, KEYFRAME),
         surface,
         confidence: Confidence::new(w, h, 0),
+        deciding: Confidence::new(w, h, 0),
         report,
         rival_quality: None,
     };
@@ -656,6 +663,7 @@ pub fn fill_with<P: RgbPixel>(
         provenance: made.provenance,
         surface,
         confidence: made.confidence,
+        deciding: made.guiding,
         report,
         rival_quality,
     }
@@ -706,6 +714,8 @@ struct Made {
     image: RgbF32,
     provenance: Provenance,
     confidence: Confidence,
+    /// The confidence as the fill decides with it ([`Filled::deciding`]).
+    guiding: Confidence,
     /// Masked pixels taken from each source (all of them, by index).
     filled: Vec<usize>,
     fallback: usize,
@@ -739,19 +749,20 @@ impl Staged<'_> {
                 .collect();
             &own
         };
-        let done = |results, image, provenance, confidence, filled, fallback| Made {
+        let done = |results, image, provenance, confidence, guiding, filled, fallback| Made {
             views: views.to_vec(),
             results,
             image,
             provenance,
             confidence,
+            guiding,
             filled,
             fallback,
         };
 
         // Fill: regions in parallel, in batches so that progress can be told.
         if observer.cancelled() {
-            return done(Vec::new(), image, provenance, confidence, filled, fallback_count);
+            return done(Vec::new(), image, provenance, confidence, guiding, filled, fallback_count);
         }
         observer.stage(Stage::Fill);
         let mparams = params.multiview();
@@ -795,7 +806,7 @@ impl Staged<'_> {
 
         // Fallback: what no view saw, from the image itself (with the views' fill as context).
         if observer.cancelled() {
-            return done(results, image, provenance, confidence, filled, fallback_count);
+            return done(results, image, provenance, confidence, guiding, filled, fallback_count);
         }
         observer.stage(Stage::Fallback);
         let mut pending = Mask::new(w, h, 0);
@@ -829,11 +840,12 @@ impl Staged<'_> {
             for (x, &p) in provenance.row(y).iter().enumerate() {
                 if p == FALLBACK {
                     confidence.set(x, y, to_byte(INVENTED));
+                    guiding.set(x, y, to_byte(INVENTED));
                 }
             }
         }
 
-        done(results, image, provenance, confidence, filled, fallback_count)
+        done(results, image, provenance, confidence, guiding, filled, fallback_count)
     }
 
     /// Blends `made` into the keyframe: each region's fill, guided by its views' own
