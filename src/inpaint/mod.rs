@@ -233,15 +233,6 @@ pub struct FillParams {
     /// the fairly sure ones. A video walk says otherwise (BENCHMARKS.md, "Video target,
     /// ninth pass").
     pub fallback_guide_from: Option<u8>,
-    /// Where every view that sees a pixel has it among its [`FillExtras::occluders`], and
-    /// at least this many views see it, those views are taken there all the same (judged
-    /// by the occlusion model as any view's pixel) rather than leaving the pixel to the
-    /// fallback. For occluders found from weaker evidence than a painted mask (a walk's
-    /// frames judged against their neighbours, `daemon::video`): occluders move across
-    /// the facade from view to view, so a spot that many views see and all of them mark
-    /// is more likely one the marks were grown over than one none saw clear. `None`: a
-    /// marked pixel is never copied.
-    pub occluders_where_alone: Option<usize>,
     /// Which surface each pixel shows, where [`FillExtras::planes`] gives surfaces off the
     /// wall.
     pub parallax: ParallaxParams,
@@ -281,7 +272,6 @@ impl Default for FillParams {
             exemplar: ExemplarParams::default(),
             fallback_margin: 32,
             fallback_guide_from: Some(CONFIDENT / 2),
-            occluders_where_alone: None,
             parallax: ParallaxParams::default(),
             select_views: true,
             select_margin: KEEP_MARGIN,
@@ -429,14 +419,9 @@ pub fn fill_with<P: RgbPixel>(
             .par_iter()
             .map(|s| warp(s.image, &s.homography, part.rect, Some(&part.need), params.interpolation))
             .collect();
-        let seen: Option<(usize, Vec<Plane<bool>>)> =
-            params.occluders_where_alone.map(|n| (n, ws.iter().map(|wv| wv.valid.clone()).collect()));
         ws.par_iter_mut().zip(sources.par_iter()).enumerate().for_each(|(v, (wv, s))| {
             exclude(wv, &s.homography, extras.occluders.get(v).copied().flatten());
         });
-        if let Some((n, seen)) = seen {
-            keep_where_alone(&mut ws, &seen, n);
-        }
         for (v, wv) in ws.iter().enumerate() {
             report.sources[v].covered +=
                 part.hole.as_slice().iter().zip(wv.valid.as_slice()).filter(|&(&hh, &ok)| hh && ok).count();
@@ -964,22 +949,6 @@ const WITNESS_TRUST: f32 = 0.5;
 
 fn to_byte(c: f32) -> u8 {
     (c.clamp(0.0, 1.0) * 255.0).round() as u8
-}
-
-/// Gives back their pixels to the views (`seen`: their validity before [`exclude`]) where
-/// [`exclude`] left no view at all and at least `min_views` saw the pixel
-/// ([`FillParams::occluders_where_alone`]).
-fn keep_where_alone(ws: &mut [Warped], seen: &[Plane<bool>], min_views: usize) {
-    let Some(n) = ws.first().map(|wv| wv.valid.as_slice().len()) else { return };
-    for i in 0..n {
-        if ws.iter().all(|wv| !wv.valid.as_slice()[i])
-            && seen.iter().filter(|s| s.as_slice()[i]).count() >= min_views.max(1)
-        {
-            for (wv, s) in ws.iter_mut().zip(seen) {
-                wv.valid.as_mut_slice()[i] = s.as_slice()[i];
-            }
-        }
-    }
 }
 
 /// Marks invalid the pixels of `wv` (warped through `h`) that fall on `occluders` (view
@@ -1696,11 +1665,9 @@ mod tests {
     /// Two views of a facade, each with its own occluder marked (`FillExtras::occluders`)
     /// over part of the keyframe's hole: over the left block only the first is marked, over
     /// the right block both. A marked pixel is never copied where the other view sees it
-    /// clear; where both are marked it goes to the fallback by default, and to the views
-    /// with `occluders_where_alone` (the walk's occluders, found from its frames) when at
-    /// least that many views see it.
+    /// clear; where both are marked it goes to the fallback.
     #[test]
-    fn a_pixel_every_view_marks_as_its_occluder_is_copied_only_when_told() {
+    fn a_pixel_every_view_marks_as_its_occluder_is_never_copied() {
         let (w, h) = (160, 120);
         let scene = facade(w, h, 5);
         let mut key = scene.clone();
@@ -1736,22 +1703,14 @@ mod tests {
         };
         let (left_px, right_px) = (in_hole(&left), in_hole(&right));
         assert!(left_px.len() > 300 && right_px.len() > 300, "the blocks are in the hole");
-        for (alone, copied) in [(None, false), (Some(2), true), (Some(3), false)] {
-            let params = FillParams { occluders_where_alone: alone, ..FillParams::default() };
-            let f = fill_with(&key, &mask, &sources, &extras, &params, 3, &mut ());
-            let p = f.provenance.as_slice();
-            let from =
-                |v: u16, px: &[usize]| px.iter().filter(|&&i| p[i] == v).count() as f64 / px.len() as f64;
-            // Sources are numbered from 1 in the provenance.
-            assert!(from(1, &left_px) < 0.02, "{alone:?}: the first view's marked pixels were copied");
-            assert!(from(2, &left_px) > 0.95, "{alone:?}: the second view sees the left block clear");
-            let fallback = from(FALLBACK, &right_px);
-            if copied {
-                assert!(fallback < 0.05, "both marked, told to copy: {fallback:.2} left to the fallback");
-            } else {
-                assert!(fallback > 0.95, "both marked: {fallback:.2} to the fallback");
-            }
-        }
+        let f = fill_with(&key, &mask, &sources, &extras, &FillParams::default(), 3, &mut ());
+        let p = f.provenance.as_slice();
+        let from = |v: u16, px: &[usize]| px.iter().filter(|&&i| p[i] == v).count() as f64 / px.len() as f64;
+        // Sources are numbered from 1 in the provenance.
+        assert!(from(1, &left_px) < 0.02, "the first view's marked pixels were copied");
+        assert!(from(2, &left_px) > 0.95, "the second view sees the left block clear");
+        let fallback = from(FALLBACK, &right_px);
+        assert!(fallback > 0.95, "both marked: {fallback:.2} to the fallback");
     }
 
     #[test]
