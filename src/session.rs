@@ -1140,8 +1140,9 @@ mod tests {
         // gross error there). A fourth view just like them cannot settle that doubt, so it is
         // no reason for a fill of its own.
         let mut s = Session::new(SessionParams { buffer: 8, ..params() });
-        let wall =
-            |x: usize, y: usize| if (x / 6 + y / 9) % 2 == 0 { [0.45, 0.47, 0.5] } else { [0.7, 0.72, 0.75] };
+        let wall = |x: usize, y: usize| {
+            if (x / 6 + y / 9).is_multiple_of(2) { [0.45, 0.47, 0.5] } else { [0.7, 0.72, 0.75] }
+        };
         let board = |x: usize, y: usize| (32..58).contains(&x) && (22..48).contains(&y);
         s.set_key(
             "key".into(),
