@@ -50,15 +50,23 @@ pub struct GainParams {
     pub iterations: usize,
     /// Tukey's constant in robust standard deviations (4.685 is the usual 95 % efficiency).
     pub tukey_c: f32,
+    /// A channel whose weighted pairs correlate less than this keeps gain 1 and offset 0:
+    /// the pairs are not one surface under two exposures but two different things (a
+    /// view's own occluder over the ring, a flat car body against a textured wall), and
+    /// the spread-matching gain of such pairs is arbitrary (it ran to the bound, 4, with an
+    /// offset of −1.9, and amplified a frame's noise fourfold into the hole).
+    pub min_correlation: f32,
 }
 
 impl Default for GainParams {
     fn default() -> Self {
-        Self { min_samples: 30, max_gain: 4.0, iterations: 10, tukey_c: 4.685 }
+        Self { min_samples: 30, max_gain: 4.0, iterations: 10, tukey_c: 4.685, min_correlation: 0.3 }
     }
 }
 
 /// Fits `key ≈ gain · view + offset` per channel on `(view, key)` colour pairs, robustly.
+/// A channel whose pairs do not correlate ([`GainParams::min_correlation`]) is left as it
+/// is: nothing in them tells the view's light.
 pub fn fit_gain(pairs: &[([f32; 3], [f32; 3])], params: &GainParams) -> Gain {
     if pairs.len() < params.min_samples.max(3) {
         return Gain::IDENTITY;
@@ -94,13 +102,17 @@ fn fit_line(x: &[f32], y: &[f32], params: &GainParams) -> (f32, f32) {
     let mut g = if spread_x > 1e-4 { (spread_y / spread_x).clamp(lo, hi) } else { 1.0 };
     let mut b = quantile(y, 0.5) - g * quantile(x, 0.5);
     let mut r = vec![0.0f32; x.len()];
+    // Whether the pairs the last iteration weighed correlate (a flat view's pairs do not
+    // say, and only an offset is fitted to them).
+    let mut related = true;
     for _ in 0..params.iterations {
         for i in 0..x.len() {
             r[i] = (y[i] - g * x[i] - b).abs();
         }
         let mad = quantile(&r, 0.5);
         let scale = (1.4826 * mad).max(1e-3) * params.tukey_c;
-        let (mut sw, mut sx, mut sy, mut sxx, mut syy) = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64);
+        let (mut sw, mut sx, mut sy, mut sxx, mut syy, mut sxy) =
+            (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64);
         for i in 0..x.len() {
             let u = r[i] / scale;
             if u >= 1.0 {
@@ -113,6 +125,7 @@ fn fit_line(x: &[f32], y: &[f32], params: &GainParams) -> (f32, f32) {
             sy += w * yi;
             sxx += w * xi * xi;
             syy += w * yi * yi;
+            sxy += w * xi * yi;
         }
         if sw < 3.0 {
             break;
@@ -123,10 +136,13 @@ fn fit_line(x: &[f32], y: &[f32], params: &GainParams) -> (f32, f32) {
         // weakly, and a regression slope would shrink towards zero (attenuation), while the
         // spread of a texture is the same in both images.
         let (ng, nb) = if var_x > 1e-9 * sw {
+            let cov = sxy - sx * sy / sw;
+            related = var_y <= 1e-9 * sw || cov >= f64::from(params.min_correlation) * (var_x * var_y).sqrt();
             let ng = ((var_y / var_x).sqrt() as f32).clamp(lo, hi);
             (ng, ((sy - ng as f64 * sx) / sw) as f32)
         } else {
             // No spread in the view's values: only an offset can be known.
+            related = true;
             (1.0, ((sy - sx) / sw) as f32)
         };
         let done = (ng - g).abs() < 1e-5 && (nb - b).abs() < 1e-5;
@@ -136,7 +152,7 @@ fn fit_line(x: &[f32], y: &[f32], params: &GainParams) -> (f32, f32) {
             break;
         }
     }
-    (g, b)
+    if related { (g, b) } else { (1.0, 0.0) }
 }
 
 /// A monotone tone curve per channel: `key ≈ curve(view)`, piecewise linear between knots
@@ -437,6 +453,25 @@ mod tests {
         for &(x, y) in &curve.knots[0] {
             assert!((curve.apply([x; 3])[0] - y).abs() < 1e-5);
         }
+    }
+
+    /// A view whose ring shows its own occluder (a nearly flat car body, lightly noisy)
+    /// against the keyframe's textured wall: the pairs do not correlate, and matching their
+    /// spreads ran the gain to its bound. Nothing is fitted to them; a view of the same
+    /// wall, darker and noisy, is still fitted.
+    #[test]
+    fn pairs_that_do_not_correlate_fit_no_gain() {
+        let mut rng = ChaCha8Rng::seed_from_u64(16);
+        let wall: Vec<f32> = (0..400).map(|_| rng.random_range(0.3..0.7f32)).collect();
+        let car: Vec<([f32; 3], [f32; 3])> =
+            wall.iter().map(|&k| ([0.62 + rng.random_range(-0.02..0.02f32); 3], [k; 3])).collect();
+        let spread = fit_gain(&car, &GainParams { min_correlation: -1.0, ..GainParams::default() });
+        assert!(spread.gain[0] > 3.0, "the spreads' gain, unchecked: {spread:?}");
+        assert_eq!(fit_gain(&car, &GainParams::default()), Gain::IDENTITY);
+        let darker: Vec<([f32; 3], [f32; 3])> =
+            wall.iter().map(|&k| ([0.6 * k + 0.05 + rng.random_range(-0.01..0.01f32); 3], [k; 3])).collect();
+        let g = fit_gain(&darker, &GainParams::default());
+        assert!((g.gain[0] - 1.0 / 0.6).abs() < 0.1 && (g.apply([0.35; 3])[0] - 0.5).abs() < 0.02, "{g:?}");
     }
 
     #[test]
