@@ -123,8 +123,8 @@ fn load(path: &Path) -> Option<RgbF32> {
     Some(to_rgb(&img))
 }
 
-/// Hole `j` of an image: an occluder's silhouette (grown by 3 px, as a person paints), every
-/// third one against the left, right or bottom border.
+/// Hole `j` of an image: an occluder's silhouette (grown by 3 px, as a person paints); holes
+/// 2, 3 and 5 of every six (half of them) against the left, right or bottom border.
 fn hole(img: &RgbF32, j: usize, seed: u64) -> (Mask, &'static str, bool) {
     let (w, h) = (img.width() as f32, img.height() as f32);
     let mut rng = ChaCha8Rng::seed_from_u64(seed);

@@ -102,8 +102,8 @@ fn fit_line(x: &[f32], y: &[f32], params: &GainParams) -> (f32, f32) {
     let mut g = if spread_x > 1e-4 { (spread_y / spread_x).clamp(lo, hi) } else { 1.0 };
     let mut b = quantile(y, 0.5) - g * quantile(x, 0.5);
     let mut r = vec![0.0f32; x.len()];
-    // Whether the pairs the last iteration weighed correlate (a flat view's pairs do not
-    // say, and only an offset is fitted to them).
+    // Whether the pairs the last iteration weighed correlate at least `min_correlation`
+    // (pairs with no spread on the view's side count as related: only their offset is fitted).
     let mut related = true;
     for _ in 0..params.iterations {
         for i in 0..x.len() {
