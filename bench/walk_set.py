@@ -3,8 +3,9 @@
 seed (both cases: the first frame with no flag, and `--keyframe-frame 30`), `--jobs` at a time,
 into WORK/<seed>/, then prints one row per seed (masked PSNR, target met or not) and the
 totals: cases, targets met, mean masked PSNR. With `--base DIR` (the WORK of an earlier run,
-another binary), each case is printed beside the base's figure with the difference, and the
-cases that gained or lost more than 0.3 dB are counted: a change to the walk is judged on the
+another binary), each case is printed beside the base's figure with the difference, and on
+the cases both runs have, the two totals side by side and the cases that gained or lost more
+than 0.3 dB: a change to the walk is judged on the
 whole set, not on the walks it was made for.
 
 A seed whose WORK/<seed>/results.json already exists is not run again (delete it to re-run),
@@ -75,7 +76,9 @@ def main():
     head = "| seed | " + " | ".join(f"{c} dB{' (base, diff)' if base else ''} | met" for c in CASES) + " |"
     print(head)
     print("|---" * (1 + 2 * len(CASES)) + "|")
-    psnrs, met, total, gained, lost, base_psnrs, base_met = [], 0, 0, 0, 0, [], 0
+    psnrs, met = [], 0
+    # Cases both runs have: (this run's psnr and met, the base's).
+    pairs = []
     for s in seeds:
         cells = []
         for c in CASES:
@@ -85,26 +88,27 @@ def main():
             p, ok = runs[s][c]
             psnrs.append(p)
             met += ok
-            total += 1
             cell = f"{p:.2f}"
             if c in base.get(s, {}):
                 b, b_ok = base[s][c]
-                base_psnrs.append(b)
-                base_met += b_ok
-                d = p - b
-                gained += d > SIGNIFICANT_DB
-                lost += d < -SIGNIFICANT_DB
-                cell += f" ({b:.2f}, {d:+.2f})"
+                pairs.append(((p, ok), (b, b_ok)))
+                cell += f" ({b:.2f}, {p - b:+.2f})"
             cells += [cell, "yes" if ok else "**no**"]
         print(f"| {s} | " + " | ".join(cells) + " |")
     print()
-    mean = sum(psnrs) / max(1, len(psnrs))
-    print(f"cases {total}, target met {met}, mean masked PSNR {mean:.2f} dB")
-    if base_psnrs:
-        base_mean = sum(base_psnrs) / len(base_psnrs)
-        print(f"base: cases {len(base_psnrs)}, target met {base_met}, mean {base_mean:.2f} dB; "
-              f"gained > {SIGNIFICANT_DB} dB: {gained}, lost > {SIGNIFICANT_DB} dB: {lost}")
+    print(f"cases {len(psnrs)}, target met {met}, mean masked PSNR {mean(psnrs):.2f} dB")
+    if pairs:
+        ours, theirs = zip(*pairs)
+        diffs = [p - b for (p, _), (b, _) in pairs]
+        print(f"on the {len(pairs)} cases the base has: target met {sum(ok for _, ok in ours)} against "
+              f"{sum(ok for _, ok in theirs)}, mean {mean([p for p, _ in ours]):.2f} against "
+              f"{mean([b for b, _ in theirs]):.2f} dB; gained > {SIGNIFICANT_DB} dB: "
+              f"{sum(d > SIGNIFICANT_DB for d in diffs)}, lost > {SIGNIFICANT_DB} dB: "
+              f"{sum(d < -SIGNIFICANT_DB for d in diffs)}")
 
+
+def mean(values):
+    return sum(values) / max(1, len(values))
 
 if __name__ == "__main__":
     main()
