@@ -23,7 +23,7 @@ use std::time::Instant;
 
 use clearview::align::{AlignParams, Frame, align};
 use clearview::geometry::Homography;
-use clearview::geometry::planes::ParallaxFamily;
+use clearview::geometry::planes::{ParallaxFamily, common_scales};
 use clearview::imaging::RgbF32;
 use clearview::imaging::convert::{luminance, to_rgb8};
 use clearview::imaging::metrics::masked_psnr;
@@ -424,6 +424,7 @@ fn main() {
             "--no-rejoin" => sp.rejoin = false,
             "--repair" => sp.repair_ties = true,
             "--no-across" => sp.across_hole = false,
+            "--no-common-ties" => sp.common_ties = false,
             "--penalty" => fp.parallax.penalty = it.next().and_then(|v| v.parse().ok()).expect("--penalty X"),
             "--bias" => fp.parallax.wall_bias = it.next().and_then(|v| v.parse().ok()).expect("--bias X"),
             "--truncate" => {
@@ -489,12 +490,42 @@ fn main() {
                 e.iter().map(|e| e.map_or("-".into(), |e| format!("{e:.2}"))).collect::<Vec<_>>().join(" / ")
             };
             let (sparse, tied) = match parallax_family(&key_gray, &refs, &walls, &c.mask, &sp, 1) {
-                Some((own, _)) => (
-                    fmt(&epipole_errors_alone(&c, &t, &own)),
-                    tied_family(&key_gray, &refs, &c.mask, &sp, &own, &t)
-                        .map_or("none".into(), |f| fmt(&epipole_errors(&c, &t, &f))),
-                ),
-                None => ("none".into(), "none".into()),
+                Some((own, g)) => {
+                    // The scales tied geometrically, from the keyframe points every pair of
+                    // views matched off the wall; the reference that ties the most views.
+                    let geo = (0..refs.len())
+                        .map(|r| {
+                            common_scales(
+                                &own,
+                                &g.matches,
+                                &sp.epipoles,
+                                r,
+                                sp.min_common,
+                                sp.common_tolerance,
+                            )
+                        })
+                        .max_by_key(|k| {
+                            (k.iter().flatten().count(), k.iter().flatten().map(|k| k.1).sum::<usize>())
+                        })
+                        .filter(|k| k.iter().flatten().count() >= 2)
+                        .map_or("none".into(), |k| {
+                            let f = own.scaled(&k.iter().map(|k| k.map(|k| k.0)).collect::<Vec<_>>());
+                            format!(
+                                "{} ({})",
+                                fmt(&epipole_errors(&c, &t, &f)),
+                                k.iter()
+                                    .map(|k| k.map_or("-".into(), |k| k.1.to_string()))
+                                    .collect::<Vec<_>>()
+                                    .join("/")
+                            )
+                        });
+                    (
+                        format!("{} | {geo}", fmt(&epipole_errors_alone(&c, &t, &own))),
+                        tied_family(&key_gray, &refs, &c.mask, &sp, &own, &g.matches, &t)
+                            .map_or("none".into(), |f| fmt(&epipole_errors(&c, &t, &f))),
+                    )
+                }
+                None => ("none | none".into(), "none".into()),
             };
             epipole_rows.push(format!(
                 "| {seed} | {sparse} | {tied} | {:.2} | {:+.2} |",
@@ -526,10 +557,11 @@ fn main() {
             });
             let sweeps: Vec<Vec<SurfacePlane>> = vec![
                 swept.clone(),
-                est_tied
-                    .map_or_else(Vec::new, |f| sweep_family(&key_gray, &refs, &c.mask, &sp, &f, &t, true)),
-                sweep_family(&key_gray, &refs, &c.mask, &sp, &untied, &t, false),
-                sweep_family(&key_gray, &refs, &c.mask, &sp, &truth, &t, true),
+                est_tied.map_or_else(Vec::new, |f| {
+                    sweep_family(&key_gray, &refs, &c.mask, &sp, &f, &[], &t, true)
+                }),
+                sweep_family(&key_gray, &refs, &c.mask, &sp, &untied, &[], &t, false),
+                sweep_family(&key_gray, &refs, &c.mask, &sp, &truth, &[], &t, true),
                 true_planes.clone(),
             ];
             // The true family's surfaces, each given the true plane it is (the regions the
@@ -645,7 +677,9 @@ fn main() {
     );
     if epipoles {
         println!("\nepipole error, px off the true slab planes near the mask, per view:");
-        println!("| seed | sparse (own depth each) | tied (one depth) | swept dB | swept − today |");
+        println!(
+            "| seed | sparse (own depth each) | geometric tie (common points) | tied (one depth) | swept dB | swept − today |"
+        );
         println!("|---:|---|---|---:|---:|");
         for r in &epipole_rows {
             println!("{r}");

@@ -478,6 +478,66 @@ pub fn fit_parallax(
     Some(ParallaxFamily { walls: mats, epipoles, observed })
 }
 
+/// Per view, the factor that ties its scale of `γ` to view `reference`'s from the keyframe
+/// points both matched off the wall: a point at one depth has `γ_v = k_v·γ_ref`, so `k_v` is
+/// the ratio the common points agree on (their median, then a least-squares fit over those
+/// within `tolerance` of it), with the number of points that agree. `None` for a view with
+/// no epipole or fewer than `min_common` agreeing points, or where they are not the larger
+/// part of the common ones (repeats of texture matched in one view).
+pub fn common_scales(
+    family: &ParallaxFamily,
+    matches: &[Vec<Correspondence>],
+    params: &ParallaxFitParams,
+    reference: usize,
+    min_common: usize,
+    tolerance: f64,
+) -> Vec<Option<(f64, usize)>> {
+    // Per view: the off-wall matches on its epipolar lines, by keyframe point.
+    let depths: Vec<std::collections::HashMap<(u64, u64), f64>> = (0..matches.len())
+        .map(|v| {
+            let Some(e) = family.epipoles[v] else { return Default::default() };
+            let m = &family.walls[v];
+            let Some(wall) = Homography::from_matrix(*m) else { return Default::default() };
+            matches[v]
+                .iter()
+                .filter(|c| {
+                    let r = c.residual(&wall);
+                    r >= params.min_parallax_px
+                        && r <= params.max_parallax_px
+                        && epipolar_distance(c, m, &e) < params.line_px
+                })
+                .map(|c| ((c.key.x.to_bits(), c.key.y.to_bits()), gamma_of(c, m, &e)))
+                .collect()
+        })
+        .collect();
+    (0..matches.len())
+        .map(|v| {
+            if v == reference {
+                return family.epipoles[v].map(|_| (1.0, depths[v].len()));
+            }
+            let pairs: Vec<(f64, f64)> = depths[reference]
+                .iter()
+                .filter_map(|(k, &g)| Some((g, *depths[v].get(k)?)))
+                .filter(|(g, _)| g.abs() > 1e-12)
+                .collect();
+            if pairs.len() < min_common {
+                return None;
+            }
+            let mut ratios: Vec<f64> = pairs.iter().map(|(g, gv)| gv / g).collect();
+            ratios.sort_by(f64::total_cmp);
+            let med = ratios[ratios.len() / 2];
+            let agree: Vec<&(f64, f64)> =
+                pairs.iter().filter(|(g, gv)| (gv / g / med - 1.0).abs() <= tolerance).collect();
+            if agree.len() < min_common || 2 * agree.len() <= pairs.len() {
+                return None;
+            }
+            let num: f64 = agree.iter().map(|(g, gv)| g * gv).sum();
+            let den: f64 = agree.iter().map(|(g, _)| g * g).sum();
+            Some((num / den, agree.len()))
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -597,5 +657,88 @@ mod tests {
             .map(|v| truth.iter().map(|&(p, _)| Correspondence::new(p, walls[v].apply(p).unwrap())).collect())
             .collect();
         assert!(fit_parallax(&flat, &walls, &ParallaxFitParams::default(), 3).is_none());
+    }
+
+    /// Three views of points off the wall, each view's `γ` in a scale of its own. Views 0
+    /// and 1 share the points, a third of them matched in view 1 at a repeat of texture (a
+    /// wrong depth on the right line): the ratio of their scales comes back from the points
+    /// that agree. View 2 shares too few points to say.
+    #[test]
+    fn points_two_views_matched_off_the_wall_tie_their_scales_of_depth() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let walls = [
+            Homography::from_rows([[1.01, 0.02, 4.0], [-0.01, 0.99, -3.0], [2e-5, 1e-5, 1.0]]).unwrap(),
+            Homography::from_rows([[0.98, -0.01, -5.0], [0.01, 1.02, 2.0], [-1e-5, 0.0, 1.0]]).unwrap(),
+            Homography::from_rows([[1.0, 0.0, 7.0], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]]).unwrap(),
+        ];
+        // The views' epipoles (as for a wall matrix with a unit corner), their lengths (the
+        // scales of γ) far apart: 0.002 × 12000 is a displacement of 24 pixels at γ = 1.
+        let epipoles = [
+            nalgebra::Vector3::new(9000.0, 3000.0, 10.0),
+            nalgebra::Vector3::new(-12000.0, 600.0, 0.0),
+            nalgebra::Vector3::new(-300.0, 5000.0, 4.0),
+        ];
+        let truth: Vec<(Point2<f64>, f64)> = (0..400)
+            .map(|i| {
+                let p = Point2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0));
+                (p, if i % 4 == 0 { rng.random_range(0.2..1.0) } else { 0.0 })
+            })
+            .collect();
+        let matches: Vec<Vec<Correspondence>> = (0..3)
+            .map(|v| {
+                let m = walls[v].matrix();
+                let mut shared = 0;
+                truth
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(i, &(p, g))| {
+                        if v == 2 && g > 0.0 {
+                            // View 2 matches only a few of the points off the wall.
+                            shared += 1;
+                            if shared > 4 {
+                                return None;
+                            }
+                        }
+                        // A repeat: the same line, another depth.
+                        let g = if v == 1 && g > 0.0 && i % 3 == 0 { g * 1.6 + 0.15 } else { g };
+                        let q: nalgebra::Vector3<f64> =
+                            m * nalgebra::Vector3::new(p.x, p.y, 1.0) + epipoles[v] * g * 0.002 * m[(2, 2)];
+                        Some(Correspondence::new(p, Point2::new(q.x / q.z, q.y / q.z)))
+                    })
+                    .collect()
+            })
+            .collect();
+        // View 2 has its own off-wall points elsewhere, enough for its epipole.
+        let mut matches = matches;
+        for _ in 0..60 {
+            let p = Point2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0));
+            let q: nalgebra::Vector3<f64> = walls[2].matrix() * nalgebra::Vector3::new(p.x, p.y, 1.0)
+                + epipoles[2] * rng.random_range(0.2..1.0) * 0.002 * walls[2].matrix()[(2, 2)];
+            matches[2].push(Correspondence::new(p, Point2::new(q.x / q.z, q.y / q.z)));
+        }
+        let params = ParallaxFitParams::default();
+        let fam = fit_parallax(&matches, &walls, &params, 3).expect("parallax");
+        assert!(fam.epipoles.iter().all(Option::is_some), "every view has its epipole");
+        let k = common_scales(&fam, &matches, &params, 0, 6, 0.2);
+        let (k1, n1) = k[1].expect("views 0 and 1 share enough points");
+        assert_eq!(k[0].map(|k| k.0), Some(1.0));
+        assert!(k[2].is_none(), "view 2 shares 4 points: {:?}", k[2]);
+        // Under the tied scales, a point off the wall has one depth in both views.
+        let tied = fam.scaled(&[Some(1.0), Some(k1), None]);
+        let (e0, e1) = (tied.epipoles[0].unwrap(), tied.epipoles[1].unwrap());
+        let mut checked = 0;
+        for (i, &(p, g)) in truth.iter().enumerate() {
+            if g == 0.0 || i % 3 == 0 {
+                continue;
+            }
+            if (0..2).any(|v| matches[v][i].residual(&walls[v]) < params.min_parallax_px) {
+                continue;
+            }
+            let g0 = gamma_of(&matches[0][i], &tied.walls[0], &e0);
+            let g1 = gamma_of(&matches[1][i], &tied.walls[1], &e1);
+            assert!((g1 / g0 - 1.0).abs() < 0.01, "at {p}: {g0} vs {g1}");
+            checked += 1;
+        }
+        assert!(checked > 40 && n1 == checked, "{checked} points, {n1} agreeing");
     }
 }

@@ -23,7 +23,9 @@ use rayon::prelude::*;
 use nalgebra::Point2;
 
 use crate::features::harris::{HarrisParams, harris};
-use crate::geometry::planes::{ParallaxFamily, ParallaxFitParams, PlaneParams, fit_parallax, fit_planes};
+use crate::geometry::planes::{
+    ParallaxFamily, ParallaxFitParams, PlaneParams, common_scales, fit_parallax, fit_planes,
+};
 use crate::geometry::{Correspondence, Homography};
 use crate::imaging::pyramid::half;
 use crate::imaging::{GrayF32, Mask, Plane, Rect, bilinear};
@@ -257,6 +259,13 @@ pub struct SweepParams {
     /// The views' scales are tied where the reference's votes have neighbours voting alike
     /// (not at its stray votes, repeats of texture).
     pub supported_ties: bool,
+    /// Where at least `min_common` keyframe points matched off the wall in a view and in the
+    /// reference agree within `common_tolerance` (relative) on the ratio of their depths
+    /// ([`common_scales`]), and the sweep's factor is not within that tolerance of it, the
+    /// best factor around the points' is refined too and the better agreement taken.
+    pub common_ties: bool,
+    pub min_common: usize,
+    pub common_tolerance: f64,
     /// A voting pixel counts when this many of its `(2·4 + 1)²` neighbours vote for the same
     /// depth (±1 step): stray votes do not stretch a surface's support.
     pub min_neighbours: f32,
@@ -305,6 +314,9 @@ impl Default for SweepParams {
             scale_steps: 500,
             refine_epipoles: true,
             supported_ties: true,
+            common_ties: true,
+            min_common: 6,
+            common_tolerance: 0.2,
             min_neighbours: 20.0,
             min_votes: 150,
             min_density: 0.1,
@@ -342,24 +354,28 @@ pub fn swept_planes(
         return Vec::new();
     }
     let Some((own, g)) = parallax_family(key, views, walls, mask, params, seed) else { return Vec::new() };
-    sweep_family(key, views, mask, params, &own, &g.t, false)
+    sweep_family(key, views, mask, params, &own, &g.matches, &g.t, false)
 }
 
 /// The sweep of [`swept_planes`] over a given plane + parallax family (`own`, in the
 /// coordinates `t` maps full-resolution keyframe pixels to). With `tied`, the family's
-/// views already share one scale of `γ` and the sweep runs on it as it is; otherwise each
-/// view is first swept alone and the views' scales are tied by where they agree
-/// ([`tied_family`]).
+/// views already share one scale of `γ` and the sweep runs on it as it is; otherwise the
+/// views' scales are tied ([`tied_family`]): from the keyframe points two views both
+/// matched off the wall (`matches`, the family's guided matches; may be empty), else by
+/// where the views, each swept alone, agree.
+#[allow(clippy::too_many_arguments)]
 pub fn sweep_family(
     key: &GrayF32,
     views: &[&GrayF32],
     mask: &Mask,
     params: &SweepParams,
     own: &ParallaxFamily,
+    matches: &[Vec<Correspondence>],
     t: &Homography,
     tied: bool,
 ) -> Vec<SurfacePlane> {
     let Some(s) = Sweep::new(key, views, mask, params, t) else { return Vec::new() };
+    let s = s.with_matches(own, matches);
     if tied {
         return s.surfaces(own);
     }
@@ -379,14 +395,19 @@ pub fn tied_family(
     mask: &Mask,
     params: &SweepParams,
     own: &ParallaxFamily,
+    matches: &[Vec<Correspondence>],
     t: &Homography,
 ) -> Option<ParallaxFamily> {
-    Sweep::new(key, views, mask, params, t)?.joint(own).map(|(family, _)| family)
+    Sweep::new(key, views, mask, params, t)?.with_matches(own, matches).joint(own).map(|(family, _)| family)
 }
 
 /// How far (sweep pixels of displacement at the votes' median depth, per coordinate of the
 /// epipole) the tie's refinement may move a view's epipole from where its scale put it.
 const REFINE_REACH: f64 = 6.0;
+
+/// Consecutive factors of the tie's window around the matches' factor, apart by this much
+/// in `ln k` (about 1 %).
+const SCALE_STEP_LN: f64 = 0.01;
 
 /// What the sweep works on: the keyframe's band and the views at the sweep resolution, and
 /// the maps between the resolutions.
@@ -410,6 +431,10 @@ struct Sweep<'a> {
     /// The band's centre (family coordinates) and family pixels per sweep pixel there.
     centre: Point2<f64>,
     per_px: f64,
+    /// Per reference view, per view: its scale of `γ` against the reference's from the
+    /// keyframe points both matched off the wall, and how many agree ([`common_scales`]);
+    /// empty when the matches are not known.
+    common: Vec<Vec<Option<(f64, usize)>>>,
 }
 
 /// One view swept alone ([`Sweep::tie`]): its depths (its own scale of `γ`), its costs per
@@ -471,7 +496,21 @@ impl<'a> Sweep<'a> {
             to_sweep_inv,
             centre,
             per_px,
+            common: Vec::new(),
         })
+    }
+
+    /// The sweep with the views' scales of `γ` tied from `own`'s guided matches where
+    /// enough keyframe points are matched off the wall in two views ([`common_scales`]).
+    fn with_matches(mut self, own: &ParallaxFamily, matches: &[Vec<Correspondence>]) -> Self {
+        if self.params.common_ties && matches.len() == own.epipoles.len() {
+            let p = self.params;
+            let direct: Vec<Vec<Option<(f64, usize)>>> = (0..matches.len())
+                .map(|r| common_scales(own, matches, &p.epipoles, r, p.min_common, p.common_tolerance))
+                .collect();
+            self.common = chained(&direct);
+        }
+        self
     }
 
     /// Depths a step apart move a view's pixels by `step_px` (`rate` pixels per unit of
@@ -559,7 +598,13 @@ impl<'a> Sweep<'a> {
         let ties: Vec<Option<Tie>> = (0..nv)
             .map(|v| {
                 if v == reference {
-                    return Some(Tie { k: 1.0, votes: Vec::new(), repaired: false, agrees: true });
+                    return Some(Tie {
+                        k: 1.0,
+                        votes: Vec::new(),
+                        repaired: false,
+                        agrees: true,
+                        alternative: None,
+                    });
                 }
                 let (gs, costs, _) = alone[v].as_ref()?;
                 let step = gs[1] - gs[0];
@@ -571,7 +616,45 @@ impl<'a> Sweep<'a> {
                     let c = costs[l as usize][j];
                     if c.is_nan() { 1.0 } else { c }
                 };
-                tie_scale(&votes_ref, at, step, params)
+                // Points both views matched off the wall give the ratio of their depths
+                // directly; the sweep's mean cost over the reference's votes can be lowest at
+                // a wrong factor (repeats of texture, a surface one view does not see).
+                // Points both views matched off the wall give the ratio of their depths
+                // (`k0`); the sweep's mean cost over the reference's votes can be lowest at a
+                // factor far from it (repeats of texture, a surface one view does not see). But
+                // the points' factor rests on the view's sparse epipole: where that is a pixel
+                // off, the factor that refines to the right epipole can be another. So where
+                // the two disagree, the best factor in a window around `k0` is a second start,
+                // and the refinement's own agreement decides between them (step 2b).
+                let swept = tie_scale(&votes_ref, at, step, params);
+                let Some(&Some((k0, _))) = self.common.get(reference).and_then(|c| c.get(v)) else {
+                    return swept;
+                };
+                let reach = (1.0 + params.common_tolerance).ln();
+                if swept.as_ref().is_some_and(|t| t.k * k0 > 0.0 && (t.k / k0).ln().abs() <= reach) {
+                    return swept;
+                }
+                let n = votes_ref.len().max(1) as f32;
+                let mean = |k: f64| votes_ref.iter().map(|&(j, g)| at(k * g, j)).sum::<f32>() / n;
+                let steps = (reach / SCALE_STEP_LN).ceil() as i64;
+                let factor = |i: i64| k0 * (i as f64 * reach / steps as f64).exp();
+                let (best, cost) = (-steps..=steps)
+                    .map(|i| (i, mean(factor(i))))
+                    .min_by(|a, b| a.1.total_cmp(&b.1))
+                    .expect("a window");
+                // At the window's end the minimum lies outside it: the points' factor stands.
+                let (k, cost) = if best.abs() == steps { (k0, mean(k0)) } else { (factor(best), cost) };
+                let windowed = Tie {
+                    k,
+                    votes: votes_ref.clone(),
+                    repaired: false,
+                    agrees: mean(0.0) - cost >= 0.5 * params.margin,
+                    alternative: None,
+                };
+                Some(match swept {
+                    Some(t) => Tie { alternative: Some(k), ..t },
+                    None => windowed,
+                })
             })
             .collect();
         // 2b. Each other view's epipole and scale at once, refined densely: the one under
@@ -585,24 +668,30 @@ impl<'a> Sweep<'a> {
         for v in 0..nv {
             let Some(tie) = &ties[v] else { continue };
             let Some(e) = own.epipoles[v] else { continue };
-            let start = e * tie.k;
             let refined = if params.refine_epipoles && v != reference {
                 let reach = if tie.repaired { REFINE_REACH } else { f64::INFINITY };
-                band.refine_epipole(
-                    &views_w[v],
-                    &own.walls[v],
-                    start,
-                    &tie.votes,
-                    reach,
-                    &self.to_sweep,
-                    params,
-                )
+                std::iter::once(tie.k)
+                    .chain(tie.alternative)
+                    .filter_map(|k| {
+                        let (e, agrees, cost) = band.refine_epipole(
+                            &views_w[v],
+                            &own.walls[v],
+                            e * k,
+                            &tie.votes,
+                            reach,
+                            &self.to_sweep,
+                            params,
+                        )?;
+                        Some((e, k, agrees, cost))
+                    })
+                    .min_by(|a, b| a.3.total_cmp(&b.3))
+                    .map(|(e, k, agrees, _)| (e, k, agrees))
             } else {
-                Some((start, tie.agrees))
+                Some((e * tie.k, tie.k, tie.agrees))
             };
-            if let Some((e, _)) = refined.filter(|r| r.1) {
+            if let Some((e, k, _)) = refined.filter(|r| r.2) {
                 family.epipoles[v] = Some(e);
-                scale[v] = Some(tie.k);
+                scale[v] = Some(k);
             }
         }
         // One view alone cannot tell a surface from a repeat of the wall's texture.
@@ -1068,7 +1157,7 @@ impl Band {
         reach: f64,
         to_sweep: &Homography,
         params: &SweepParams,
-    ) -> Option<(nalgebra::Vector3<f64>, bool)> {
+    ) -> Option<(nalgebra::Vector3<f64>, bool, f32)> {
         // At most a few thousand votes, spread evenly.
         let every = votes.len().div_ceil(3000).max(1);
         let votes: Vec<(usize, f64)> = votes.iter().step_by(every).copied().collect();
@@ -1094,7 +1183,7 @@ impl Band {
         let (e, best) = pattern_search(start, mean(&start, true)?, 4.0, unit, |c| {
             if within(c) { mean(c, true) } else { None }
         });
-        Some((e, wall_cost - best >= 0.5 * params.margin))
+        Some((e, wall_cost - best >= 0.5 * params.margin, best))
     }
 
     /// View `v`'s epipole (the family's coordinates, its scale of `γ`) under which it agrees
@@ -1399,6 +1488,32 @@ fn scale_factor(i: usize, params: &SweepParams) -> f64 {
     sign * (lo.ln() + t * (hi / lo).ln()).exp()
 }
 
+/// Per reference, per view: the scale factor `direct[r][v]` (with its support), or where
+/// the two views share too few points, the factor through a third view that shares enough
+/// with each (`γ_v = k_(v|u)·γ_u = k_(v|u)·k_(u|r)·γ_r`, the weaker support of the two;
+/// the best supported such path).
+fn chained(direct: &[Vec<Option<(f64, usize)>>]) -> Vec<Vec<Option<(f64, usize)>>> {
+    let n = direct.len();
+    (0..n)
+        .map(|r| {
+            (0..n)
+                .map(|v| {
+                    direct[r][v].or_else(|| {
+                        (0..n)
+                            .filter(|&u| u != r && u != v)
+                            .filter_map(|u| {
+                                let (a, na) = direct[u][v]?;
+                                let (b, nb) = direct[r][u]?;
+                                Some((a * b, na.min(nb)))
+                            })
+                            .max_by_key(|t| t.1)
+                    })
+                })
+                .collect()
+        })
+        .collect()
+}
+
 /// `tie(reference)` for the views with at least `min_votes` votes (`counts`), most votes
 /// first (ties to the lower index), until one gives a result.
 fn by_votes<T>(counts: &[usize], min_votes: usize, tie: impl FnMut(usize) -> Option<T>) -> Option<T> {
@@ -1414,11 +1529,14 @@ struct Tie {
     k: f64,
     /// The reference's votes (band pixel, depth) the view's epipole is refined at.
     votes: Vec<(usize, f64)>,
-    /// The factor the view confirms replaced the mean's (refined within
-    /// [`REFINE_REACH`] of where it puts the epipole).
+    /// The factor is not the mean's: the one the view confirms, or the one the matches give
+    /// (refined within [`REFINE_REACH`] of where it puts the epipole).
     repaired: bool,
     /// The view agrees clearly better than with the wall there.
     agrees: bool,
+    /// A second factor to refine from (the matches' where the sweep's disagrees); the one
+    /// that refines to the better agreement is taken.
+    alternative: Option<f64>,
 }
 
 /// A view's scale of `γ` against the reference's, from the reference's votes (band pixel,
@@ -1479,6 +1597,7 @@ fn tie_scale(
             votes: votes.to_vec(),
             repaired: false,
             agrees: wall - by_mean.1.0 >= 0.5 * params.margin,
+            alternative: None,
         });
     }
     let k = by_confirmed.0;
@@ -1491,7 +1610,7 @@ fn tie_scale(
         .filter(|&(&vote, &wall)| confirms(k, vote, wall).is_some())
         .map(|(&vote, _)| vote)
         .collect();
-    Some(Tie { k, votes: confirmed, repaired: true, agrees: true })
+    Some(Tie { k, votes: confirmed, repaired: true, agrees: true, alternative: None })
 }
 
 /// A cost, infinite where it is unknown (NaN).
@@ -2023,7 +2142,7 @@ mod tests {
         let id = Homography::identity();
         // 3 pixels off at this depth.
         let start = truth + nalgebra::Vector3::new(3.0 / gamma, -2.0 / gamma, 0.0);
-        let (e, ok) =
+        let (e, ok, _) =
             band.refine_epipole(&view, &wall, start, &votes, f64::INFINITY, &id, &params).expect("covered");
         assert!(ok, "the view agrees once refined");
         for p in [Point2::new(50.0, 30.0), Point2::new(110.0, 90.0), Point2::new(80.0, 35.0)] {
@@ -2037,7 +2156,7 @@ mod tests {
         }
         // A view of another texture agrees under no epipole.
         let other = GrayF32::from_fn(w, h, |x, y| tex(1.7 * y as f64 + 13.0, 0.6 * x as f64 - 5.0));
-        let (_, ok) =
+        let (_, ok, _) =
             band.refine_epipole(&other, &wall, start, &votes, f64::INFINITY, &id, &params).expect("covered");
         assert!(!ok, "another texture does not agree");
     }
@@ -2205,7 +2324,7 @@ mod tests {
             observed: vec![vec![gamma]; 2],
         };
         let id = Homography::identity();
-        let sweep = |params: &SweepParams| sweep_family(&key, &refs, &mask, params, &family, &id, true);
+        let sweep = |params: &SweepParams| sweep_family(&key, &refs, &mask, params, &family, &[], &id, true);
         let params = SweepParams::default();
         let found = sweep(&params);
         assert_eq!(found.len(), 1, "{found:?}");
@@ -2227,6 +2346,24 @@ mod tests {
     /// Fresh seed 12's pattern: the view with the most votes (its sparse epipole wrong, its
     /// votes repeats) ties no other view; the next view by votes is the reference then. A
     /// view with too few votes is never one.
+    /// Views 0 and 2 share too few points for a factor; each shares enough with view 1.
+    #[test]
+    fn a_scale_two_views_cannot_tie_directly_is_tied_through_a_third() {
+        // γ_1 = 2·γ_0, γ_2 = −0.5·γ_1.
+        let direct = vec![
+            vec![Some((1.0, 40)), Some((2.0, 30)), None],
+            vec![Some((0.5, 30)), Some((1.0, 50)), Some((-0.5, 8))],
+            vec![None, Some((-2.0, 8)), Some((1.0, 20))],
+        ];
+        let c = chained(&direct);
+        assert_eq!(c[0][2], Some((-1.0, 8)));
+        assert_eq!(c[2][0], Some((-1.0, 8)));
+        assert_eq!(c[0][1], direct[0][1], "a direct factor stands");
+        // Without view 1's ties there is no path.
+        let cut = vec![vec![Some((1.0, 40)), None, None], vec![None; 3], vec![None, None, Some((1.0, 20))]];
+        assert_eq!(chained(&cut)[0][2], None);
+    }
+
     #[test]
     fn when_no_view_ties_to_the_reference_the_next_by_votes_is_tried() {
         let mut tried = Vec::new();
