@@ -425,6 +425,9 @@ fn main() {
             "--repair" => sp.repair_ties = true,
             "--no-across" => sp.across_hole = false,
             "--no-common-ties" => sp.common_ties = false,
+            "--min-band-votes" => {
+                sp.min_band_votes = it.next().and_then(|v| v.parse().ok()).expect("--min-band-votes N")
+            }
             "--penalty" => fp.parallax.penalty = it.next().and_then(|v| v.parse().ok()).expect("--penalty X"),
             "--bias" => fp.parallax.wall_bias = it.next().and_then(|v| v.parse().ok()).expect("--bias X"),
             "--truncate" => {

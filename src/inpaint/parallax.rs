@@ -269,8 +269,10 @@ pub struct SweepParams {
     /// A voting pixel counts when this many of its `(2·4 + 1)²` neighbours vote for the same
     /// depth (±1 step): stray votes do not stretch a surface's support.
     pub min_neighbours: f32,
-    /// A depth is a surface with at least this many voting pixels (sweep pixels).
+    /// A depth is a surface with at least this many voting pixels (sweep pixels), of them at
+    /// least `min_band_votes` in the band (the keyframe's own pixels, not the hole's).
     pub min_votes: usize,
+    pub min_band_votes: usize,
     /// A surface's votes cover at least this share of the box they span.
     pub min_density: f64,
     /// At most this many surfaces besides the wall.
@@ -319,6 +321,7 @@ impl Default for SweepParams {
             common_tolerance: 0.2,
             min_neighbours: 20.0,
             min_votes: 150,
+            min_band_votes: 50,
             min_density: 0.1,
             max_planes: 6,
             rejoin: true,
@@ -908,6 +911,12 @@ impl<'a> Sweep<'a> {
                 break;
             }
             taken[l.saturating_sub(3)..(l + 4).min(nl)].iter_mut().for_each(|t| *t = true);
+            // The views agree among themselves inside the hole on repeats of texture at a
+            // wrong depth as well (a row of balusters two views see a period apart): a
+            // surface needs keyframe pixels that confirm it.
+            if support.iter().filter(|&&i| !inside[i]).count() < params.min_band_votes {
+                continue;
+            }
             // The depth to a fraction of a step: a parabola through the support's summed costs.
             let mut mine = vec![false; n];
             for &i in &support {
@@ -2343,9 +2352,50 @@ mod tests {
         assert_eq!(along_hole((6, 7, 8, 8), &hole, gw, gh, 2), (6, 2, 8, 8));
     }
 
-    /// Fresh seed 12's pattern: the view with the most votes (its sparse epipole wrong, its
-    /// votes repeats) ties no other view; the next view by votes is the reference then. A
-    /// view with too few votes is never one.
+    /// Three views of a slab that stands wholly inside the hole: only the views among
+    /// themselves vote for it, no keyframe pixel confirms it, and that is how repeats of
+    /// texture at a wrong depth look too. It is a surface only with `min_band_votes` at 0;
+    /// the same slab reaching into the band is one either way.
+    #[test]
+    fn a_surface_only_the_hole_votes_for_is_not_taken() {
+        let (w, h, key, mask) = textured_square_hole();
+        let epipoles = surface_epipoles();
+        let gamma = 0.2;
+        let z = nalgebra::RowVector3::new(0.0, 0.0, 1.0);
+        let found = |x1: f64, min_band_votes: usize| {
+            let on_slab = |x: f64, y: f64| (64.0..x1).contains(&x) && (44.0..76.0).contains(&y);
+            let views: Vec<GrayF32> = epipoles
+                .iter()
+                .map(|e| {
+                    let inv =
+                        (nalgebra::Matrix3::identity() + e * z * gamma).try_inverse().expect("invertible");
+                    GrayF32::from_fn(w, h, |x, y| {
+                        let p = inv * nalgebra::Vector3::new(x as f64, y as f64, 1.0);
+                        let (px, py) = (p.x / p.z, p.y / p.z);
+                        // The slab's own texture (another phase than the wall's).
+                        if on_slab(px, py) { tex(px + 7.3, py - 3.1) } else { tex(x as f64, y as f64) }
+                    })
+                })
+                .collect();
+            let key = GrayF32::from_fn(w, h, |x, y| {
+                let (px, py) = (x as f64, y as f64);
+                if on_slab(px, py) { tex(px + 7.3, py - 3.1) } else { key.get(x, y) }
+            });
+            let refs: Vec<&GrayF32> = views.iter().collect();
+            let family = ParallaxFamily {
+                walls: vec![nalgebra::Matrix3::identity(); 3],
+                epipoles: epipoles.iter().map(|e| Some(*e)).collect(),
+                observed: vec![vec![gamma]; 3],
+            };
+            let params = SweepParams { min_band_votes, ..SweepParams::default() };
+            sweep_family(&key, &refs, &mask, &params, &family, &[], &Homography::identity(), true).len()
+        };
+        let default = SweepParams::default().min_band_votes;
+        assert_eq!(found(96.0, 0), 1, "the hole alone finds the hidden slab");
+        assert_eq!(found(96.0, default), 0, "unconfirmed by the keyframe");
+        assert_eq!(found(140.0, default), 1, "the slab reaching into the band");
+    }
+
     /// Views 0 and 2 share too few points for a factor; each shares enough with view 1.
     #[test]
     fn a_scale_two_views_cannot_tie_directly_is_tied_through_a_third() {
@@ -2364,6 +2414,9 @@ mod tests {
         assert_eq!(chained(&cut)[0][2], None);
     }
 
+    /// Fresh seed 12's pattern: the view with the most votes (its sparse epipole wrong, its
+    /// votes repeats) ties no other view; the next view by votes is the reference then. A
+    /// view with too few votes is never one.
     #[test]
     fn when_no_view_ties_to_the_reference_the_next_by_votes_is_tried() {
         let mut tried = Vec::new();
