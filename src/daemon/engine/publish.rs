@@ -117,6 +117,7 @@ fn fill(ctx: &Ctx, slot: &mut Slot) -> FillStep {
         return FillStep::Cancelled;
     }
     let start = Instant::now();
+    tracing::debug!("fill started");
     let mut timings = Timings { current: None, done: Vec::new(), cancel: ctx.cancel.clone() };
     let Some(outcome) = slot.session.fill(&mut timings) else {
         if ctx.cancel.is_cancelled() {
