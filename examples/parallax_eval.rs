@@ -400,6 +400,7 @@ fn main() {
     let mut epipoles = false;
     let mut splits: Vec<(u64, Split)> = Vec::new();
     let mut want_split = false;
+    let mut geo_min: Option<usize> = None;
     let mut epipole_rows: Vec<String> = Vec::new();
     let mut sp = SweepParams::default();
     let mut oracle_rows: Vec<OracleRow> = Vec::new();
@@ -425,6 +426,10 @@ fn main() {
             "--repair" => sp.repair_ties = true,
             "--no-across" => sp.across_hole = false,
             "--no-common-ties" => sp.common_ties = false,
+            // Only the `--epipoles` table's column of scales tied by the points alone.
+            "--geo-min-common" => {
+                geo_min = Some(it.next().and_then(|v| v.parse().ok()).expect("--geo-min-common N"))
+            }
             "--min-band-votes" => {
                 sp.min_band_votes = it.next().and_then(|v| v.parse().ok()).expect("--min-band-votes N")
             }
@@ -438,6 +443,7 @@ fn main() {
             other => panic!("unknown argument {other}"),
         }
     }
+    let geo_min_common = geo_min.unwrap_or(sp.min_common);
     let names = ["today", "reference", "planes", "swept", "true-planes"];
     let mut sums = [0.0f64; 5];
     let mut stage_ms: Vec<(String, f64)> = Vec::new();
@@ -496,32 +502,24 @@ fn main() {
                 Some((own, g)) => {
                     // The scales tied geometrically, from the keyframe points every pair of
                     // views matched off the wall; the reference that ties the most views.
-                    let geo = (0..refs.len())
-                        .map(|r| {
-                            common_scales(
-                                &own,
-                                &g.matches,
-                                &sp.epipoles,
-                                r,
-                                sp.min_common,
-                                sp.common_tolerance,
-                            )
-                        })
-                        .max_by_key(|k| {
-                            (k.iter().flatten().count(), k.iter().flatten().map(|k| k.1).sum::<usize>())
-                        })
-                        .filter(|k| k.iter().flatten().count() >= 2)
-                        .map_or("none".into(), |k| {
-                            let f = own.scaled(&k.iter().map(|k| k.map(|k| k.0)).collect::<Vec<_>>());
-                            format!(
-                                "{} ({})",
-                                fmt(&epipole_errors(&c, &t, &f)),
-                                k.iter()
-                                    .map(|k| k.map_or("-".into(), |k| k.1.to_string()))
-                                    .collect::<Vec<_>>()
-                                    .join("/")
-                            )
-                        });
+                    let geo =
+                        common_scales(&own, &g.matches, &sp.epipoles, geo_min_common, sp.common_tolerance)
+                            .into_iter()
+                            .max_by_key(|k| {
+                                (k.iter().flatten().count(), k.iter().flatten().map(|k| k.1).sum::<usize>())
+                            })
+                            .filter(|k| k.iter().flatten().count() >= 2)
+                            .map_or("none".into(), |k| {
+                                let f = own.scaled(&k.iter().map(|k| k.map(|k| k.0)).collect::<Vec<_>>());
+                                format!(
+                                    "{} ({})",
+                                    fmt(&epipole_errors(&c, &t, &f)),
+                                    k.iter()
+                                        .map(|k| k.map_or("-".into(), |k| k.1.to_string()))
+                                        .collect::<Vec<_>>()
+                                        .join("/")
+                                )
+                            });
                     (
                         format!("{} | {geo}", fmt(&epipole_errors_alone(&c, &t, &own))),
                         tied_family(&key_gray, &refs, &c.mask, &sp, &own, &g.matches, &t)

@@ -478,20 +478,20 @@ pub fn fit_parallax(
     Some(ParallaxFamily { walls: mats, epipoles, observed })
 }
 
-/// Per view, the factor that ties its scale of `γ` to view `reference`'s from the keyframe
-/// points both matched off the wall: a point at one depth has `γ_v = k_v·γ_ref`, so `k_v` is
-/// the ratio the common points agree on (their median, then a least-squares fit over those
-/// within `tolerance` of it), with the number of points that agree. `None` for a view with
-/// no epipole or fewer than `min_common` agreeing points, or where they are not the larger
-/// part of the common ones (repeats of texture matched in one view).
+/// Per reference view `r`, per view `v`: the factor that ties `v`'s scale of `γ` to `r`'s
+/// from the keyframe points both matched off the wall. A point at one depth has
+/// `γ_v = k·γ_r`, so `k` is the ratio the common points agree on (their median, then a
+/// least-squares fit over those within `tolerance` of it), with the number of points that
+/// agree. `None` for a view with no epipole or fewer than `min_common` agreeing points, or
+/// where they are not the larger part of the common ones (repeats of texture matched in one
+/// view).
 pub fn common_scales(
     family: &ParallaxFamily,
     matches: &[Vec<Correspondence>],
     params: &ParallaxFitParams,
-    reference: usize,
     min_common: usize,
     tolerance: f64,
-) -> Vec<Option<(f64, usize)>> {
+) -> Vec<Vec<Option<(f64, usize)>>> {
     // Per view: the off-wall matches on its epipolar lines, by keyframe point.
     let depths: Vec<std::collections::HashMap<(u64, u64), f64>> = (0..matches.len())
         .map(|v| {
@@ -510,32 +510,31 @@ pub fn common_scales(
                 .collect()
         })
         .collect();
-    (0..matches.len())
-        .map(|v| {
-            if v == reference {
-                return family.epipoles[v].map(|_| (1.0, depths[v].len()));
-            }
-            let pairs: Vec<(f64, f64)> = depths[reference]
-                .iter()
-                .filter_map(|(k, &g)| Some((g, *depths[v].get(k)?)))
-                .filter(|(g, _)| g.abs() > 1e-12)
-                .collect();
-            if pairs.len() < min_common {
-                return None;
-            }
-            let mut ratios: Vec<f64> = pairs.iter().map(|(g, gv)| gv / g).collect();
-            ratios.sort_by(f64::total_cmp);
-            let med = ratios[ratios.len() / 2];
-            let agree: Vec<&(f64, f64)> =
-                pairs.iter().filter(|(g, gv)| (gv / g / med - 1.0).abs() <= tolerance).collect();
-            if agree.len() < min_common || 2 * agree.len() <= pairs.len() {
-                return None;
-            }
-            let num: f64 = agree.iter().map(|(g, gv)| g * gv).sum();
-            let den: f64 = agree.iter().map(|(g, _)| g * g).sum();
-            Some((num / den, agree.len()))
-        })
-        .collect()
+    let tie = |r: usize, v: usize| -> Option<(f64, usize)> {
+        if v == r {
+            return family.epipoles[v].map(|_| (1.0, depths[v].len()));
+        }
+        let pairs: Vec<(f64, f64)> = depths[r]
+            .iter()
+            .filter_map(|(k, &g)| Some((g, *depths[v].get(k)?)))
+            .filter(|(g, _)| g.abs() > 1e-12)
+            .collect();
+        if pairs.len() < min_common {
+            return None;
+        }
+        let mut ratios: Vec<f64> = pairs.iter().map(|(g, gv)| gv / g).collect();
+        ratios.sort_by(f64::total_cmp);
+        let med = ratios[ratios.len() / 2];
+        let agree: Vec<&(f64, f64)> =
+            pairs.iter().filter(|(g, gv)| (gv / g / med - 1.0).abs() <= tolerance).collect();
+        if agree.len() < min_common || 2 * agree.len() <= pairs.len() {
+            return None;
+        }
+        let num: f64 = agree.iter().map(|(g, gv)| g * gv).sum();
+        let den: f64 = agree.iter().map(|(g, _)| g * g).sum();
+        Some((num / den, agree.len()))
+    };
+    (0..matches.len()).map(|r| (0..matches.len()).map(|v| tie(r, v)).collect()).collect()
 }
 
 #[cfg(test)]
@@ -719,7 +718,7 @@ mod tests {
         let params = ParallaxFitParams::default();
         let fam = fit_parallax(&matches, &walls, &params, 3).expect("parallax");
         assert!(fam.epipoles.iter().all(Option::is_some), "every view has its epipole");
-        let k = common_scales(&fam, &matches, &params, 0, 6, 0.2);
+        let k = &common_scales(&fam, &matches, &params, 6, 0.2)[0];
         let (k1, n1) = k[1].expect("views 0 and 1 share enough points");
         assert_eq!(k[0].map(|k| k.0), Some(1.0));
         assert!(k[2].is_none(), "view 2 shares 4 points: {:?}", k[2]);

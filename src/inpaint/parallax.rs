@@ -508,10 +508,8 @@ impl<'a> Sweep<'a> {
     fn with_matches(mut self, own: &ParallaxFamily, matches: &[Vec<Correspondence>]) -> Self {
         if self.params.common_ties && matches.len() == own.epipoles.len() {
             let p = self.params;
-            let direct: Vec<Vec<Option<(f64, usize)>>> = (0..matches.len())
-                .map(|r| common_scales(own, matches, &p.epipoles, r, p.min_common, p.common_tolerance))
-                .collect();
-            self.common = chained(&direct);
+            self.common =
+                chained(&common_scales(own, matches, &p.epipoles, p.min_common, p.common_tolerance));
         }
         self
     }
@@ -620,9 +618,6 @@ impl<'a> Sweep<'a> {
                     if c.is_nan() { 1.0 } else { c }
                 };
                 // Points both views matched off the wall give the ratio of their depths
-                // directly; the sweep's mean cost over the reference's votes can be lowest at
-                // a wrong factor (repeats of texture, a surface one view does not see).
-                // Points both views matched off the wall give the ratio of their depths
                 // (`k0`); the sweep's mean cost over the reference's votes can be lowest at a
                 // factor far from it (repeats of texture, a surface one view does not see). But
                 // the points' factor rests on the view's sparse epipole: where that is a pixel
@@ -647,16 +642,15 @@ impl<'a> Sweep<'a> {
                     .expect("a window");
                 // At the window's end the minimum lies outside it: the points' factor stands.
                 let (k, cost) = if best.abs() == steps { (k0, mean(k0)) } else { (factor(best), cost) };
-                let windowed = Tie {
-                    k,
-                    votes: votes_ref.clone(),
-                    repaired: false,
-                    agrees: mean(0.0) - cost >= 0.5 * params.margin,
-                    alternative: None,
-                };
                 Some(match swept {
                     Some(t) => Tie { alternative: Some(k), ..t },
-                    None => windowed,
+                    None => Tie {
+                        k,
+                        votes: votes_ref.clone(),
+                        repaired: false,
+                        agrees: mean(0.0) - cost >= 0.5 * params.margin,
+                        alternative: None,
+                    },
                 })
             })
             .collect();
@@ -1538,8 +1532,8 @@ struct Tie {
     k: f64,
     /// The reference's votes (band pixel, depth) the view's epipole is refined at.
     votes: Vec<(usize, f64)>,
-    /// The factor is not the mean's: the one the view confirms, or the one the matches give
-    /// (refined within [`REFINE_REACH`] of where it puts the epipole).
+    /// The factor the view confirms replaced the mean's (refined within
+    /// [`REFINE_REACH`] of where it puts the epipole).
     repaired: bool,
     /// The view agrees clearly better than with the wall there.
     agrees: bool,
