@@ -158,6 +158,44 @@ def run_service(binary, case, work, timeout):
     return steps
 
 
+def run_mask_last(binary, case, work, timeout):
+    """The keyframe, then every view (each once handled), then the mask: the published
+    result once the service settles. A photographer who paints the mask last should get
+    what the mask-first order gives (issue 12: the alignments depend on the mask)."""
+    inbox, outbox, state = work / "inbox", work / "outbox", work / "state"
+    session = inbox / "s"
+    for d in (session, outbox, state):
+        d.mkdir(parents=True)
+    cfg = work / "clearview.toml"
+    cfg.write_text(
+        f'[watch]\ndir = "{inbox}"\nquiet_period_ms = 300\n[output]\ndir = "{outbox}"\nhistory = 50\n'
+        f'[state]\ndir = "{state}"\n[compute]\ngrace_period_ms = 15000\n'
+    )
+    log = work / "service.log"
+    env = dict(os.environ, CLEARVIEW_LOG="clearview=info")
+    proc = subprocess.Popen([binary, "run", "--config", str(cfg)], stdout=subprocess.DEVNULL, stderr=log.open("w"), env=env)
+    try:
+        put(session / "key.png", case / "key.png")
+        wait(outbox, "the keyframe", lambda e: True if any(x["event"] == "session_waiting" for x in e) else None, timeout, log)
+        views = sorted(case.glob("view-*.png"), key=lambda p: int(p.stem.split("-")[1]))
+        for i, v in enumerate(views, 1):
+            name = f"v{i}.png"
+            before = len(events(outbox))
+            put(session / name, v)
+            wait(outbox, f"{name} handled", lambda e, n=name, b=before: True if any(x.get("file") == n for x in e[b:]) else None, timeout, log)
+        put(session / "key.mask.png", case / "mask.png")
+        wait(outbox, "the mask", lambda e: True if any(x["event"] == "mask_set" for x in e) else None, timeout, log)
+        settle(outbox, 0, log, timeout)
+        res = outbox / "s" / "result.png"
+        return load(res) if res.exists() else None
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
 def fill_all(binary, case, out):
     views = sorted(case.glob("view-*.png"), key=lambda p: int(p.stem.split("-")[1]))
     cmd = [binary, "fill", "--keyframe", case / "key.png", "--mask", case / "mask.png", "--out", out, *views]
@@ -174,6 +212,7 @@ def main():
     ap.add_argument("--keep", type=pathlib.Path, help="keep the service folders here")
     ap.add_argument("--only", default="", help="only cases whose name contains this")
     ap.add_argument("--timeout", type=float, default=180)
+    ap.add_argument("--mask-last", action="store_true", help="also drop the mask after the views, and compare")
     ap.add_argument("--from-log", type=pathlib.Path, help="print the table of an earlier run's stderr (one JSON row a line)")
     args = ap.parse_args()
     if args.from_log:
@@ -207,6 +246,13 @@ def main():
         worst = max(drops, default=0.0)
         last = seq[-1] if seq else float("nan")
         row = dict(case=case.name, steps=steps, worst=worst, last=last, all=p_all, peer=p_peer, secs=time.time() - t0)
+        if args.mask_last:
+            late_dir = work.parent / (work.name + "-mask-last")
+            shutil.rmtree(late_dir, ignore_errors=True)
+            late = run_mask_last(binary, case, late_dir, args.timeout)
+            row["mask_last"] = None if late is None else masked_psnr(late, truth, mask)
+            if not args.keep:
+                shutil.rmtree(late_dir, ignore_errors=True)
         rows.append(row)
         print(json.dumps(row), file=sys.stderr, flush=True)
     table(rows)
@@ -233,6 +279,17 @@ def table(rows):
             f"| {r['case']} | {len(r['steps']) - 1} | {' → '.join(cells)} | {r['worst']:.2f} | {r['last']:.2f} | "
             f"{r['all']:.2f} | {r['last'] - r['all']:+.2f} | {r['peer']:.2f} | {r['last'] - r['peer']:+.2f} | {flag} |"
         )
+    late = [r for r in rows if "mask_last" in r]
+    if late:
+        print()
+        print("| case | mask first: last | mask last | fill, all views | mask last − fill |")
+        print("|---|---:|---:|---:|---:|")
+        for r in late:
+            m = r["mask_last"]
+            cell = "—" if m is None else f"{m:.2f}"
+            diff = "—" if m is None else f"{m - r['all']:+.2f}"
+            print(f"| {r['case']} | {r['last']:.2f} | {cell} | {r['all']:.2f} | {diff} |")
+        print()
     if rows:
         mean = lambda k: float(np.mean([r[k] for r in rows]))
         print(

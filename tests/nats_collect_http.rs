@@ -87,14 +87,6 @@ fn collect_serves_the_preview_page_of_what_it_collected() {
     let dir = inbox.join(SESSION);
     put(&dir.join("key.mask.png"), &mask_png(&scene.mask));
     put(&dir.join("key.png"), &png(&scene.key));
-    // The views once the mask is set, as `clearview run` below takes them (the keyframe's
-    // mask shapes a view's alignment, and an alignment is kept per keyframe: a view the
-    // worker aligned before the mask arrived would keep fewer inliers than run's).
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while !events(&out).iter().any(|e| e["session"] == SESSION && e["event"] == "mask_set") {
-        assert!(Instant::now() < deadline, "the mask was not set:\n{}", worker.log());
-        std::thread::sleep(Duration::from_millis(50));
-    }
     let views: Vec<String> = (0..VIEWS).map(|i| format!("view{i}.png")).collect();
     for (i, v) in views.iter().enumerate() {
         put(&dir.join(v), &png(&scene.view(i as u64, 60.0 + 120.0 * i as f32, 40.0)));

@@ -222,8 +222,16 @@ fn apply_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
         tracing::debug!(mask = %watch::shown(&file.name), "refused already for this keyframe");
         return;
     }
+    // Views refused against the old mask (or none) may see this one, or align with it.
+    let refused: Vec<PathBuf> =
+        slot.refused_views().into_iter().map(|n| slot.dir.join(n)).filter(|p| p.is_file()).collect();
     match slot.set_mask(ctx, id.clone(), to_mask(image), MaskOrigin::File(&file.name)) {
-        Ok(again) => {
+        Ok(mut again) => {
+            for p in refused {
+                if !again.contains(&p) {
+                    again.push(p);
+                }
+            }
             for p in again {
                 reprocess(ctx, slot, &p);
             }
@@ -327,7 +335,7 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
     let span = tracing::info_span!("view", file = %watch::shown(&file.name));
     let _enter = span.enter();
     let id: ViewId = file.view_id(image);
-    let Some(key_id) = slot.session.key_id().map(str::to_owned) else { return };
+    let Some(basis) = slot.alignment_basis() else { return };
     if slot.decided(&id) {
         // Taken already against this keyframe and mask (a restored session takes its
         // saved views before the intake brings their files again).
@@ -336,11 +344,11 @@ fn process_view(ctx: &Ctx, slot: &mut Slot, file: &FileId, path: &Path, image: &
     }
     slot.forget_old_content(ctx, &file.name, Some(&id), "its file was replaced");
     let start = Instant::now();
-    let (record, from_state) = match slot.state.alignment(id.as_str(), &key_id) {
+    let (record, from_state) = match slot.state.alignment(id.as_str(), &basis) {
         Some(r) => (r.clone(), true),
         None => match slot.session.align(to_luminance(image)) {
             Ok(r) => {
-                slot.state.remember(id.as_str().to_owned(), key_id, r.clone());
+                slot.state.remember(id.as_str().to_owned(), basis, r.clone());
                 slot.state_dirty = true;
                 (r, false)
             }
@@ -372,7 +380,10 @@ mod tests {
     use super::*;
     use crate::config::Config;
     use crate::daemon::engine::publish::FillStep;
+    use crate::geometry::Homography;
     use crate::imaging::convert::{mask_to_luma8, to_rgb8};
+    use crate::imaging::{Mask, RgbF32};
+    use std::collections::BTreeMap;
 
     fn ctx(root: &Path) -> Ctx {
         let config = Config {
@@ -397,6 +408,119 @@ mod tests {
         log.lines().map(|l| serde_json::from_str(l).unwrap()).collect()
     }
 
+    /// The accepted views' inliers, by file, from the events after line `from`.
+    fn inliers(ctx: &Ctx, from: usize) -> BTreeMap<String, u64> {
+        events(ctx)[from..]
+            .iter()
+            .filter(|e| e["event"] == "view_accepted")
+            .map(|e| (e["file"].as_str().unwrap().to_owned(), e["inliers"].as_u64().unwrap()))
+            .collect()
+    }
+
+    /// A keyframe with a tree in front, its mask, and three views with people of their own.
+    fn scene(seed: u64) -> (RgbF32, Mask, Vec<RgbF32>) {
+        use crate::synth::{self, Occluder};
+        use rand::SeedableRng;
+        let (w, h) = (400, 300);
+        let facade = synth::facade(w * 3 / 2, h * 3 / 2, seed);
+        let centre = Homography::translation(w as f64 / 4.0, h as f64 / 4.0);
+        let mut key = synth::render_view(&facade, &centre, w, h, [0.5; 3]);
+        let mut mask = Mask::new(w, h, 0);
+        synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Tree, 200.0, 160.0, 110.0, 3);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let views = (0..3u64)
+            .map(|i| {
+                let k2v = synth::random_homography(&mut rng, w, h, 0.1, 0.2, (0.9, 1.1));
+                let mut v =
+                    synth::render_view(&facade, &centre.after(&k2v.inverse().unwrap()), w, h, [0.5; 3]);
+                synth::paint_occluder(
+                    &mut v,
+                    None,
+                    Occluder::Person,
+                    60.0 + 120.0 * i as f32,
+                    170.0,
+                    40.0,
+                    100 + i,
+                );
+                synth::expose(&mut v, 0.9 + 0.03 * i as f32, 0.01);
+                v
+            })
+            .collect();
+        (key, mask, views)
+    }
+
+    /// The keyframe's corners under the mask are not matched, so a view aligned before
+    /// the mask came is aligned again once it has: the order in which a photographer drops
+    /// the files changes neither the alignments nor the result.
+    #[test]
+    fn views_given_before_the_mask_are_aligned_as_if_it_had_come_first() {
+        let run = |order: &[&str]| {
+            let tmp = tempfile::tempdir().unwrap();
+            let ctx = ctx(tmp.path());
+            let dir = ctx.config.watch_dir.join("s");
+            std::fs::create_dir_all(&dir).unwrap();
+            let (key, mask, views) = scene(17);
+            let mut slot = Slot::new(&ctx, "s", dir.clone());
+            // Each file is written when it arrives (a keyframe takes a mask lying beside it).
+            for name in order {
+                match *name {
+                    "key.png" => to_rgb8(&key).save(dir.join(name)).unwrap(),
+                    "key.mask.png" => mask_to_luma8(&mask).save(dir.join(name)).unwrap(),
+                    _ => {
+                        let i: usize = name[1..name.len() - 4].parse().unwrap();
+                        to_rgb8(&views[i - 1]).save(dir.join(name)).unwrap();
+                    }
+                }
+                give(&ctx, &mut slot, name);
+            }
+            let FillStep::Written(_) = slot.fill(&ctx) else { panic!("no result") };
+            let png = std::fs::read(ctx.config.out_dir.join("s/result.png")).unwrap();
+            (inliers(&ctx, 0), png)
+        };
+        let (first, first_png) = run(&["key.png", "key.mask.png", "v1.png", "v2.png", "v3.png"]);
+        let (last, last_png) = run(&["key.png", "v1.png", "v2.png", "v3.png", "key.mask.png"]);
+        assert_eq!(first.len(), 3, "{first:?}");
+        assert_eq!(first, last);
+        assert!(first_png == last_png, "the results differ");
+    }
+
+    /// A view that sees none of the mask is not buffered; when the photographer paints a
+    /// new mask that it does see, it is taken again rather than left out for good.
+    #[test]
+    fn a_view_outside_the_old_mask_is_taken_for_a_new_one_it_sees() {
+        let tmp = tempfile::tempdir().unwrap();
+        let ctx = ctx(tmp.path());
+        let dir = ctx.config.watch_dir.join("s");
+        std::fs::create_dir_all(&dir).unwrap();
+        let (key, _, views) = scene(17);
+        let (w, h) = (key.width(), key.height());
+        let rect = |x0: usize, x1: usize| {
+            Mask::from_fn(w, h, |x, y| u8::from((x0..x1).contains(&x) && (100..200).contains(&y)) * 255)
+        };
+        // The view is the keyframe's right half, seen from elsewhere.
+        let right = views[0].crop(crate::imaging::Rect { x: w / 2, y: 0, width: w / 2, height: h });
+        to_rgb8(&key).save(dir.join("key.png")).unwrap();
+        mask_to_luma8(&rect(20, 80)).save(dir.join("key.mask.png")).unwrap();
+        to_rgb8(&right).save(dir.join("v1.png")).unwrap();
+        let mut slot = Slot::new(&ctx, "s", dir.clone());
+        for name in ["key.png", "v1.png"] {
+            give(&ctx, &mut slot, name);
+        }
+        let said = |from: usize| -> Vec<serde_json::Value> {
+            events(&ctx)[from..].iter().filter(|e| e["event"] == "view_accepted").cloned().collect()
+        };
+        let first = said(0);
+        assert_eq!(first.len(), 1, "{first:#?}");
+        assert_eq!(first[0]["buffered"], false, "{first:#?}");
+        let lines = events(&ctx).len();
+        mask_to_luma8(&rect(w - 120, w - 40)).save(dir.join("key.mask.png")).unwrap();
+        give(&ctx, &mut slot, "key.mask.png");
+        let again = said(lines);
+        assert_eq!(again.len(), 1, "{:#?}", &events(&ctx)[lines..]);
+        assert_eq!(again[0]["buffered"], true, "{again:#?}");
+        assert!(matches!(slot.fill(&ctx), FillStep::Written(_)));
+    }
+
     /// After a restart the intake brings a session's files again, in any order and not
     /// all at once. The keyframe takes back every view whose alignment is saved before the
     /// session can fill, so the first fill has the saved result's inputs (unchanged, not
@@ -408,7 +532,7 @@ mod tests {
         let ctx = ctx(tmp.path());
         let dir = ctx.config.watch_dir.join("s");
         std::fs::create_dir_all(&dir).unwrap();
-        let scene = crate::synth::tree_scene(320, 240, 5, 6);
+        let scene = crate::synth::tree_scene(320, 240, 5, 3);
         to_rgb8(&scene.key).save(dir.join("key.png")).unwrap();
         mask_to_luma8(&scene.mask).save(dir.join("key.mask.png")).unwrap();
         for (i, v) in scene.views.iter().enumerate() {

@@ -242,6 +242,18 @@ impl Slot {
         self.decided.contains(id.as_str())
     }
 
+    /// What a view's alignment depends on, as its saved alignment is keyed: the keyframe,
+    /// and the mask when it came from a file (the keyframe's corners under it are not
+    /// matched, so a view aligned before the mask arrived is aligned again once it has).
+    /// An automatic mask is made from the views' own alignments, so it is not part of it.
+    pub(crate) fn alignment_basis(&self) -> Option<String> {
+        let key = self.session.key_id()?;
+        match (self.session.mask_id(), self.mask_source.as_deref()) {
+            (Some(mask), Some(source)) if source.starts_with("file:") => Some(format!("{key}|mask|{mask}")),
+            _ => Some(key.to_owned()),
+        }
+    }
+
     /// The current mask came from file `name`.
     pub(crate) fn mask_is_file(&self, name: &str) -> bool {
         self.mask_source.as_deref().and_then(|s| s.strip_prefix("file:")) == Some(name)
