@@ -1334,27 +1334,27 @@ impl Band {
                 ok[i] = 1.0;
             }
         }
-        let r = self.window;
-        let kv = &self.key;
-        let cnt = box_sum(&ok, rw, rh, r);
-        let vs = box_sum(&img, rw, rh, r);
-        let v2 = box_sum(&img.iter().map(|a| a * a).collect::<Vec<_>>(), rw, rh, r);
-        let kw = box_sum(&img.iter().zip(kv).map(|(a, b)| a * b).collect::<Vec<_>>(), rw, rh, r);
+        // Per window: the count of pixels seen, their sum, sum of squares, and sum of
+        // products with the keyframe.
+        let terms: Vec<[f32; 4]> =
+            img.iter().zip(&ok).zip(&self.key).map(|((&a, &o), &k)| [o, a, a * a, a * k]).collect();
+        let sums = box_sums(&terms, rw, rh, self.window);
         let (area, ks, k2) = (&self.area, &self.ks, &self.k2);
         self.pixels
             .iter()
             .map(|&i| {
-                if cnt[i] < area[i] - 0.5 {
+                let [cnt, vs, v2, kw] = sums[i];
+                if cnt < area[i] - 0.5 {
                     return f32::NAN;
                 }
                 let a = area[i];
                 let vk = (k2[i] - ks[i] * ks[i] / a).max(0.0);
-                let vv = (v2[i] - vs[i] * vs[i] / a).max(0.0);
+                let vv = (v2 - vs * vs / a).max(0.0);
                 let den = (vk * vv).sqrt();
                 if den < 1e-9 {
                     return 1.0;
                 }
-                (1.0 - (kw[i] - ks[i] * vs[i] / a) / den).clamp(0.0, 1.0)
+                (1.0 - (kw - ks[i] * vs / a) / den).clamp(0.0, 1.0)
             })
             .collect()
     }
@@ -1974,34 +1974,45 @@ fn consensus_cost(vals: &[[f32; 3]], t: f32) -> f32 {
 
 /// Sum over a `(2r + 1)²` window (clipped at the borders).
 fn box_sum(v: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
-    let mut rows = vec![0.0f32; w * h];
+    let one: Vec<[f32; 1]> = v.iter().map(|&a| [a]).collect();
+    box_sums(&one, w, h, r).into_iter().map(|[a]| a).collect()
+}
+
+/// [`box_sum`] of `C` images at once (channel `c` of each element is image `c`): one pass
+/// over memory for all of them, each channel summed in the same order as alone (the same
+/// bits).
+fn box_sums<const C: usize>(v: &[[f32; C]], w: usize, h: usize, r: usize) -> Vec<[f32; C]> {
+    let add = |acc: &mut [f32; C], a: &[f32; C]| acc.iter_mut().zip(a).for_each(|(s, &x)| *s += x);
+    let sub = |acc: &mut [f32; C], a: &[f32; C]| acc.iter_mut().zip(a).for_each(|(s, &x)| *s -= x);
+    let mut rows = vec![[0.0f32; C]; w * h];
     for y in 0..h {
         let row = &v[y * w..(y + 1) * w];
-        let mut acc: f32 = row[..(r + 1).min(w)].iter().sum();
+        let mut acc = [0.0f32; C];
+        row[..(r + 1).min(w)].iter().for_each(|a| add(&mut acc, a));
         for x in 0..w {
             rows[y * w + x] = acc;
             if x + r + 1 < w {
-                acc += row[x + r + 1];
+                add(&mut acc, &row[x + r + 1]);
             }
             if x >= r {
-                acc -= row[x - r];
+                sub(&mut acc, &row[x - r]);
             }
         }
     }
-    let mut out = vec![0.0f32; w * h];
-    for x in 0..w {
-        let mut acc = 0.0f32;
-        for y in 0..(r + 1).min(h) {
-            acc += rows[y * w + x];
+    // The vertical pass a row at a time (one running sum per column, in the order a
+    // column at a time would take), so that memory is read in order.
+    let mut out = vec![[0.0f32; C]; w * h];
+    let mut acc = vec![[0.0f32; C]; w];
+    for y in 0..(r + 1).min(h) {
+        acc.iter_mut().zip(&rows[y * w..(y + 1) * w]).for_each(|(s, a)| add(s, a));
+    }
+    for y in 0..h {
+        out[y * w..(y + 1) * w].copy_from_slice(&acc);
+        if y + r + 1 < h {
+            acc.iter_mut().zip(&rows[(y + r + 1) * w..(y + r + 2) * w]).for_each(|(s, a)| add(s, a));
         }
-        for y in 0..h {
-            out[y * w + x] = acc;
-            if y + r + 1 < h {
-                acc += rows[(y + r + 1) * w + x];
-            }
-            if y >= r {
-                acc -= rows[(y - r) * w + x];
-            }
+        if y >= r {
+            acc.iter_mut().zip(&rows[(y - r) * w..(y - r + 1) * w]).for_each(|(s, a)| sub(s, a));
         }
     }
     out
@@ -2125,6 +2136,24 @@ mod tests {
     /// parallax with a known epipole): the refinement, started from an epipole that puts
     /// the surface 3 pixels off, comes back to within a fraction of a pixel and says the view
     /// agrees; a view of something else does not.
+    #[test]
+    fn box_sums_are_the_window_sums_clipped_at_the_borders() {
+        let (w, h, r) = (13, 9, 2);
+        let v: Vec<f32> = (0..w * h).map(|i| ((i * 7919) % 23) as f32).collect();
+        let sums = box_sum(&v, w, h, r);
+        for y in 0..h {
+            for x in 0..w {
+                let mut want = 0.0;
+                for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+                    for xx in x.saturating_sub(r)..(x + r + 1).min(w) {
+                        want += v[yy * w + xx];
+                    }
+                }
+                assert_eq!(sums[y * w + x], want, "at ({x}, {y})");
+            }
+        }
+    }
+
     #[test]
     fn the_epipole_is_refined_to_where_the_view_agrees_with_the_keyframe() {
         let (w, h, key, mask) = textured_square_hole();
