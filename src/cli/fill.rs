@@ -103,6 +103,9 @@ struct ViewReport {
     /// Whether a tone curve was applied before the gain (the view's response is not linear
     /// in the keyframe's).
     tone_curve: Option<bool>,
+    /// The largest shift (keyframe pixels) that moved the view onto the keyframe around a
+    /// hole, beyond its homography (0: none).
+    local_shift_px: Option<f64>,
 }
 
 impl ViewReport {
@@ -120,6 +123,7 @@ impl ViewReport {
             gain: None,
             offset: None,
             tone_curve: None,
+            local_shift_px: None,
         }
     }
 }
@@ -364,6 +368,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         r.gain = Some(s.gain);
         r.offset = Some(s.offset);
         r.tone_curve = Some(s.tone);
+        r.local_shift_px = Some(s.shift_px);
     }
 
     progress.begin("write", 1);
@@ -525,6 +530,7 @@ fn align_view(
         gain: None,
         offset: None,
         tone_curve: None,
+        local_shift_px: None,
     };
     let (mut kept, mut note) = (None, None);
     match (&a.homography, &a.rejection, &key.region) {

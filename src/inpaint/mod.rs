@@ -14,6 +14,7 @@ pub mod occlusion;
 pub mod parallax;
 pub mod priority;
 pub mod region;
+pub mod shift;
 
 use rayon::prelude::*;
 
@@ -26,6 +27,7 @@ use blend::{BlendParams, guidance_rhs, poisson_blend, solve_membrane};
 use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region};
 use occlusion::{KeyRegion, OcclusionMap, OcclusionParams, RegionInput, occlusion_map};
 use parallax::{ParallaxParams, PlaneInput, SurfacePlane, WarpedView, choose_planes};
+use shift::{ShiftParams, local_shift};
 
 pub use automask::{AutoMask, AutoMaskParams, auto_mask, auto_mask_report};
 pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_guided, exemplar_fill_until};
@@ -126,6 +128,9 @@ pub struct SourceReport {
     /// Whether the result was made from this source; one the choice kept out is still a
     /// witness ([`FillParams::select_views`]).
     pub joined: bool,
+    /// The largest local shift ([`FillParams::local_shift`]) this source was moved by
+    /// around a hole, in keyframe pixels (0: none).
+    pub shift_px: f64,
 }
 
 /// What a result is made of.
@@ -248,6 +253,10 @@ pub struct FillParams {
     /// masked pixels × those views stay within this budget (beyond it every view is used):
     /// a 12 MP photograph with 15 % masked and 6 views (9 M) took 2.8× as long and 1.65 GB.
     pub select_budget: usize,
+    /// Around each hole, each view moved by the shift that best brings it onto the
+    /// keyframe's own pixels there, when that shift makes them clearly more alike
+    /// ([`shift::local_shift`]): one homography cannot hold a curved or stepped facade.
+    pub local_shift: Option<ShiftParams>,
 }
 
 impl Default for FillParams {
@@ -276,6 +285,7 @@ impl Default for FillParams {
             select_views: true,
             select_margin: KEEP_MARGIN,
             select_budget: 4_000_000,
+            local_shift: Some(ShiftParams::default()),
         }
     }
 }
@@ -415,12 +425,45 @@ pub fn fill_with<P: RgbPixel>(
     // Per part, per plane off the wall, per source (empty where the plane is not near).
     let mut plane_warps: Vec<Vec<Vec<Option<Warped>>>> = Vec::with_capacity(parts.len());
     for (k, part) in parts.iter().enumerate() {
+        // Each view's homography here: its own, or moved onto the keyframe around this hole.
+        let hs: Vec<Homography> = sources
+            .par_iter()
+            .enumerate()
+            .map(|(v, s)| {
+                let occluders = extras.occluders.get(v).copied().flatten();
+                let shift = params
+                    .local_shift
+                    .as_ref()
+                    .and_then(|p| local_shift(key, mask, &part.hole, part.rect, s, occluders, p));
+                if let Some(sh) = &shift {
+                    let moved = sh.d.0.hypot(sh.d.1);
+                    tracing::debug!(
+                        view = v,
+                        dx = sh.d.0,
+                        dy = sh.d.1,
+                        ncc = sh.ncc_before,
+                        to = sh.ncc_after,
+                        "view shifted around a hole"
+                    );
+                    return (sh.apply(&s.homography), moved);
+                }
+                (s.homography, 0.0)
+            })
+            .collect::<Vec<_>>()
+            .into_iter()
+            .enumerate()
+            .map(|(v, (hv, moved))| {
+                report.sources[v].shift_px = report.sources[v].shift_px.max(moved);
+                hv
+            })
+            .collect();
         let mut ws: Vec<Warped> = sources
             .par_iter()
-            .map(|s| warp(s.image, &s.homography, part.rect, Some(&part.need), params.interpolation))
+            .zip(&hs)
+            .map(|(s, hv)| warp(s.image, hv, part.rect, Some(&part.need), params.interpolation))
             .collect();
-        ws.par_iter_mut().zip(sources.par_iter()).enumerate().for_each(|(v, (wv, s))| {
-            exclude(wv, &s.homography, extras.occluders.get(v).copied().flatten());
+        ws.par_iter_mut().zip(hs.par_iter()).enumerate().for_each(|(v, (wv, hv))| {
+            exclude(wv, hv, extras.occluders.get(v).copied().flatten());
         });
         for (v, wv) in ws.iter().enumerate() {
             report.sources[v].covered +=
