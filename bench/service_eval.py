@@ -87,9 +87,9 @@ def settle(outbox, start, log, secs):
     raise SystemExit(f"the service did not settle; log:\n{log.read_text()[-4000:]}")
 
 
-def run_service(binary, case, work, timeout):
-    """Returns per step (the keyframe alone, then each view): what happened and the PSNR of
-    the published result."""
+def start_service(binary, work):
+    """`clearview run` on a fresh inbox, outbox and state under `work`: the process, the
+    session folder, the outbox and the log."""
     inbox, outbox, state = work / "inbox", work / "outbox", work / "state"
     session = inbox / "s"
     for d in (session, outbox, state):
@@ -100,9 +100,24 @@ def run_service(binary, case, work, timeout):
         f'[state]\ndir = "{state}"\n[compute]\ngrace_period_ms = 15000\n'
     )
     log = work / "service.log"
-    truth, mask = load(case / "truth.png"), load(case / "mask.png", cv2.IMREAD_GRAYSCALE) > 127
     env = dict(os.environ, CLEARVIEW_LOG="clearview=info")
     proc = subprocess.Popen([binary, "run", "--config", str(cfg)], stdout=subprocess.DEVNULL, stderr=log.open("w"), env=env)
+    return proc, session, outbox, log
+
+
+def stop_service(proc):
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
+def run_service(binary, case, work, timeout):
+    """Returns per step (the keyframe alone, then each view): what happened and the PSNR of
+    the published result."""
+    proc, session, outbox, log = start_service(binary, work)
+    truth, mask = load(case / "truth.png"), load(case / "mask.png", cv2.IMREAD_GRAYSCALE) > 127
     steps = []
     try:
         put(session / "key.mask.png", case / "mask.png")
@@ -150,11 +165,7 @@ def run_service(binary, case, work, timeout):
             used = sum(1 for x in rep.get("views", []) if x.get("status") == "used")
             steps.append(dict(view=what, outcome=outcome, score=score, psnr=psnr, used=used, confident=rep.get("confident")))
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_service(proc)
     return steps
 
 
@@ -162,18 +173,7 @@ def run_mask_last(binary, case, work, timeout):
     """The keyframe, then every view (each once handled), then the mask: the published
     result once the service settles. A photographer who paints the mask last should get
     what the mask-first order gives (issue 12: the alignments depend on the mask)."""
-    inbox, outbox, state = work / "inbox", work / "outbox", work / "state"
-    session = inbox / "s"
-    for d in (session, outbox, state):
-        d.mkdir(parents=True)
-    cfg = work / "clearview.toml"
-    cfg.write_text(
-        f'[watch]\ndir = "{inbox}"\nquiet_period_ms = 300\n[output]\ndir = "{outbox}"\nhistory = 50\n'
-        f'[state]\ndir = "{state}"\n[compute]\ngrace_period_ms = 15000\n'
-    )
-    log = work / "service.log"
-    env = dict(os.environ, CLEARVIEW_LOG="clearview=info")
-    proc = subprocess.Popen([binary, "run", "--config", str(cfg)], stdout=subprocess.DEVNULL, stderr=log.open("w"), env=env)
+    proc, session, outbox, log = start_service(binary, work)
     try:
         put(session / "key.png", case / "key.png")
         wait(outbox, "the keyframe", lambda e: True if any(x["event"] == "session_waiting" for x in e) else None, timeout, log)
@@ -189,11 +189,7 @@ def run_mask_last(binary, case, work, timeout):
         res = outbox / "s" / "result.png"
         return load(res) if res.exists() else None
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_service(proc)
 
 
 def fill_all(binary, case, out):
