@@ -27,7 +27,7 @@ use blend::{BlendParams, guidance_rhs, poisson_blend, solve_membrane};
 use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region};
 use occlusion::{KeyRegion, OcclusionMap, OcclusionParams, RegionInput, occlusion_map};
 use parallax::{ParallaxParams, PlaneInput, SurfacePlane, WarpedView, choose_planes};
-use shift::{ShiftParams, local_shift};
+use shift::{Shift, ShiftParams, local_shift};
 
 pub use automask::{AutoMask, AutoMaskParams, auto_mask, auto_mask_report};
 pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_guided, exemplar_fill_until};
@@ -426,35 +426,25 @@ pub fn fill_with<P: RgbPixel>(
     let mut plane_warps: Vec<Vec<Vec<Option<Warped>>>> = Vec::with_capacity(parts.len());
     for (k, part) in parts.iter().enumerate() {
         // Each view's homography here: its own, or moved onto the keyframe around this hole.
-        let hs: Vec<Homography> = sources
+        let shifts: Vec<Option<Shift>> = sources
             .par_iter()
             .enumerate()
             .map(|(v, s)| {
                 let occluders = extras.occluders.get(v).copied().flatten();
-                let shift = params
-                    .local_shift
-                    .as_ref()
-                    .and_then(|p| local_shift(key, mask, &part.hole, part.rect, s, occluders, p));
-                if let Some(sh) = &shift {
-                    let moved = sh.d.0.hypot(sh.d.1);
-                    tracing::debug!(
-                        view = v,
-                        dx = sh.d.0,
-                        dy = sh.d.1,
-                        ncc = sh.ncc_before,
-                        to = sh.ncc_after,
-                        "view shifted around a hole"
-                    );
-                    return (sh.apply(&s.homography), moved);
-                }
-                (s.homography, 0.0)
+                let p = params.local_shift.as_ref()?;
+                local_shift(key, mask, &part.hole, part.rect, s, occluders, p)
             })
-            .collect::<Vec<_>>()
-            .into_iter()
-            .enumerate()
-            .map(|(v, (hv, moved))| {
-                report.sources[v].shift_px = report.sources[v].shift_px.max(moved);
-                hv
+            .collect();
+        let hs: Vec<Homography> = sources
+            .iter()
+            .zip(&shifts)
+            .zip(&mut report.sources)
+            .map(|((s, shift), r)| match shift {
+                Some(sh) => {
+                    r.shift_px = r.shift_px.max(sh.d.0.hypot(sh.d.1));
+                    sh.apply(&s.homography)
+                }
+                None => s.homography,
             })
             .collect();
         let mut ws: Vec<Warped> = sources

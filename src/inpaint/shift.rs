@@ -85,7 +85,7 @@ fn luma(p: [f32; 3]) -> f64 {
 }
 
 /// The keyframe pixels of the band around `hole` (`rect`-sized, keyframe pixels of `rect`),
-/// outside every hole of `mask`, evenly thinned to at most `max` pixels.
+/// outside every hole of `mask`, evenly thinned to at most `params.max_samples` pixels.
 fn band_pixels(mask: &Mask, hole: &Plane<bool>, rect: Rect, params: &ShiftParams) -> Vec<(usize, usize)> {
     let (w, h) = (mask.width(), mask.height());
     let grow = params.gap + params.band;
