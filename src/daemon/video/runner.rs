@@ -551,10 +551,12 @@ mod tests {
         let (model, fill) = (&walk.fill.occlusion_model, &walk.fill);
         assert_eq!(model.sure, model.cut, "a pixel every frame doubts is not copied");
         assert!(!fill.select_views, "a walk's fill chooses no frames");
+        assert!(fill.local_shift.is_none(), "a walk's frames are not moved around the hole");
         // The rest is the service's: the fallback's guide among it.
         let mut back = walk.clone();
         back.fill.occlusion_model.sure = base.fill.occlusion_model.sure;
         back.fill.select_views = base.fill.select_views;
+        back.fill.local_shift = base.fill.local_shift.clone();
         assert_eq!(back, base);
     }
 
