@@ -27,7 +27,7 @@ use blend::{BlendParams, guidance_rhs, poisson_blend, solve_membrane};
 use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region};
 use occlusion::{KeyRegion, OcclusionMap, OcclusionParams, RegionInput, occlusion_map};
 use parallax::{ParallaxParams, PlaneInput, SurfacePlane, WarpedView, choose_planes};
-use shift::{Shift, ShiftParams, local_shift};
+use shift::{Shift, ShiftBand, ShiftParams, local_shift};
 
 pub use automask::{AutoMask, AutoMaskParams, auto_mask, auto_mask_report};
 pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_guided, exemplar_fill_until};
@@ -426,15 +426,17 @@ pub fn fill_with<P: RgbPixel>(
     let mut plane_warps: Vec<Vec<Vec<Option<Warped>>>> = Vec::with_capacity(parts.len());
     for (k, part) in parts.iter().enumerate() {
         // Each view's homography here: its own, or moved onto the keyframe around this hole.
-        let shifts: Vec<Option<Shift>> = sources
-            .par_iter()
-            .enumerate()
-            .map(|(v, s)| {
-                let occluders = extras.occluders.get(v).copied().flatten();
-                let p = params.local_shift.as_ref()?;
-                local_shift(key, mask, &part.hole, part.rect, s, occluders, p)
-            })
-            .collect();
+        let shifts: Vec<Option<Shift>> = match &params.local_shift {
+            Some(p) => {
+                let band = ShiftBand::new(key, mask, &part.hole, part.rect, p);
+                sources
+                    .par_iter()
+                    .enumerate()
+                    .map(|(v, s)| local_shift(&band, s, extras.occluders.get(v).copied().flatten(), p))
+                    .collect()
+            }
+            None => vec![None; nv],
+        };
         let hs: Vec<Homography> = sources
             .iter()
             .zip(&shifts)

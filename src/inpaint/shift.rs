@@ -126,36 +126,50 @@ fn taps_occluded(occ: &Mask, x: f64, y: f64) -> bool {
     })
 }
 
+/// The keyframe's side of a hole's band, the same for every view: per band pixel its
+/// position, the side of the hole it is on (four quadrants about the hole's centre) and the
+/// keyframe's luminance there.
+#[derive(Debug, Clone)]
+pub struct ShiftBand {
+    pixels: Vec<(usize, usize, usize, f64)>,
+}
+
+impl ShiftBand {
+    /// The band around `hole` (a part's hole pixels, `rect`-sized) of keyframe `key`.
+    pub fn new(key: &RgbF32, mask: &Mask, hole: &Plane<bool>, rect: Rect, params: &ShiftParams) -> Self {
+        let (cx, cy) = (rect.x as f64 + 0.5 * rect.width as f64, rect.y as f64 + 0.5 * rect.height as f64);
+        let pixels = band_pixels(mask, hole, rect, params)
+            .into_iter()
+            .map(|(x, y)| {
+                let side = usize::from(x as f64 >= cx) + 2 * usize::from(y as f64 >= cy);
+                (x, y, side, luma(key.get(x, y)))
+            })
+            .collect();
+        Self { pixels }
+    }
+}
+
 /// The shift (keyframe pixels) that best brings `source` (its view and keyframe → view
-/// homography) onto the keyframe in a band around `hole` (a part's hole pixels, `rect`-sized); view
-/// pixels its `occluders` mark (view-sized, 255 = occluder) are not compared. `None` when
-/// the view sees too little of the band, or no shift makes it clearly more alike than none.
+/// homography) onto the keyframe over `band`; view pixels its `occluders` mark (view-sized,
+/// 255 = occluder) are not compared. `None` when the view sees too little of the band, or
+/// no shift makes it clearly more alike than none.
 pub fn local_shift<P: RgbPixel>(
-    key: &RgbF32,
-    mask: &Mask,
-    hole: &Plane<bool>,
-    rect: Rect,
+    band: &ShiftBand,
     source: &Source<'_, P>,
     occluders: Option<&Mask>,
     params: &ShiftParams,
 ) -> Option<Shift> {
-    let (view, h) = (source.image, &source.homography);
-    let band = band_pixels(mask, hole, rect, params);
-    if band.is_empty() {
+    if band.pixels.is_empty() {
         return None;
     }
-    let m = h.matrix();
+    let (view, m) = (source.image, source.homography.matrix());
     let (c0, c1) = (m.column(0).into_owned(), m.column(1).into_owned());
-    // The side of the hole each band pixel is on (four quadrants about the hole's centre).
-    let (cx, cy) = (rect.x as f64 + 0.5 * rect.width as f64, rect.y as f64 + 0.5 * rect.height as f64);
     // Per band pixel: its side, the keyframe's luminance and H·x (homogeneous); a shift adds
     // dx·H₀ + dy·H₁.
     let samples: Vec<(usize, f64, nalgebra::Vector3<f64>)> = band
+        .pixels
         .iter()
-        .map(|&(x, y)| {
-            let side = usize::from(x as f64 >= cx) + 2 * usize::from(y as f64 >= cy);
-            (side, luma(key.get(x, y)), m * nalgebra::Vector3::new(x as f64, y as f64, 1.0))
-        })
+        .map(|&(x, y, side, k)| (side, k, m * nalgebra::Vector3::new(x as f64, y as f64, 1.0)))
         .collect();
     let need = ((samples.len() as f64 * params.min_seen).ceil() as usize).max(64);
     let per_side = (need / 8).max(32);
@@ -288,15 +302,8 @@ mod tests {
     /// The shift of `view` (the identity its homography) around the square hole.
     fn shift_of(key: &RgbF32, view: &RgbF32, occ: Option<&Mask>, p: &ShiftParams) -> Option<Shift> {
         let (mask, hole, rect) = square_hole(key.width(), key.height());
-        local_shift(
-            key,
-            &mask,
-            &hole,
-            rect,
-            &Source { image: view, homography: Homography::identity() },
-            occ,
-            p,
-        )
+        let band = ShiftBand::new(key, &mask, &hole, rect, p);
+        local_shift(&band, &Source { image: view, homography: Homography::identity() }, occ, p)
     }
 
     fn square_hole(w: usize, h: usize) -> (Mask, Plane<bool>, Rect) {
