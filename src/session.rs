@@ -523,9 +523,10 @@ impl Session {
 
     /// Marks the pixels of buffered view `id` that show an occluder of its own
     /// (`occluders`: view-sized, 255 = occluder, found by the caller from other evidence,
-    /// such as the frames of a walk around it): the fill never copies them
-    /// ([`inpaint::FillExtras::occluders`]). Whether the view is buffered with pixels and
-    /// the mask fits it.
+    /// such as the frames of a walk around it): the fill never copies them; a soft mark
+    /// (above 127, below 255) is copied only where every view that sees the pixel is
+    /// marked ([`inpaint::FillExtras::occluders`]). Called again, it replaces the marks.
+    /// Whether the view is buffered with pixels and the mask fits it.
     pub fn set_view_occluders(&mut self, id: &str, occluders: &Mask) -> bool {
         let Some(b) = self.buffer.iter_mut().find(|b| b.id == id) else { return false };
         let Some(crop) = b.crop.as_mut() else { return false };
@@ -693,18 +694,19 @@ impl Session {
             h.write(id.as_bytes());
             h.write(&[0]);
         }
-        // Views' own occluders (set by the caller after admission) change the fill too.
-        let mut marked: Vec<&str> = self
+        // Views' own occluders (set by the caller after admission, and revised) change the
+        // fill too.
+        let mut marked: Vec<(&str, &Mask)> = self
             .buffer
             .iter()
-            .filter(|b| b.crop.as_ref().is_some_and(|c| c.occluders.is_some()))
-            .map(|b| b.id.as_str())
+            .filter_map(|b| Some((b.id.as_str(), b.crop.as_ref()?.occluders.as_ref()?)))
             .collect();
-        marked.sort_unstable();
-        for id in marked {
+        marked.sort_unstable_by_key(|&(id, _)| id);
+        for (id, marks) in marked {
             h.write(b"occluders:");
             h.write(id.as_bytes());
             h.write(&[0]);
+            h.write(marks.as_slice());
         }
         h.write(&self.params.seed.to_le_bytes());
         h.write(SCORE_RULE);
