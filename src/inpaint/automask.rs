@@ -110,6 +110,9 @@ pub struct AutoMask {
     /// Share of the keyframe that at least `min_views` agreeing views judged: elsewhere an
     /// occluder cannot be found.
     pub judged_share: f64,
+    /// Those pixels (255), keyframe-sized: where the mask says what the views saw, not what
+    /// growth, closing and the keyframe's own colours made of it.
+    pub judged: Mask,
 }
 
 /// The mask of transient objects in `key` (255 = fill), judged against `sources`.
@@ -143,7 +146,13 @@ pub fn auto_mask_report<P: RgbPixel>(
     params: &AutoMaskParams,
 ) -> AutoMask {
     let (w, h) = (key.width(), key.height());
-    let empty = || AutoMask { mask: Mask::new(w, h, 0), objects: 0, certain_share: 0.0, judged_share: 0.0 };
+    let empty = || AutoMask {
+        mask: Mask::new(w, h, 0),
+        objects: 0,
+        certain_share: 0.0,
+        judged_share: 0.0,
+        judged: Mask::new(w, h, 0),
+    };
     if sources.len() < params.min_views.max(1) || w == 0 || h == 0 {
         return empty();
     }
@@ -212,12 +221,14 @@ pub fn auto_mask_report<P: RgbPixel>(
     let total = objects.as_slice().iter().filter(|&&v| v).count();
     let certain = objects.as_slice().iter().zip(seeds.as_slice()).filter(|&(&o, &s)| o && s).count();
     let judged = ev.judged.as_slice().iter().filter(|&&v| v).count();
-    let full = Plane::from_fn(w, h, |x, y| objects.get((x / f).min(rw - 1), (y / f).min(rh - 1)));
+    let full = |p: &Plane<bool>| Plane::from_fn(w, h, |x, y| p.get((x / f).min(rw - 1), (y / f).min(rh - 1)));
+    let byte = |b: &bool| if *b { 255 } else { 0 };
     AutoMask {
-        mask: dilate(&full, params.dilate_radius).map(|&b| if b { 255 } else { 0 }),
+        mask: dilate(&full(&objects), params.dilate_radius).map(byte),
         objects: count,
         certain_share: if total == 0 { 0.0 } else { certain as f64 / total as f64 },
         judged_share: judged as f64 / (rw * rh) as f64,
+        judged: full(&ev.judged).map(byte),
     }
 }
 
