@@ -8,6 +8,8 @@
 //! along sharp edges, noise) are opened away, gaps closed, and the result grown a little so
 //! that the fill also replaces the object's soft edge.
 
+use rayon::prelude::*;
+
 use super::Source;
 use crate::geometry::Homography;
 use crate::imaging::photometric::{Gain, GainParams, fit_gain};
@@ -474,29 +476,33 @@ fn explain_by_parallax(key: &RgbF32, ev: &mut Evidence, params: &AutoMaskParams)
     }
     const HALF: isize = 2;
     let t2 = params.threshold * params.threshold;
-    let mut explained = Vec::new();
-    for i in (0..w * h).filter(|&i| ev.strong.as_slice()[i]) {
-        let (x, y) = ((i % w) as isize, (i / w) as isize);
-        let matches = |dx: isize, dy: isize| {
-            let (mut sum, mut n) = (0.0f32, 0usize);
-            for py in y - HALF..=y + HALF {
-                for px in x - HALF..=x + HALF {
-                    let (Some(a), Some(true)) =
-                        (key.get_checked(px, py), ev.judged.get_checked(px + dx, py + dy))
-                    else {
-                        continue;
-                    };
-                    let b = ev.consensus.get((px + dx) as usize, (py + dy) as usize);
-                    sum += (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>();
-                    n += 1;
+    let seen: &Evidence = ev;
+    // Each pixel is judged on its own: in parallel, the same pixels as one at a time.
+    let explained: Vec<usize> = (0..w * h)
+        .into_par_iter()
+        .filter(|&i| seen.strong.as_slice()[i])
+        .filter(|&i| {
+            let ev = seen;
+            let (x, y) = ((i % w) as isize, (i / w) as isize);
+            let matches = |dx: isize, dy: isize| {
+                let (mut sum, mut n) = (0.0f32, 0usize);
+                for py in y - HALF..=y + HALF {
+                    for px in x - HALF..=x + HALF {
+                        let (Some(a), Some(true)) =
+                            (key.get_checked(px, py), ev.judged.get_checked(px + dx, py + dy))
+                        else {
+                            continue;
+                        };
+                        let b = ev.consensus.get((px + dx) as usize, (py + dy) as usize);
+                        sum += (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>();
+                        n += 1;
+                    }
                 }
-            }
-            n * 2 > ((2 * HALF + 1) * (2 * HALF + 1)) as usize && sum <= t2 * n as f32
-        };
-        if (-r..=r).any(|dy| (-r..=r).any(|dx| (dx, dy) != (0, 0) && matches(dx, dy))) {
-            explained.push(i);
-        }
-    }
+                n * 2 > ((2 * HALF + 1) * (2 * HALF + 1)) as usize && sum <= t2 * n as f32
+            };
+            (-r..=r).any(|dy| (-r..=r).any(|dx| (dx, dy) != (0, 0) && matches(dx, dy)))
+        })
+        .collect();
     for i in explained {
         ev.strong.as_mut_slice()[i] = false;
         ev.weak.as_mut_slice()[i] = true;
