@@ -1818,17 +1818,45 @@ mod tests {
         assert!(none < 0.01, "with no view pixel on the border the guide is {none:.3} off the sky");
     }
 
+    /// A 160 × 120 facade, and the keyframe of it with a person painted in and masked:
+    /// (facade, keyframe, mask).
+    fn person_before_facade() -> (RgbF32, RgbF32, Mask) {
+        let scene = facade(160, 120, 5);
+        let mut key = scene.clone();
+        let mut mask = Mask::new(160, 120, 0);
+        paint_occluder(&mut key, Some(&mut mask), Occluder::Person, 80.0, 65.0, 60.0, 2);
+        (scene, key, mask)
+    }
+
+    /// Per view (keyframe → view a translation, `hs`), view-sized occluder marks: `level(v,
+    /// x, y)` at keyframe pixel (x, y).
+    fn marks_in_views(
+        hs: &[Homography],
+        w: usize,
+        h: usize,
+        level: impl Fn(usize, usize, usize) -> u8,
+    ) -> Vec<Mask> {
+        hs.iter()
+            .enumerate()
+            .map(|(v, hm)| {
+                let t = hm.rows();
+                Mask::from_fn(w, h, |x, y| {
+                    let (kx, ky) =
+                        ((x as f64 - t[0][2]).round() as usize, (y as f64 - t[1][2]).round() as usize);
+                    level(v, kx, ky)
+                })
+            })
+            .collect()
+    }
+
     /// Two views of a facade, each with its own occluder marked (`FillExtras::occluders`)
     /// over part of the keyframe's hole: over the left block only the first is marked, over
     /// the right block both. A marked pixel is never copied where the other view sees it
     /// clear; where both are marked it goes to the fallback.
     #[test]
     fn a_pixel_every_view_marks_as_its_occluder_is_never_copied() {
-        let (w, h) = (160, 120);
-        let scene = facade(w, h, 5);
-        let mut key = scene.clone();
-        let mut mask = Mask::new(w, h, 0);
-        paint_occluder(&mut key, Some(&mut mask), Occluder::Person, 80.0, 65.0, 60.0, 2);
+        let (scene, key, mask) = person_before_facade();
+        let (w, h) = (key.width(), key.height());
         let hs = [Homography::translation(4.0, -2.0), Homography::translation(-3.0, 1.0)];
         let views: Vec<RgbF32> =
             hs.iter().map(|hm| render_view(&scene, &hm.inverse().unwrap(), w, h, [0.5; 3])).collect();
@@ -1837,20 +1865,8 @@ mod tests {
         // Keyframe blocks: left [60, 80), right [80, 100), rows [40, 90).
         let left = |x: usize, y: usize| (60..80).contains(&x) && (40..90).contains(&y);
         let right = |x: usize, y: usize| (80..100).contains(&x) && (40..90).contains(&y);
-        // The blocks in each view's coordinates (a translation: shift back).
-        let marks: Vec<Mask> = hs
-            .iter()
-            .enumerate()
-            .map(|(v, hm)| {
-                let t = hm.rows();
-                Mask::from_fn(w, h, |x, y| {
-                    let (kx, ky) = (x as f64 - t[0][2], y as f64 - t[1][2]);
-                    let (kx, ky) = (kx.round() as usize, ky.round() as usize);
-                    let marked = right(kx, ky) || (v == 0 && left(kx, ky));
-                    if marked { 255 } else { 0 }
-                })
-            })
-            .collect();
+        let marks =
+            marks_in_views(&hs, w, h, |v, x, y| if right(x, y) || (v == 0 && left(x, y)) { 255 } else { 0 });
         let occluders: Vec<Option<&Mask>> = marks.iter().map(Some).collect();
         let extras = FillExtras { occluders: &occluders, ..FillExtras::default() };
         let hole = mask.as_slice();
@@ -1876,11 +1892,8 @@ mod tests {
     /// model off: the fallback makes them.
     #[test]
     fn a_soft_mark_is_copied_where_every_view_is_marked_unless_it_shows_the_keyframes_occluder() {
-        let (w, h) = (160, 120);
-        let scene = facade(w, h, 5);
-        let mut key = scene.clone();
-        let mut mask = Mask::new(w, h, 0);
-        paint_occluder(&mut key, Some(&mut mask), Occluder::Person, 80.0, 65.0, 60.0, 2);
+        let (scene, key, mask) = person_before_facade();
+        let (w, h) = (key.width(), key.height());
         let mut person = Mask::new(w, h, 0);
         let mut with_person = scene.clone();
         paint_occluder(&mut with_person, Some(&mut person), Occluder::Person, 80.0, 65.0, 60.0, 2);
@@ -1891,22 +1904,11 @@ mod tests {
         assert!(block_px.len() > 300, "the block is on the person, in the hole");
         let hs = [Homography::translation(4.0, -2.0), Homography::translation(-3.0, 1.0)];
         // View 0 softly marked over the block, view 1 wholly.
-        let marks: Vec<Mask> = hs
-            .iter()
-            .enumerate()
-            .map(|(v, hm)| {
-                let t = hm.rows();
-                Mask::from_fn(w, h, |x, y| {
-                    let (kx, ky) =
-                        ((x as f64 - t[0][2]).round() as usize, (y as f64 - t[1][2]).round() as usize);
-                    match (block(kx, ky), v) {
-                        (false, _) => 0,
-                        (true, 0) => 160,
-                        (true, _) => 255,
-                    }
-                })
-            })
-            .collect();
+        let marks = marks_in_views(&hs, w, h, |v, x, y| match (block(x, y), v) {
+            (false, _) => 0,
+            (true, 0) => 160,
+            (true, _) => 255,
+        });
         let occluders: Vec<Option<&Mask>> = marks.iter().map(Some).collect();
         let extras = FillExtras { occluders: &occluders, ..FillExtras::default() };
         let fill = |first: &RgbF32, params: &FillParams| {
