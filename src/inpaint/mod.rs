@@ -1045,32 +1045,28 @@ fn exclude_marked(
 ) -> Vec<Option<Plane<bool>>> {
     let mut lifted: Vec<Option<Plane<bool>>> = vec![None; ws.len()];
     let Some(first) = ws.first() else { return lifted };
+    if levels.iter().all(Option::is_none) {
+        // No source has marks (the folder service, the one-shot fill): nothing to do.
+        return lifted;
+    }
     let (w, h, r) = (first.rect.width, first.rect.height, first.rect);
     let level = |v: usize, x: usize, y: usize| levels[v].as_ref().map_or(0, |l| l.get(x, y));
-    // 3 x 3 means, of the keyframe and of a view, at a pixel of the part.
-    let key_mean = |x: usize, y: usize| {
+    // The 3 × 3 mean at a pixel of the part of what `at` gives there.
+    let mean = |x: usize, y: usize, at: &dyn Fn(usize, usize) -> Option<[f32; 3]>| {
         let (mut s, mut n) = ([0.0f32; 3], 0.0f32);
         for yy in y.saturating_sub(1)..(y + 2).min(h) {
             for xx in x.saturating_sub(1)..(x + 2).min(w) {
-                let k = key.get(r.x + xx, r.y + yy);
-                (0..3).for_each(|c| s[c] += k[c]);
-                n += 1.0;
-            }
-        }
-        s.map(|c| c / n)
-    };
-    let view_mean = |wv: &Warped, x: usize, y: usize| {
-        let (mut s, mut n) = ([0.0f32; 3], 0.0f32);
-        for yy in y.saturating_sub(1)..(y + 2).min(h) {
-            for xx in x.saturating_sub(1)..(x + 2).min(w) {
-                if wv.valid.get(xx, yy) {
-                    let k = wv.image.get(xx, yy);
+                if let Some(k) = at(xx, yy) {
                     (0..3).for_each(|c| s[c] += k[c]);
                     n += 1.0;
                 }
             }
         }
         s.map(|c| c / n.max(1.0))
+    };
+    let key_mean = |x: usize, y: usize| mean(x, y, &|xx, yy| Some(key.get(r.x + xx, r.y + yy)));
+    let view_mean = |wv: &Warped, x: usize, y: usize| {
+        mean(x, y, &|xx, yy| wv.valid.get(xx, yy).then(|| wv.image.get(xx, yy)))
     };
     let mut drop: Vec<(usize, usize, usize)> = Vec::new();
     for y in 0..h {
@@ -1105,20 +1101,10 @@ fn exclude_marked(
 /// Marks invalid the pixels of `wv` (warped through `h`) that fall on `occluders` (view
 /// coordinates, nearest pixel).
 fn exclude(wv: &mut Warped, h: &Homography, occluders: Option<&Mask>) {
-    let Some(m) = occluders else { return };
-    let r = wv.rect;
-    for y in 0..r.height {
-        for x in 0..r.width {
-            if !wv.valid.get(x, y) {
-                continue;
-            }
-            let p = h.apply(nalgebra::Point2::new((r.x + x) as f64, (r.y + y) as f64));
-            if let Some(p) = p {
-                let (u, v) = (p.x.round(), p.y.round());
-                if u >= 0.0 && v >= 0.0 && m.get_checked(u as isize, v as isize).is_some_and(|o| o > 127) {
-                    wv.valid.set(x, y, false);
-                }
-            }
+    let Some(levels) = mark_levels(wv, h, occluders) else { return };
+    for (ok, &l) in wv.valid.as_mut_slice().iter_mut().zip(levels.as_slice()) {
+        if l > 127 {
+            *ok = false;
         }
     }
 }
