@@ -22,6 +22,10 @@
 //!   building looks like; a view's pixel unlike all of it is suspect (what carries one or
 //!   two views, where a consensus cannot be had).
 //!
+//! Last, inside the hole, a view that agrees with views sure they show the keyframe's
+//! occluder there shows it too (a shared occluder: agreement among views is not always the
+//! building).
+//!
 //! The fill uses the probabilities twice: as a cost when it chooses a view, and as a cut
 //! (a view's pixel that is probably an occluder is never copied: the pixel goes to another
 //! view or to the single-image fallback). [`confidence`] then says, per filled pixel, how
@@ -88,6 +92,9 @@ impl Default for OcclusionParams {
     }
 }
 
+/// Views (independence-weighted) that must agree with a view's pixel, and be sure they show
+/// the keyframe's occluder there, for it to be taken as showing that occluder too.
+const SHARED_WITNESSES: f32 = 1.5;
 /// Fewer other witnesses than this (independence-weighted) cannot outvote a view: there
 /// a disagreement is explained by the objects the views are known to have in front.
 const FEW_WITNESSES: f32 = 1.5;
@@ -593,7 +600,63 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
         .zip(first)
         .map(|(v, p)| if grown[v] == own[v] { p } else { probability(v, &grown[v]) })
         .collect();
+    let shared = Shared { views: &views_b, valid: &valid, hole: input.region.hole, independence: &ind };
+    let occluded = shared.raise(occluded, |c| occluder_like(c) >= 0.5, params);
     OcclusionMap { occluded, independence: ind }
+}
+
+/// The views of a region as [`Shared::raise`] reads them: blurred, where valid, the hole,
+/// and each view's independence.
+struct Shared<'a> {
+    views: &'a [Vec<[f32; 3]>],
+    valid: &'a [&'a [bool]],
+    hole: &'a [bool],
+    independence: &'a [f32],
+}
+
+impl Shared<'_> {
+    /// Inside the hole, a view that shows what other views surely show the keyframe's
+    /// occluder with (their pixels agree, and are of the occluder's colours) shows the same
+    /// occluder: the tree every view sees a little shifted, where one view's colours
+    /// resemble the keyframe's tree a little less than the others' do, or its tree does not
+    /// cross the mask's edge to be followed in. Its probability is raised to theirs when
+    /// the views surely showing the occluder weigh at least [`SHARED_WITNESSES`] and more
+    /// than the other views that agree with it (a lone view sure by colour alone, the sky
+    /// taken for a grey car, raises nothing).
+    fn raise(
+        &self,
+        occluded: Vec<Vec<f32>>,
+        occluder_colour: impl Fn([f32; 3]) -> bool + Sync,
+        params: &OcclusionParams,
+    ) -> Vec<Vec<f32>> {
+        let nv = occluded.len();
+        (0..nv)
+            .into_par_iter()
+            .map(|v| {
+                (0..occluded[v].len())
+                    .map(|i| {
+                        let p = occluded[v][i];
+                        if !self.hole[i] || !self.valid[v][i] || p >= params.sure {
+                            return p;
+                        }
+                        let (mut sure, mut other, mut most) = (0.0f32, 0.0f32, p);
+                        for u in (0..nv).filter(|&u| u != v && self.valid[u][i]) {
+                            if dist(self.views[u][i], self.views[v][i]) >= params.agree {
+                                continue;
+                            }
+                            if occluded[u][i] >= params.sure && occluder_colour(self.views[u][i]) {
+                                sure += self.independence[u];
+                                most = most.max(occluded[u][i]);
+                            } else {
+                                other += self.independence[u];
+                            }
+                        }
+                        if sure >= SHARED_WITNESSES && sure > other { most } else { p }
+                    })
+                    .collect()
+            })
+            .collect()
+    }
 }
 
 /// How sure the fill is that a filled pixel shows the building, and right (0..=1): the
@@ -778,6 +841,43 @@ mod tests {
             "the case does not test the displacement: {:.0} % cut without it",
             100.0 * blind_cut
         );
+    }
+
+    /// `shared-2` of `service_cases`: every view shows the keyframe's tree, a little
+    /// shifted; three are sure of it at a pixel, the fourth shows the same green there and
+    /// was copied (1.9 dB lost when it arrived in the service).
+    #[test]
+    fn a_view_agreeing_with_views_sure_of_the_keyframes_occluder_shows_it_too() {
+        let params = OcclusionParams::default();
+        let (green, bluer, brick) = ([0.1, 0.55, 0.1], [0.12, 0.53, 0.15], [0.6, 0.4, 0.3]);
+        let raise = |p: [f32; 4], colours: [[f32; 3]; 4], occluder: &(dyn Fn([f32; 3]) -> bool + Sync)| {
+            let views: Vec<Vec<[f32; 3]>> = colours.iter().map(|&c| vec![c]).collect();
+            let ok = [true];
+            let valid: Vec<&[bool]> = vec![&ok; 4];
+            let shared = Shared { views: &views, valid: &valid, hole: &[true], independence: &[1.0; 4] };
+            shared.raise(p.iter().map(|&q| vec![q]).collect(), occluder, &params)[3][0]
+        };
+        let is_green = |c: [f32; 3]| c[1] > 2.0 * c[0];
+        let three_sure = [0.98, 0.99, 0.97, 0.6];
+        // Three views sure of the tree, the fourth agreeing with them: the tree.
+        assert_eq!(raise(three_sure, [green, green, green, bluer], &is_green), 0.99);
+        // The same probabilities where the fourth shows brick: it does not agree, unchanged.
+        assert_eq!(raise(three_sure, [green, green, green, brick], &is_green), 0.6);
+        // Sure views whose colour is not the keyframe's occluder's (grey sky taken for a
+        // car, say): nothing is raised.
+        assert_eq!(raise(three_sure, [green, green, green, bluer], &|_| false), 0.6);
+        // One sure view alone cannot make another an occluder, nor can sure views that
+        // weigh less than the unsure ones agreeing with it.
+        assert_eq!(raise([0.98, 0.3, 0.2, 0.6], [green, brick, brick, bluer], &is_green), 0.6);
+        assert_eq!(raise([0.98, 0.98, 0.3, 0.6], [green, green, bluer, bluer], &is_green), 0.98);
+        assert_eq!(raise([0.98, 0.3, 0.3, 0.6], [green, bluer, bluer, bluer], &is_green), 0.6);
+        // Outside the hole nothing is raised.
+        let views: Vec<Vec<[f32; 3]>> = [green, green, green, bluer].iter().map(|&c| vec![c]).collect();
+        let ok = [true];
+        let valid: Vec<&[bool]> = vec![&ok; 4];
+        let outside = Shared { views: &views, valid: &valid, hole: &[false], independence: &[1.0; 4] };
+        let p = outside.raise(three_sure.iter().map(|&q| vec![q]).collect(), is_green, &params);
+        assert_eq!(p[3][0], 0.6);
     }
 
     #[test]
