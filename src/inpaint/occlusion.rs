@@ -850,34 +850,35 @@ mod tests {
     fn a_view_agreeing_with_views_sure_of_the_keyframes_occluder_shows_it_too() {
         let params = OcclusionParams::default();
         let (green, bluer, brick) = ([0.1, 0.55, 0.1], [0.12, 0.53, 0.15], [0.6, 0.4, 0.3]);
-        let raise = |p: [f32; 4], colours: [[f32; 3]; 4], occluder: &(dyn Fn([f32; 3]) -> bool + Sync)| {
+        let is_green = |c: [f32; 3]| c[1] > 2.0 * c[0];
+        // The fourth view's probability after the rule, at one pixel.
+        let raised = |p: [f32; 4], colours: [[f32; 3]; 4], in_hole: bool, independence: [f32; 4]| {
             let views: Vec<Vec<[f32; 3]>> = colours.iter().map(|&c| vec![c]).collect();
             let ok = [true];
             let valid: Vec<&[bool]> = vec![&ok; 4];
-            let shared = Shared { views: &views, valid: &valid, hole: &[true], independence: &[1.0; 4] };
-            shared.raise(p.iter().map(|&q| vec![q]).collect(), occluder, &params)[3][0]
+            let shared =
+                Shared { views: &views, valid: &valid, hole: &[in_hole], independence: &independence };
+            shared.raise(p.iter().map(|&q| vec![q]).collect(), is_green, &params)[3][0]
         };
-        let is_green = |c: [f32; 3]| c[1] > 2.0 * c[0];
+        let raise = |p: [f32; 4], colours: [[f32; 3]; 4]| raised(p, colours, true, [1.0; 4]);
         let three_sure = [0.98, 0.99, 0.97, 0.6];
         // Three views sure of the tree, the fourth agreeing with them: the tree.
-        assert_eq!(raise(three_sure, [green, green, green, bluer], &is_green), 0.99);
+        assert_eq!(raise(three_sure, [green, green, green, bluer]), 0.99);
         // The same probabilities where the fourth shows brick: it does not agree, unchanged.
-        assert_eq!(raise(three_sure, [green, green, green, brick], &is_green), 0.6);
-        // Sure views whose colour is not the keyframe's occluder's (grey sky taken for a
+        assert_eq!(raise(three_sure, [green, green, green, brick]), 0.6);
+        // Sure views whose colour is not the keyframe's occluder's (the sky taken for a grey
         // car, say): nothing is raised.
-        assert_eq!(raise(three_sure, [green, green, green, bluer], &|_| false), 0.6);
-        // One sure view alone cannot make another an occluder, nor can sure views that
-        // weigh less than the unsure ones agreeing with it.
-        assert_eq!(raise([0.98, 0.3, 0.2, 0.6], [green, brick, brick, bluer], &is_green), 0.6);
-        assert_eq!(raise([0.98, 0.98, 0.3, 0.6], [green, green, bluer, bluer], &is_green), 0.98);
-        assert_eq!(raise([0.98, 0.3, 0.3, 0.6], [green, bluer, bluer, bluer], &is_green), 0.6);
+        assert_eq!(raise(three_sure, [brick, brick, brick, brick]), 0.6);
+        // One sure view alone cannot make another an occluder.
+        assert_eq!(raise([0.98, 0.3, 0.2, 0.6], [green, brick, brick, bluer]), 0.6);
+        assert_eq!(raise([0.98, 0.3, 0.3, 0.6], [green, bluer, bluer, bluer]), 0.6);
+        // Two sure views outweigh one unsure view that agrees with the fourth...
+        assert_eq!(raise([0.98, 0.98, 0.3, 0.6], [green, green, bluer, bluer]), 0.98);
+        // ...but not unsure views that weigh as much (here one view worth two).
+        let heavy = [1.0, 1.0, 2.0, 1.0];
+        assert_eq!(raised([0.98, 0.98, 0.3, 0.6], [green, green, bluer, bluer], true, heavy), 0.6);
         // Outside the hole nothing is raised.
-        let views: Vec<Vec<[f32; 3]>> = [green, green, green, bluer].iter().map(|&c| vec![c]).collect();
-        let ok = [true];
-        let valid: Vec<&[bool]> = vec![&ok; 4];
-        let outside = Shared { views: &views, valid: &valid, hole: &[false], independence: &[1.0; 4] };
-        let p = outside.raise(three_sure.iter().map(|&q| vec![q]).collect(), is_green, &params);
-        assert_eq!(p[3][0], 0.6);
+        assert_eq!(raised(three_sure, [green, green, green, bluer], false, [1.0; 4]), 0.6);
     }
 
     #[test]
