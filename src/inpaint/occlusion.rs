@@ -630,6 +630,20 @@ impl Shared<'_> {
         params: &OcclusionParams,
     ) -> Vec<Vec<f32>> {
         let nv = occluded.len();
+        // Per view, the hole pixels where it surely shows the occluder (once, not per pair).
+        let sure_of: Vec<Vec<bool>> = (0..nv)
+            .into_par_iter()
+            .map(|u| {
+                (0..occluded[u].len())
+                    .map(|i| {
+                        self.hole[i]
+                            && self.valid[u][i]
+                            && occluded[u][i] >= params.sure
+                            && occluder_colour(self.views[u][i])
+                    })
+                    .collect()
+            })
+            .collect();
         (0..nv)
             .into_par_iter()
             .map(|v| {
@@ -644,7 +658,7 @@ impl Shared<'_> {
                             if dist(self.views[u][i], self.views[v][i]) >= params.agree {
                                 continue;
                             }
-                            if occluded[u][i] >= params.sure && occluder_colour(self.views[u][i]) {
+                            if sure_of[u][i] {
                                 sure += self.independence[u];
                                 most = most.max(occluded[u][i]);
                             } else {
