@@ -644,13 +644,15 @@ impl Shared<'_> {
                     .collect()
             })
             .collect();
+        let n = occluded.first().map_or(0, Vec::len);
+        let any_sure: Vec<bool> = (0..n).map(|i| sure_of.iter().any(|s| s[i])).collect();
         (0..nv)
             .into_par_iter()
             .map(|v| {
                 (0..occluded[v].len())
                     .map(|i| {
                         let p = occluded[v][i];
-                        if !self.hole[i] || !self.valid[v][i] || p >= params.sure {
+                        if !any_sure[i] || !self.valid[v][i] || p >= params.sure {
                             return p;
                         }
                         let (mut sure, mut other, mut most) = (0.0f32, 0.0f32, p);
