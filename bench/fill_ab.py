@@ -1,0 +1,66 @@
+#!/usr/bin/env python3
+"""One-shot `clearview fill` of every case with several binaries, side by side: masked PSNR
+against the truth per case and binary, the last binary's difference from the first, and the
+mean difference. A change to the fill is judged on the whole set, not on the case it was made
+for: the cases it loses more than 0.3 dB on are marked `<<`, those it gains on `>>`.
+
+Cases: folders with key.png, mask.png, truth.png and view-1.png.. (`service_cases`,
+`fill_cases`). A binary may be a wrapper script (to set an environment variable).
+Usage:
+    bench/.venv/bin/python bench/fill_ab.py BIN1,BIN2[,...] CASE [CASE...] [--jobs 2]
+"""
+import argparse
+import pathlib
+import subprocess
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+
+import cv2
+import numpy as np
+
+from fill_peer import load, masked_psnr
+
+SIGNIFICANT_DB = 0.3
+
+
+def views_of(case):
+    return sorted(case.glob("view-*.png"), key=lambda p: int(p.stem.split("-")[1]))
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("binaries")
+    ap.add_argument("cases", nargs="+", type=pathlib.Path)
+    ap.add_argument("--jobs", type=int, default=2)
+    args = ap.parse_args()
+    binaries = args.binaries.split(",")
+    work = pathlib.Path(tempfile.mkdtemp(prefix="fill-ab-"))
+
+    def run(job):
+        k, b, case = job
+        out = work / f"{case.parent.name}_{case.name}_{k}.png"
+        cmd = [b, "fill", "--keyframe", str(case / "key.png"), "--mask", str(case / "mask.png"), "--out", str(out)]
+        if subprocess.run(cmd + [str(v) for v in views_of(case)], capture_output=True).returncode != 0:
+            return float("nan")
+        mask = load(case / "mask.png", cv2.IMREAD_GRAYSCALE) > 127
+        return masked_psnr(load(out), load(case / "truth.png"), mask)
+
+    jobs = [(k, b, c) for c in args.cases for k, b in enumerate(binaries)]
+    with ThreadPoolExecutor(args.jobs) as ex:
+        scores = list(ex.map(run, jobs))
+    per_case = {}
+    for (k, _, c), s in zip(jobs, scores):
+        per_case.setdefault(c, [None] * len(binaries))[k] = s
+    diffs = []
+    for c, row in per_case.items():
+        d = row[-1] - row[0]
+        diffs.append(d)
+        mark = " <<" if d < -SIGNIFICANT_DB else (" >>" if d > SIGNIFICANT_DB else "")
+        cells = " ".join(f"{v:6.2f}" for v in row)
+        print(f"{c.parent.name}/{c.name:28s} {cells}  {d:+.2f}{mark}")
+    means = " ".join(f"{np.nanmean([r[k] for r in per_case.values()]):.3f}" for k in range(len(binaries)))
+    print(f"mean diff {np.nanmean(diffs):+.3f} over {len(diffs)}; means {means}")
+
+
+if __name__ == "__main__":
+    main()
