@@ -273,8 +273,8 @@ pub struct Session {
     /// it ([`crate::inpaint::Filled::deciding`]): the improvement rule asks whether a new
     /// view can settle a doubt, and no view settles an edge's sub-pixel uncertainty.
     confidence: Option<Confidence>,
-    /// The current result over the mask's region, as published (8-bit): the next fill
-    /// judges it on its own views.
+    /// The current result over the mask's region, as published (8-bit) but before the
+    /// fusion ([`inpaint::Filled::judged_image`]): the next fill judges it on its own views.
     result: Option<Rgb8>,
     best: Option<f64>,
     dirty: bool,
@@ -821,13 +821,16 @@ impl Session {
             }
         }
         let image = if better {
+            // The next fill's rival, as the judge saw this one (before the fusion): a
+            // candidate's copies are compared with copies.
+            let judged = filled.judged_image();
             self.best = Some(score);
             self.provenance = Some(filled.provenance);
             self.confidence = Some(filled.deciding);
             let mut full = key.rgb.clone();
             full.paste(&filled.image, region);
             self.result = Some(Rgb8::from_fn(region.width, region.height, |x, y| {
-                filled.image.get(x, y).map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+                judged.get(x, y).map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
             }));
             Some(full)
         } else {

@@ -144,11 +144,13 @@ fn occlusion_reasoning_keeps_the_views_own_tree_out() {
 }
 
 /// Without blending, which also hides part of an exposure difference (it removes the step
-/// at the border, not the contrast change), so that the compensation alone is measured.
+/// at the border, not the contrast change), and without the fusion, whose average of
+/// darker and brighter views is nearer the keyframe's exposure, so that the compensation
+/// alone is measured.
 #[test]
 fn photometric_compensation_removes_exposure_differences() {
     let s = scene(3);
-    let base = FillParams { blend: false, ..FillParams::default() };
+    let base = FillParams { blend: false, fuse: None, ..FillParams::default() };
     let on = masked_psnr(&s.run(&base).image, &s.truth, &s.mask);
     let off_img = s.run(&FillParams { photometric: false, ..base }).image;
     dump("fill_synth_no_photometric.png", &off_img);
@@ -410,4 +412,88 @@ fn the_observer_sees_every_stage() {
         vec![Stage::Warp, Stage::Photometric, Stage::Occlusion, Stage::Fill, Stage::Fallback, Stage::Blend]
     );
     assert!(log.1 >= 4);
+}
+
+#[test]
+fn views_with_independent_noise_are_averaged_into_the_copy() {
+    // Three views of the facade with noise of their own and nothing in front of it: their
+    // average is closer to the facade than any one copy, and the ring around the hole
+    // shows it.
+    let seed = 11;
+    let fine = synth::facade(2 * W, 2 * H, seed);
+    let truth = half(&fine);
+    let mut key = truth.clone();
+    let mut mask = Mask::new(W, H, 0);
+    synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Person, 240.0, 200.0, 150.0, seed + 1);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed + 10);
+    let s2 = Homography::from_rows([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5], [0.0, 0.0, 1.0]]).expect("regular");
+    let mut views = Vec::new();
+    let mut homographies = Vec::new();
+    for v in 0..3 {
+        let hm = synth::random_homography(&mut rng, W, H, 0.05, 0.12, (0.92, 1.08));
+        let to_fine = s2.after(&hm.inverse().expect("regular")).after(&s2.inverse().expect("regular"));
+        let mut view = half(&synth::render_view(&fine, &to_fine, 2 * W, 2 * H, [0.5; 3]));
+        synth::add_noise(&mut view, 0.04, seed + 30 + v);
+        views.push(view);
+        homographies.push(hm);
+    }
+    let s = Scene { truth, key, mask, views, homographies };
+    let copies = FillParams { fuse: None, ..FillParams::default() };
+    let out = s.run(&FillParams::default());
+    let copied = s.run(&copies);
+    let (fused, plain) =
+        (masked_psnr(&out.image, &s.truth, &s.mask), masked_psnr(&copied.image, &s.truth, &s.mask));
+    eprintln!(
+        "fused {fused:.2} dB ({} of {} pixels), copies only {plain:.2} dB",
+        out.report.fused, out.report.masked
+    );
+    assert!(fused > plain + 1.0, "fused {fused:.2} dB, copies only {plain:.2} dB");
+    assert!(out.report.fused > out.report.masked * 9 / 10, "{:?}", out.report);
+    assert_eq!(copied.report.fused, 0);
+    assert!(copied.unfused.is_empty());
+    // The same views and picks: the judged image is the copies', pixel for pixel.
+    let filled = |f: &Filled| f.report.sources.iter().map(|s| s.filled).collect::<Vec<_>>();
+    assert_eq!(filled(&out), filled(&copied));
+    assert!(out.judged_image() == copied.image);
+    assert_eq!(out.unfused.len(), out.report.fused);
+}
+
+#[test]
+fn views_that_share_their_error_are_not_averaged() {
+    // Every view a blurred rendering of the facade: their errors around the hole are the
+    // same blur, and an average of them would only be as blurred as each.
+    let mut s = scene(3);
+    for v in &mut s.views {
+        *v = blur3(v);
+    }
+    let out = s.run(&FillParams::default());
+    let copied = s.run(&FillParams { fuse: None, ..FillParams::default() });
+    let (fused, plain) =
+        (masked_psnr(&out.image, &s.truth, &s.mask), masked_psnr(&copied.image, &s.truth, &s.mask));
+    eprintln!("fused {fused:.2} dB ({} pixels), copies only {plain:.2} dB", out.report.fused);
+    assert!(fused > plain - 0.1, "fused {fused:.2} dB, copies only {plain:.2} dB");
+}
+
+/// Two passes of a 3 × 3 box.
+fn blur3(img: &RgbF32) -> RgbF32 {
+    let mut out = img.clone();
+    for _ in 0..2 {
+        let src = out.clone();
+        let (w, h) = (src.width(), src.height());
+        out = RgbF32::from_fn(w, h, |x, y| {
+            let mut acc = [0.0f32; 3];
+            let mut n = 0.0;
+            for yy in y.saturating_sub(1)..(y + 2).min(h) {
+                for xx in x.saturating_sub(1)..(x + 2).min(w) {
+                    let p = src.get(xx, yy);
+                    for c in 0..3 {
+                        acc[c] += p[c];
+                    }
+                    n += 1.0;
+                }
+            }
+            acc.map(|a| a / n)
+        });
+    }
+    out
 }

@@ -136,6 +136,9 @@ struct Report<'a> {
     masked_pixels: usize,
     from_views_pixels: usize,
     fallback_pixels: usize,
+    /// Pixels copied from a view that also took in the other views' colours there (the
+    /// rings showed their errors independent: noise, reflections).
+    fused_pixels: usize,
     share_from_views: f64,
     /// Masked pixels the fill is sure of (confidence >= 128), and their share.
     confident_pixels: usize,
@@ -401,6 +404,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         masked_pixels: fr.masked,
         from_views_pixels: from_views,
         fallback_pixels: fr.fallback,
+        fused_pixels: fr.fused,
         share_from_views: fr.from_views(),
         confident_pixels: fr.confident,
         share_confident: fr.confident_share(),

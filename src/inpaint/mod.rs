@@ -9,6 +9,7 @@
 pub mod automask;
 pub mod blend;
 pub mod exemplar;
+pub mod fuse;
 pub mod multiview;
 pub mod occlusion;
 pub mod parallax;
@@ -24,6 +25,7 @@ use crate::imaging::warp::{Interpolation, Rect, Warped, warp};
 use crate::imaging::{Mask, Plane, RgbF32, RgbPixel, bilinear_rgb};
 use automask::dilate;
 use blend::{BlendParams, guidance_rhs, poisson_blend, solve_membrane};
+use fuse::{FuseParams, Mix};
 use multiview::{MultiviewParams, NO_VIEW, Pick, Region, ViewData, fill_region};
 use occlusion::{KeyRegion, OcclusionMap, OcclusionParams, RegionInput, occlusion_map};
 use parallax::{ParallaxParams, PlaneInput, SurfacePlane, WarpedView, choose_planes};
@@ -164,6 +166,8 @@ pub struct FillReport {
     /// there ([`witnessed`]): the measure on which two results of the same keyframe and
     /// mask are compared with the same views as witnesses (1 for an empty mask).
     pub witnessed_quality: f64,
+    /// Masked pixels whose copy took in other views' colours ([`FillParams::fuse`]).
+    pub fused: usize,
 }
 
 impl FillReport {
@@ -270,6 +274,12 @@ pub struct FillParams {
     /// keyframe's own pixels there, when that shift makes them clearly more alike
     /// ([`shift::local_shift`]): one homography cannot hold a curved or stepped facade.
     pub local_shift: Option<ShiftParams>,
+    /// After the views are chosen, each pixel copied from a view takes in the other views'
+    /// colours there as far as the ring around its hole shows that their errors are
+    /// independent ([`fuse`]): noise, reflections and a curved facade's small
+    /// misregistrations average out. The views are chosen on the copies (the judge would
+    /// otherwise favour any view an average agrees with). `None`: copies only.
+    pub fuse: Option<FuseParams>,
 }
 
 impl Default for FillParams {
@@ -299,6 +309,7 @@ impl Default for FillParams {
             select_margin: KEEP_MARGIN,
             select_budget: 4_000_000,
             local_shift: Some(ShiftParams::default()),
+            fuse: Some(FuseParams::default()),
         }
     }
 }
@@ -370,6 +381,22 @@ pub struct Filled {
     /// How well [`FillExtras::rival`] agrees with these views, as
     /// [`FillReport::witnessed_quality`] says of this fill.
     pub rival_quality: Option<f64>,
+    /// The pixels of `image` the fusion changed ([`FillParams::fuse`]), with the colours
+    /// the fill was judged on (index into `image`, row-major). A later fill's rival is the
+    /// judged image ([`Filled::judged_image`]), so that copies are compared with copies.
+    pub unfused: Vec<(usize, [f32; 3])>,
+}
+
+impl Filled {
+    /// `image` as the judge saw it: before the fusion.
+    pub fn judged_image(&self) -> RgbF32 {
+        let mut out = self.image.clone();
+        let px = out.as_mut_slice();
+        for &(i, c) in &self.unfused {
+            px[i] = c;
+        }
+        out
+    }
 }
 
 /// Fills the pixels of `key` that `mask` marks from `sources`, then what they could not
@@ -428,6 +455,7 @@ pub fn fill_with<P: RgbPixel>(
         deciding: Confidence::new(w, h, 0),
         report,
         rival_quality: None,
+        unfused: Vec::new(),
     };
     let mut surface = Plane::new(w, h, 0u16);
     if masked == 0 {
@@ -687,6 +715,11 @@ pub fn fill_with<P: RgbPixel>(
     if observer.cancelled() {
         return unfinished(surface, report);
     }
+    // The views were chosen on their copies; the chosen fill now averages them where the
+    // rings say their errors are independent.
+    let mut made = made;
+    let unfused = params.fuse.as_ref().map_or_else(Vec::new, |f| stage.fuse(&mut made, f));
+    report.fused = unfused.len();
     for (s, &f) in report.sources.iter_mut().zip(&made.filled) {
         s.filled = f;
     }
@@ -709,6 +742,7 @@ pub fn fill_with<P: RgbPixel>(
         deciding: made.guiding,
         report,
         rival_quality,
+        unfused,
     }
 }
 
@@ -899,6 +933,49 @@ impl Staged<'_> {
 
     /// Blends `made` into the keyframe: each region's fill, guided by its views' own
     /// gradients; the result's pixels clamped to 0..=1.
+    /// Averages into each pixel of `made` copied from a view the other views of the fill
+    /// there ([`fuse`]), per part as far as its ring says the views' errors are independent.
+    /// The blend's correction is kept: what changes is the copy under it. Returns the
+    /// changed pixels with their colours before (see [`Filled::unfused`]).
+    fn fuse(&self, made: &mut Made, params: &FuseParams) -> Vec<(usize, [f32; 3])> {
+        let w = made.image.width();
+        let mut changed = Vec::new();
+        if made.results.len() != self.parts.len() || made.views.len() < 2 {
+            return changed;
+        }
+        for (k, part) in self.parts.iter().enumerate() {
+            let (res, ws, map) = (&made.results[k], &self.warps[k], &self.maps[k]);
+            let Some(mix) = ring_mix(self.key, part, ws, &made.views, params) else { continue };
+            let r = part.rect;
+            let deltas: Vec<(usize, [f32; 3])> = (0..r.area())
+                .into_par_iter()
+                .filter_map(|i| {
+                    let p = res.pick[i];
+                    if res.state[i] != multiview::FILLED || p.view == NO_VIEW {
+                        return None;
+                    }
+                    let others: Vec<(usize, [f32; 3], f32)> = made
+                        .views
+                        .iter()
+                        .enumerate()
+                        .filter(|&(_, &u)| ws[u].valid.as_slice()[i])
+                        .map(|(j, &u)| (j, ws[u].image.as_slice()[i], map.occluded[u][i]))
+                        .collect();
+                    let a = res.pixels[i];
+                    let f = fuse::fuse_pixel(a, p.view as usize, &others, &mix, params)?;
+                    Some((i, [f[0] - a[0], f[1] - a[1], f[2] - a[2]]))
+                })
+                .collect();
+            for (i, d) in deltas {
+                let (x, y) = (r.x + i % r.width, r.y + i / r.width);
+                let before = made.image.get(x, y);
+                made.image.set(x, y, [0, 1, 2].map(|c| (before[c] + d[c]).clamp(0.0, 1.0)));
+                changed.push((y * w + x, before));
+            }
+        }
+        changed
+    }
+
     fn blend(&self, mut made: Made, observer: &mut dyn Observer) -> Made {
         let (parts, params) = (self.parts, self.params);
         if observer.cancelled() {
@@ -1501,6 +1578,30 @@ fn fill_one(
         })
         .unzip();
     RegionFill { pixels, state, pick, confidence, guiding }
+}
+
+/// The combination of the fill's `views` (sources, in the fill's numbering) that comes
+/// closest to the keyframe on the part's ring ([`fuse::mix`]).
+fn ring_mix(key: &RgbF32, part: &Part, ws: &[Warped], views: &[usize], params: &FuseParams) -> Option<Mix> {
+    let r = part.rect;
+    let rows: Vec<Vec<Option<[f32; 3]>>> = part
+        .ring
+        .as_slice()
+        .iter()
+        .enumerate()
+        .filter(|&(_, &on)| on)
+        .map(|(i, _)| {
+            let k = key.get(r.x + i % r.width, r.y + i / r.width);
+            views
+                .iter()
+                .map(|&u| {
+                    let p = ws[u].image.as_slice()[i];
+                    ws[u].valid.as_slice()[i].then_some([p[0] - k[0], p[1] - k[1], p[2] - k[2]])
+                })
+                .collect()
+        })
+        .collect();
+    fuse::mix(&rows, views.len(), params)
 }
 
 /// Per view, the error it is expected to make where it fills this part: how far its warped,
