@@ -29,12 +29,16 @@ fn bypassed() -> FillParams {
 #[test]
 fn views_with_occluders_of_their_own_are_not_copied() {
     // Planar: every view has a tree, person or car of its own, some over the keyframe's.
+    // The model against the bypass is measured on copies (no fusion on either side): an
+    // average of four views, each with an occluder of its own elsewhere, dilutes a copied
+    // occluder to a quarter, which the PSNR rewards and a photographer would not.
     let (mut on, mut off) = (0.0, 0.0);
     for seed in [1, 3] {
         let c = occlusion_case(CaseFamily::Planar, 320, 240, 4, seed);
-        let (p_on, h) = figures(&c, &FillParams::default());
-        let (p_off, _) = figures(&c, &bypassed());
-        eprintln!("planar seed {seed}: model {p_on:.2} dB, bypassed {p_off:.2} dB, {h:?}");
+        let (_, h) = figures(&c, &FillParams::default());
+        let (p_on, _) = figures(&c, &FillParams { fuse: None, ..FillParams::default() });
+        let (p_off, _) = figures(&c, &FillParams { fuse: None, ..bypassed() });
+        eprintln!("planar seed {seed}: model {p_on:.2} dB, bypassed {p_off:.2} dB (copies), {h:?}");
         on += p_on;
         off += p_off;
         assert!(h.confident_error_rate() <= 0.08, "seed {seed}: {h:?}");
