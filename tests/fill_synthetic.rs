@@ -386,7 +386,8 @@ fn a_source_kept_out_makes_no_pixel_and_one_in_is_not_tried_again() {
 }
 
 /// The stages are reported in order, with progress: with several views the fill, fallback
-/// and blend run inside the choice of views (one trial per view), with one view as they are.
+/// and blend run inside the choice of views (one trial per view), and the chosen views are
+/// then averaged into the copies; with one view they run as they are.
 #[test]
 fn the_observer_sees_every_stage() {
     use clearview::inpaint::{Observer, Stage};
@@ -403,7 +404,7 @@ fn the_observer_sees_every_stage() {
     let s = scene(3);
     let mut log = Log::default();
     fill(&s.key, &s.mask, &s.sources(), &FillParams::default(), 1, &mut log);
-    assert_eq!(log.0, vec![Stage::Warp, Stage::Photometric, Stage::Occlusion, Stage::Select]);
+    assert_eq!(log.0, vec![Stage::Warp, Stage::Photometric, Stage::Occlusion, Stage::Select, Stage::Fuse]);
     assert!(log.1 >= 4);
     let mut log = Log::default();
     fill(&s.key, &s.mask, &s.sources()[..1], &FillParams::default(), 1, &mut log);

@@ -146,7 +146,7 @@ const RING_TRUST: f32 = 0.7;
 pub fn fuse_pixel(
     picked: [f32; 3],
     from: usize,
-    others: &[(usize, [f32; 3], f32)],
+    others: impl IntoIterator<Item = (usize, [f32; 3], f32)>,
     mix: &Mix,
     params: &FuseParams,
 ) -> Option<[f32; 3]> {
@@ -155,7 +155,7 @@ pub fn fuse_pixel(
     let mut sum = [own * picked[0], own * picked[1], own * picked[2]];
     let mut total = own;
     let mut added = false;
-    for &(u, c, p) in others {
+    for (u, c, p) in others {
         if u == from {
             continue;
         }
@@ -239,14 +239,14 @@ mod tests {
         let m = Mix { weights: vec![0.2, 0.8], strength: 1.0 };
         let p = FuseParams::default();
         // View 0 was copied: it counts as much as view 1 (0.8 each).
-        let out = fuse_pixel([0.2; 3], 0, &[(1, [0.4; 3], 0.0)], &m, &p).expect("fused");
+        let out = fuse_pixel([0.2; 3], 0, [(1, [0.4; 3], 0.0)], &m, &p).expect("fused");
         let expect = (0.2 + 0.4 * (-0.12f32).exp()) / (1.0 + (-0.12f32).exp());
         assert!((out[0] - expect).abs() < 1e-5, "{out:?} against {expect}");
         // A view the model is sure shows an occluder adds nothing.
-        assert_eq!(fuse_pixel([0.2; 3], 0, &[(1, [0.4; 3], 1.0)], &m, &p), None);
+        assert_eq!(fuse_pixel([0.2; 3], 0, [(1, [0.4; 3], 1.0)], &m, &p), None);
         // Half strength: half the weight.
         let half = Mix { strength: 0.5, ..m.clone() };
-        let out = fuse_pixel([0.2; 3], 0, &[(1, [0.4; 3], 0.0)], &half, &p).expect("fused");
+        let out = fuse_pixel([0.2; 3], 0, [(1, [0.4; 3], 0.0)], &half, &p).expect("fused");
         let w = 0.5 * (-0.12f32).exp();
         assert!((out[0] - (0.2 + 0.4 * w) / (1.0 + w)).abs() < 1e-5);
     }

@@ -87,6 +87,8 @@ pub enum Stage {
     Blend,
     /// Views chosen by trial fills (each a fill, fallback and blend of its own).
     Select,
+    /// The chosen views averaged into the copies ([`FillParams::fuse`]).
+    Fuse,
 }
 
 impl Stage {
@@ -100,6 +102,7 @@ impl Stage {
             Self::Fallback => "fallback",
             Self::Blend => "blend",
             Self::Select => "select",
+            Self::Fuse => "fuse",
         }
     }
 }
@@ -718,7 +721,13 @@ pub fn fill_with<P: RgbPixel>(
     // The views were chosen on their copies; the chosen fill now averages them where the
     // rings say their errors are independent.
     let mut made = made;
-    let unfused = params.fuse.as_ref().map_or_else(Vec::new, |f| stage.fuse(&mut made, f));
+    let unfused = match &params.fuse {
+        Some(f) if made.views.len() >= 2 => {
+            observer.stage(Stage::Fuse);
+            stage.fuse(&mut made, f)
+        }
+        _ => Vec::new(),
+    };
     report.fused = unfused.len();
     for (s, &f) in report.sources.iter_mut().zip(&made.filled) {
         s.filled = f;
@@ -954,15 +963,14 @@ impl Staged<'_> {
                     if res.state[i] != multiview::FILLED || p.view == NO_VIEW {
                         return None;
                     }
-                    let others: Vec<(usize, [f32; 3], f32)> = made
+                    let others = made
                         .views
                         .iter()
                         .enumerate()
                         .filter(|&(_, &u)| ws[u].valid.as_slice()[i])
-                        .map(|(j, &u)| (j, ws[u].image.as_slice()[i], map.occluded[u][i]))
-                        .collect();
+                        .map(|(j, &u)| (j, ws[u].image.as_slice()[i], map.occluded[u][i]));
                     let a = res.pixels[i];
-                    let f = fuse::fuse_pixel(a, p.view as usize, &others, &mix, params)?;
+                    let f = fuse::fuse_pixel(a, p.view as usize, others, &mix, params)?;
                     Some((i, [f[0] - a[0], f[1] - a[1], f[2] - a[2]]))
                 })
                 .collect();
