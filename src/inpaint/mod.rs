@@ -940,8 +940,6 @@ impl Staged<'_> {
         done(results, image, provenance, confidence, guiding, filled, fallback_count)
     }
 
-    /// Blends `made` into the keyframe: each region's fill, guided by its views' own
-    /// gradients; the result's pixels clamped to 0..=1.
     /// Averages into each pixel of `made` copied from a view the other views of the fill
     /// there ([`fuse`]), per part as far as its ring says the views' errors are independent.
     /// The blend's correction is kept: what changes is the copy under it. Returns the
@@ -984,6 +982,8 @@ impl Staged<'_> {
         changed
     }
 
+    /// Blends `made` into the keyframe: each region's fill, guided by its views' own
+    /// gradients; the result's pixels clamped to 0..=1.
     fn blend(&self, mut made: Made, observer: &mut dyn Observer) -> Made {
         let (parts, params) = (self.parts, self.params);
         if observer.cancelled() {
