@@ -501,4 +501,3 @@ fn blur3(img: &RgbF32) -> RgbF32 {
     }
     out
 }
-

@@ -14,6 +14,8 @@
 
 use nalgebra::{DMatrix, DVector};
 
+use super::{RING_MIN, RING_TRUST};
+
 /// Parameters of the fusion (see [`super::FillParams::fuse`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct FuseParams {
@@ -49,13 +51,11 @@ pub struct Mix {
     pub strength: f32,
 }
 
-/// Ring pixels a pair of views must both see for their covariance to be measured.
-pub const MIN_PAIR: usize = 32;
-
 /// The combination of `n` views closest to the truth on the ring, from `rows`: per ring
 /// pixel, each view's error there (view − keyframe, RGB), `None` where it does not see the
-/// pixel. A pixel's worst 30 % (most often a view's own occluder over the ring) are left
-/// out; each pair's error covariance is taken over the pixels both see. `None` when fewer
+/// pixel. The pixels' worst 30 % (most often a view's own occluder over the ring) are left
+/// out, as for the views' expected errors; each pair's error covariance is taken over the
+/// pixels both see, at least `RING_MIN` of them. `None` when fewer
 /// than two views are measured, or when the combination is not used at all.
 pub fn mix(rows: &[Vec<Option<[f32; 3]>>], n: usize, params: &FuseParams) -> Option<Mix> {
     let mut ranked: Vec<(f32, &Vec<Option<[f32; 3]>>)> = rows
@@ -63,7 +63,7 @@ pub fn mix(rows: &[Vec<Option<[f32; 3]>>], n: usize, params: &FuseParams) -> Opt
         .filter(|e| e.len() == n && e.iter().filter(|x| x.is_some()).count() >= 2)
         .map(|e| (e.iter().flatten().map(|d| d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).fold(0.0, f32::max), e))
         .collect();
-    if ranked.len() < MIN_PAIR {
+    if ranked.len() < RING_MIN {
         return None;
     }
     let keep = ((ranked.len() as f32 * RING_TRUST) as usize).max(1);
@@ -83,7 +83,7 @@ pub fn mix(rows: &[Vec<Option<[f32; 3]>>], n: usize, params: &FuseParams) -> Opt
     for a in 0..n {
         for b in a..n {
             let c = count[(a, b)];
-            g[(a, b)] = if c >= MIN_PAIR as f64 {
+            g[(a, b)] = if c >= RING_MIN as f64 {
                 g[(a, b)] / c
             } else if a == b {
                 f64::INFINITY
@@ -126,7 +126,7 @@ pub fn mix(rows: &[Vec<Option<[f32; 3]>>], n: usize, params: &FuseParams) -> Opt
     let ratio = if single > 0.0 { combined / single } else { 1.0 };
     let span = (params.none_above - params.full_below).max(1e-9);
     let strength = ((params.none_above - ratio) / span).clamp(0.0, 1.0) as f32;
-    if strength <= 0.0 || active.len() < 2 {
+    if strength <= 0.0 {
         return None;
     }
     let mut out = vec![0.0f32; n];
@@ -135,9 +135,6 @@ pub fn mix(rows: &[Vec<Option<[f32; 3]>>], n: usize, params: &FuseParams) -> Opt
     }
     Some(Mix { weights: out, strength })
 }
-
-/// The share of the ring pixels (the closest ones) the covariances are taken over.
-const RING_TRUST: f32 = 0.7;
 
 /// The fused colour of a copied pixel: `picked` (from view `from`) and the other views'
 /// colours there (`others`: view, colour, occlusion probability), each weighted as [`Mix`]

@@ -947,7 +947,7 @@ impl Staged<'_> {
     fn fuse(&self, made: &mut Made, params: &FuseParams) -> Vec<(usize, [f32; 3])> {
         let w = made.image.width();
         let mut changed = Vec::new();
-        if made.results.len() != self.parts.len() || made.views.len() < 2 {
+        if made.results.len() != self.parts.len() {
             return changed;
         }
         for (k, part) in self.parts.iter().enumerate() {
