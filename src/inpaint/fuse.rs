@@ -8,10 +8,9 @@
 //! and it softens what the copy had sharp. The ring of keyframe pixels around a hole says
 //! which holds: there the truth is known, so the combination of the views that comes
 //! closest to it is measured (least squares under "the weights sum to one, none negative":
-//! the minimum-variance combination given how the views' errors correlate). The copied view
-//! keeps at least the largest weight (it was chosen where the others may show an occluder),
-//! so the copies of each view get their own combination, and each is used only as far as it
-//! clearly beats, on the ring, the view whose copies it changes.
+//! the minimum-variance combination given how the views' errors correlate), and it is used
+//! only as far as it clearly beats the best view alone there. The copied view keeps at least
+//! the largest weight: it was chosen where the others may show an occluder.
 
 use nalgebra::{DMatrix, DVector};
 
@@ -20,8 +19,8 @@ use super::{RING_MIN, RING_TRUST};
 /// Parameters of the fusion (see [`super::FillParams::fuse`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct FuseParams {
-    /// The combination is used on a view's copies in full when its error on the ring is at
-    /// most this share of that view's...
+    /// The combination is used in full when its error on the ring is at most this share of
+    /// the best view's...
     pub full_below: f64,
     /// ...not at all from this share up, and in proportion between. The copy is better than
     /// its view at the homography's prediction (each patch is the best of a local search),
@@ -44,12 +43,12 @@ impl Default for FuseParams {
     }
 }
 
-/// The combination [`mix`] found: per view its weight (summing to one), and per view how far
-/// the combination is used (0..=1) where that view was copied.
+/// The combination [`mix`] found: per view its weight (summing to one) and how far it is
+/// used (0..=1).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Mix {
     pub weights: Vec<f32>,
-    pub strength: Vec<f32>,
+    pub strength: f32,
 }
 
 /// The combination of `n` views closest to the truth on the ring, from `rows`: per ring
@@ -117,36 +116,22 @@ pub fn mix(rows: &[Vec<Option<[f32; 3]>>], n: usize, params: &FuseParams) -> Opt
             _ => break w,
         }
     };
+    let single = active.iter().map(|&j| g[(j, j)]).fold(f64::INFINITY, f64::min);
+    let mut combined = 0.0;
+    for (a, &j) in active.iter().enumerate() {
+        for (b, &k) in active.iter().enumerate() {
+            combined += weights[a] * weights[b] * g[(j, k)];
+        }
+    }
+    let ratio = if single > 0.0 { combined / single } else { 1.0 };
+    let span = (params.none_above - params.full_below).max(1e-9);
+    let strength = ((params.none_above - ratio) / span).clamp(0.0, 1.0) as f32;
+    if strength <= 0.0 {
+        return None;
+    }
     let mut out = vec![0.0f32; n];
     for (a, &j) in active.iter().enumerate() {
         out[j] = weights[a].max(0.0) as f32;
-    }
-    // Per copied view f, the combination [`fuse_pixel`] applies to its copies (f with the
-    // largest weight), measured on the ring against f alone: the view that is best on the
-    // ring is not always the one copied, and a combination that beats the best view may
-    // still be worse than the copy it changes.
-    let span = (params.none_above - params.full_below).max(1e-9);
-    let strength: Vec<f32> = (0..n)
-        .map(|f| {
-            let alone = g[(f, f)];
-            if !(alone.is_finite() && alone > 0.0) {
-                return 0.0;
-            }
-            let top = out.iter().copied().fold(out[f], f32::max);
-            let a: Vec<f64> = (0..n).map(|u| f64::from(if u == f { top } else { out[u] })).collect();
-            let total: f64 = a.iter().sum();
-            let mut combined = 0.0;
-            for u in (0..n).filter(|&u| a[u] > 0.0) {
-                for v in (0..n).filter(|&v| a[v] > 0.0) {
-                    combined += a[u] * a[v] * g[(u, v)];
-                }
-            }
-            let ratio = combined / (total * total) / alone;
-            ((params.none_above - ratio) / span).clamp(0.0, 1.0) as f32
-        })
-        .collect();
-    if strength.iter().all(|&s| s <= 0.0) {
-        return None;
     }
     Some(Mix { weights: out, strength })
 }
@@ -172,7 +157,7 @@ pub fn fuse_pixel(
             continue;
         }
         let d: f32 = (0..3).map(|k| (c[k] - picked[k]).powi(2)).sum();
-        let w = mix.strength[from]
+        let w = mix.strength
             * mix.weights[u]
             * (-d * inv).exp()
             * (1.0 - p).clamp(0.0, 1.0).powf(params.occlusion_power);
@@ -207,11 +192,8 @@ mod tests {
         let m = mix(&rows, 2, &FuseParams::default()).expect("a combination");
         assert!(m.weights[0] > 0.7 && m.weights[0] < 0.85, "{:?}", m.weights);
         assert!((m.weights[0] + m.weights[1] - 1.0).abs() < 1e-5, "{:?}", m.weights);
-        // On view 0's copies the combination's error is 0.7 to 0.8 of view 0's: used in
-        // part. On view 1's (the two views equal, view 1 keeping the largest weight) it is a
-        // third of view 1's: used in full.
-        assert!(m.strength[0] > 0.0 && m.strength[0] < 1.0, "{:?}", m.strength);
-        assert_eq!(m.strength[1], 1.0);
+        // The combination's error is 0.7 to 0.8 of the best view's: used in part.
+        assert!(m.strength > 0.0 && m.strength < 1.0, "{}", m.strength);
         let equal: Vec<Vec<Option<[f32; 3]>>> = (0..4000)
             .map(|_| {
                 vec![Some(noise(&mut rng, 0.02)), Some(noise(&mut rng, 0.02)), Some(noise(&mut rng, 0.02))]
@@ -219,7 +201,7 @@ mod tests {
             .collect();
         let m = mix(&equal, 3, &FuseParams::default()).expect("a combination");
         assert!(m.weights.iter().all(|&w| (w - 1.0 / 3.0).abs() < 0.05), "{:?}", m.weights);
-        assert_eq!(m.strength, vec![1.0; 3]);
+        assert_eq!(m.strength, 1.0);
     }
 
     #[test]
@@ -251,7 +233,7 @@ mod tests {
 
     #[test]
     fn the_copied_view_keeps_the_largest_weight_and_doubtful_pixels_count_less() {
-        let m = Mix { weights: vec![0.2, 0.8], strength: vec![1.0; 2] };
+        let m = Mix { weights: vec![0.2, 0.8], strength: 1.0 };
         let p = FuseParams::default();
         // View 0 was copied: it counts as much as view 1 (0.8 each).
         let out = fuse_pixel([0.2; 3], 0, [(1, [0.4; 3], 0.0)], &m, &p).expect("fused");
@@ -260,7 +242,7 @@ mod tests {
         // A view the model is sure shows an occluder adds nothing.
         assert_eq!(fuse_pixel([0.2; 3], 0, [(1, [0.4; 3], 1.0)], &m, &p), None);
         // Half strength: half the weight.
-        let half = Mix { strength: vec![0.5; 2], ..m.clone() };
+        let half = Mix { strength: 0.5, ..m.clone() };
         let out = fuse_pixel([0.2; 3], 0, [(1, [0.4; 3], 0.0)], &half, &p).expect("fused");
         let w = 0.5 * (-0.12f32).exp();
         assert!((out[0] - (0.2 + 0.4 * w) / (1.0 + w)).abs() < 1e-5);
