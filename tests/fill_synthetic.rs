@@ -459,6 +459,32 @@ fn views_with_independent_noise_are_averaged_into_the_copy() {
     assert_eq!(out.unfused.len(), out.report.fused);
 }
 
+/// A fill cancelled once the views are being averaged in stops there and returns the
+/// keyframe as it is, as a fill cancelled at any other stage does: the service, stopping,
+/// does not wait for the averaging (half a second at 12 MP) nor publish a half-fused image.
+#[test]
+fn a_fill_cancelled_while_averaging_returns_nothing_of_it() {
+    use clearview::inpaint::{Observer, Stage};
+    struct StopAt(Stage, bool);
+    impl Observer for StopAt {
+        fn stage(&mut self, stage: Stage) {
+            self.1 |= stage == self.0;
+        }
+        fn cancelled(&self) -> bool {
+            self.1
+        }
+    }
+    let s = scene(3);
+    let whole = s.run(&FillParams::default());
+    assert!(whole.report.fused > 0, "the scene must be fused for the test to mean anything");
+    let mut stop = StopAt(Stage::Fuse, false);
+    let out = fill(&s.key, &s.mask, &s.sources(), &FillParams::default(), 1, &mut stop);
+    assert!(stop.1, "the fill never reached the averaging");
+    assert!(out.image == s.key, "a cancelled fill returned an image of its own");
+    assert_eq!(out.report.fused, 0);
+    assert!(out.unfused.is_empty());
+}
+
 #[test]
 fn views_that_share_their_error_are_not_averaged() {
     // Every view a blurred rendering of the facade: their errors around the hole are the

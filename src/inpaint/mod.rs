@@ -724,10 +724,13 @@ pub fn fill_with<P: RgbPixel>(
     let unfused = match &params.fuse {
         Some(f) if made.views.len() >= 2 => {
             observer.stage(Stage::Fuse);
-            stage.fuse(&mut made, f)
+            stage.fuse(&mut made, f, &*observer)
         }
         _ => Vec::new(),
     };
+    if observer.cancelled() {
+        return unfinished(surface, report);
+    }
     report.fused = unfused.len();
     for (s, &f) in report.sources.iter_mut().zip(&made.filled) {
         s.filled = f;
@@ -943,14 +946,18 @@ impl Staged<'_> {
     /// Averages into each pixel of `made` copied from a view the other views of the fill
     /// there ([`fuse`]), per part as far as its ring says the views' errors are independent.
     /// The blend's correction is kept: what changes is the copy under it. Returns the
-    /// changed pixels with their colours before (see [`Filled::unfused`]).
-    fn fuse(&self, made: &mut Made, params: &FuseParams) -> Vec<(usize, [f32; 3])> {
+    /// changed pixels with their colours before (see [`Filled::unfused`]). Stops between
+    /// parts when `observer` cancels (the caller then throws the fill away).
+    fn fuse(&self, made: &mut Made, params: &FuseParams, observer: &dyn Observer) -> Vec<(usize, [f32; 3])> {
         let w = made.image.width();
         let mut changed = Vec::new();
         if made.results.len() != self.parts.len() {
             return changed;
         }
         for (k, part) in self.parts.iter().enumerate() {
+            if observer.cancelled() {
+                break;
+            }
             let (res, ws, map) = (&made.results[k], &self.warps[k], &self.maps[k]);
             let Some(mix) = ring_mix(self.key, part, ws, &made.views, params) else { continue };
             let r = part.rect;
