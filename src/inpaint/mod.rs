@@ -946,8 +946,9 @@ impl Staged<'_> {
     /// Averages into each pixel of `made` copied from a view the other views of the fill
     /// there ([`fuse`]), per part as far as its ring says the views' errors are independent.
     /// The blend's correction is kept: what changes is the copy under it. Returns the
-    /// changed pixels with their colours before (see [`Filled::unfused`]). Stops between
-    /// parts when `observer` cancels (the caller then throws the fill away).
+    /// changed pixels with their colours before (see [`Filled::unfused`]). Stops when
+    /// `observer` cancels (asked every [`FUSE_BAND_PIXELS`]; the caller then throws the fill
+    /// away).
     fn fuse(&self, made: &mut Made, params: &FuseParams, observer: &dyn Observer) -> Vec<(usize, [f32; 3])> {
         let w = made.image.width();
         let mut changed = Vec::new();
@@ -961,9 +962,14 @@ impl Staged<'_> {
             let (res, ws, map) = (&made.results[k], &self.warps[k], &self.maps[k]);
             let Some(mix) = ring_mix(self.key, part, ws, &made.views, params) else { continue };
             let r = part.rect;
-            let deltas: Vec<(usize, [f32; 3])> = (0..r.area())
-                .into_par_iter()
-                .filter_map(|i| {
+            // In bands of rows, asking between them: one hole can be most of a 12 MP frame.
+            let band = FUSE_BAND_PIXELS.max(r.width);
+            let mut deltas: Vec<(usize, [f32; 3])> = Vec::new();
+            for start in (0..r.area()).step_by(band) {
+                if observer.cancelled() {
+                    return changed;
+                }
+                deltas.par_extend((start..(start + band).min(r.area())).into_par_iter().filter_map(|i| {
                     let p = res.pick[i];
                     if res.state[i] != multiview::FILLED || p.view == NO_VIEW {
                         return None;
@@ -977,8 +983,8 @@ impl Staged<'_> {
                     let a = res.pixels[i];
                     let f = fuse::fuse_pixel(a, p.view as usize, others, &mix, params)?;
                     Some((i, [f[0] - a[0], f[1] - a[1], f[2] - a[2]]))
-                })
-                .collect();
+                }));
+            }
             for (i, d) in deltas {
                 let (x, y) = (r.x + i % r.width, r.y + i / r.width);
                 let before = made.image.get(x, y);
@@ -1594,6 +1600,10 @@ fn fill_one(
         .unzip();
     RegionFill { pixels, state, pick, confidence, guiding }
 }
+
+/// The averaging asks whether the fill is cancelled once per this many pixels of a hole's
+/// box (about 15 ms of work).
+const FUSE_BAND_PIXELS: usize = 1 << 18;
 
 /// The combination of the fill's `views` (sources, in the fill's numbering) that comes
 /// closest to the keyframe on the part's ring ([`fuse::mix`]).
