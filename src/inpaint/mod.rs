@@ -956,13 +956,11 @@ impl Staged<'_> {
             return changed;
         }
         for (k, part) in self.parts.iter().enumerate() {
-            if observer.cancelled() {
-                break;
-            }
             let (res, ws, map) = (&made.results[k], &self.warps[k], &self.maps[k]);
             let Some(mix) = ring_mix(self.key, part, ws, &made.views, params) else { continue };
             let r = part.rect;
-            // In bands of rows, asking between them: one hole can be most of a 12 MP frame.
+            // In bands of the box's pixels, asking between them: one hole can be most of a
+            // 12 MP frame.
             let band = FUSE_BAND_PIXELS.max(r.width);
             let mut deltas: Vec<(usize, [f32; 3])> = Vec::new();
             for start in (0..r.area()).step_by(band) {
