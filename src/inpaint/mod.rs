@@ -961,13 +961,13 @@ impl Staged<'_> {
             let r = part.rect;
             // In bands of the box's pixels, asking between them: one hole can be most of a
             // 12 MP frame.
-            let band = FUSE_BAND_PIXELS.max(r.width);
             let mut deltas: Vec<(usize, [f32; 3])> = Vec::new();
-            for start in (0..r.area()).step_by(band) {
+            for start in (0..r.area()).step_by(FUSE_BAND_PIXELS) {
                 if observer.cancelled() {
                     return changed;
                 }
-                deltas.par_extend((start..(start + band).min(r.area())).into_par_iter().filter_map(|i| {
+                let band = start..(start + FUSE_BAND_PIXELS).min(r.area());
+                deltas.par_extend(band.into_par_iter().filter_map(|i| {
                     let p = res.pick[i];
                     if res.state[i] != multiview::FILLED || p.view == NO_VIEW {
                         return None;
