@@ -16,7 +16,7 @@
 //! tied by the truth, and the true slab planes on the estimated walls; and, per fill, the
 //! share of masked pixels whose chosen surface is not the one the truth shows there.
 //!
-//! `cargo run --release --example parallax_eval -- [--seeds N] [--first K] [--size WxH] [--views N] [--flat] [--dump DIR] [--oracles] [--epipoles] [--split] [--no-refine] [--no-supported-ties] [--no-inside] [--no-rejoin] [--repair] [--no-across]`
+//! `cargo run --release --example parallax_eval -- [--seeds N] [--first K] [--size WxH] [--views N] [--flat] [--dump DIR] [--oracles] [--epipoles] [--split] [--no-refine] [--no-supported-ties] [--no-inside] [--no-rejoin] [--repair] [--no-across] [--sweep-pixels N]`
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -426,6 +426,9 @@ fn main() {
             "--repair" => sp.repair_ties = true,
             "--no-across" => sp.across_hole = false,
             "--no-common-ties" => sp.common_ties = false,
+            "--sweep-pixels" => {
+                sp.max_pixels = it.next().and_then(|v| v.parse().ok()).expect("--sweep-pixels N")
+            }
             // Only the `--epipoles` table's column of scales tied by the points alone.
             "--geo-min-common" => {
                 geo_min = Some(it.next().and_then(|v| v.parse().ok()).expect("--geo-min-common N"))
