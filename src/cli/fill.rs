@@ -151,6 +151,10 @@ struct Report<'a> {
     /// With `--mask auto`: what was found and how sure it is.
     #[serde(skip_serializing_if = "Option::is_none")]
     auto_mask: Option<AutoMaskSummary>,
+    /// With `--planes`: the surfaces off the wall the sweep found (empty: none, the wall's
+    /// homography filled everything) and what each filled.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    surfaces: Option<Vec<SurfaceReport>>,
     views: Vec<ViewReport>,
     /// Wall time per stage, in order.
     timings_ms: Vec<(&'static str, f64)>,
@@ -167,6 +171,39 @@ struct AutoMaskSummary {
     /// Share of the keyframe that enough agreeing views saw to judge: an occluder elsewhere
     /// cannot be found.
     share_judged: f64,
+}
+
+/// A surface off the wall that `--planes` found.
+#[derive(Debug, Serialize)]
+struct SurfaceReport {
+    /// The keyframe rectangle it may be chosen in: x, y, width, height.
+    region: [usize; 4],
+    /// Views that see it (have a homography for it).
+    views: usize,
+    /// Masked pixels filled through it.
+    filled_pixels: usize,
+}
+
+impl SurfaceReport {
+    /// Per surface, its region, its views and the masked pixels `surface` (the fill's map: 0
+    /// the wall, `1 + p` surface `p`) says it filled.
+    fn of(planes: &[SurfacePlane], surface: &[u16], mask: &Mask) -> Vec<Self> {
+        let mut filled = vec![0usize; planes.len()];
+        for (&s, &m) in surface.iter().zip(mask.as_slice()) {
+            if m > 127 && s > 0 {
+                filled[usize::from(s) - 1] += 1;
+            }
+        }
+        planes
+            .iter()
+            .zip(filled)
+            .map(|(p, filled_pixels)| Self {
+                region: [p.region.x, p.region.y, p.region.width, p.region.height],
+                views: p.views.iter().flatten().count(),
+                filled_pixels,
+            })
+            .collect()
+    }
 }
 
 /// Times the stages and drives the progress bar.
@@ -411,6 +448,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         share_doubtful: fr.doubtful_share(),
         expected_quality: fr.expected_quality(),
         auto_mask: auto,
+        surfaces: args.planes.then(|| SurfaceReport::of(&planes, filled.surface.as_slice(), &mask)),
         views: reports,
         timings_ms: timings,
     };
@@ -571,6 +609,19 @@ fn print_summary(r: &Report<'_>) {
             100.0 * a.share_certain,
             100.0 * a.share_judged
         );
+    }
+    if let Some(surfaces) = &r.surfaces {
+        let filled: usize = surfaces.iter().map(|s| s.filled_pixels).sum();
+        match surfaces.len() {
+            0 => {
+                println!("  planes: no surface off the wall found; the wall's homography filled every pixel")
+            }
+            n => println!(
+                "  planes: {n} surface{} off the wall found, {filled} masked pixels filled through {}",
+                if n == 1 { "" } else { "s" },
+                if n == 1 { "it" } else { "them" }
+            ),
+        }
     }
     for v in &r.views {
         match (&v.accepted, &v.reason) {
