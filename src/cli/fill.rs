@@ -25,7 +25,7 @@ use crate::imaging::{GrayF32, Mask, Rect, Rgb8, RgbF32};
 use crate::inpaint::parallax::{SurfacePlane, SweepParams, swept_planes};
 use crate::inpaint::region::{footprint, into_crop};
 use crate::inpaint::{
-    AutoMaskParams, FillExtras, FillParams, Observer, Source, Stage, auto_mask_report, fill_with,
+    AutoMaskParams, FillExtras, FillParams, Filled, Observer, Source, Stage, auto_mask_report, fill_with,
 };
 
 /// Views decoded and aligned at the same time. JPEG decoding is sequential, so with two in
@@ -151,10 +151,10 @@ struct Report<'a> {
     /// With `--mask auto`: what was found and how sure it is.
     #[serde(skip_serializing_if = "Option::is_none")]
     auto_mask: Option<AutoMaskSummary>,
-    /// With `--planes`: the surfaces off the wall the sweep found (empty: none, the wall's
-    /// homography filled everything) and what each filled.
+    /// With `--planes`: the surfaces off the wall the sweep found, whether the result was
+    /// filled through them, and what each filled.
     #[serde(skip_serializing_if = "Option::is_none")]
-    surfaces: Option<Vec<SurfaceReport>>,
+    planes: Option<PlanesReport>,
     views: Vec<ViewReport>,
     /// Wall time per stage, in order.
     timings_ms: Vec<(&'static str, f64)>,
@@ -171,6 +171,16 @@ struct AutoMaskSummary {
     /// Share of the keyframe that enough agreeing views saw to judge: an occluder elsewhere
     /// cannot be found.
     share_judged: f64,
+}
+
+/// What `--planes` found and did.
+#[derive(Debug, Serialize)]
+struct PlanesReport {
+    /// The surfaces off the wall the sweep found (empty: none).
+    surfaces: Vec<SurfaceReport>,
+    /// Whether the result was filled through them: the views back that fill better than
+    /// the wall's alone ([`planes_or_wall`]). When not, the result is the wall's fill.
+    used: bool,
 }
 
 /// A surface off the wall that `--planes` found.
@@ -279,6 +289,40 @@ fn swept(
     let refs: Vec<&GrayF32> = grays.iter().collect();
     let walls: Vec<Homography> = aligned.iter().map(|a| a.homography).collect();
     swept_planes(&key_gray, &refs, &walls, mask, &SweepParams::default(), seed)
+}
+
+/// The fill through the surfaces (`through`) or the fill through the walls alone,
+/// whichever the views back better, and whether it is the first.
+///
+/// Each fill is judged by the views ([`crate::inpaint::Filled::rival_quality`]: the share
+/// of the mask the views that show the building back) twice: the views warped through their
+/// walls' homographies, and through the surfaces. Each fill agrees best with the evidence it
+/// was made from, so neither judgement alone can tell; the surfaces are kept when their
+/// fill gains more under the surfaces' evidence than it loses under the walls'. A surface
+/// that is there lines the views up and gains much; one that is not (a label carried into
+/// the wall where a view it lacks shows an occluder, a repeat of texture) gains little and
+/// loses where it moved the wall's lines (BENCHMARKS.md, "Parallax").
+fn planes_or_wall(
+    key: &RgbF32,
+    mask: &Mask,
+    sources: &[Source<'_, [u8; 3]>],
+    planes: &[SurfacePlane],
+    through: Filled,
+    params: &FillParams,
+    seed: u64,
+) -> (Filled, bool) {
+    let wall = fill_with(key, mask, sources, &FillExtras::default(), params, seed, &mut ());
+    // Only the rival's judgement is wanted of these: one composition, no averaging.
+    let judging = FillParams { select_views: false, fuse: None, ..params.clone() };
+    let judged = |rival: &Filled, planes: &[SurfacePlane]| {
+        let extras = FillExtras { planes, rival: Some(&rival.judged_image()), ..FillExtras::default() };
+        fill_with(key, mask, sources, &extras, &judging, seed, &mut ()).rival_quality.unwrap_or(0.0)
+    };
+    let (through_by_walls, wall_by_planes) = (judged(&through, &[]), judged(&wall, planes));
+    let gain = (through.report.witnessed_quality - wall_by_planes)
+        + (through_by_walls - wall.report.witnessed_quality);
+    tracing::debug!(gain, "surfaces judged against the walls");
+    if gain > 0.0 { (through, true) } else { (wall, false) }
 }
 
 pub fn run(args: &FillArgs) -> u8 {
@@ -399,8 +443,14 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     let planes =
         if args.planes { swept(&key_rgb, &aligned, &mask, args.seed, &mut progress) } else { Vec::new() };
     let extras = FillExtras { planes: &planes, ..FillExtras::default() };
-    let filled =
-        fill_with(&key_rgb, &mask, &sources, &extras, &FillParams::default(), args.seed, &mut progress);
+    let params = FillParams::default();
+    let filled = fill_with(&key_rgb, &mask, &sources, &extras, &params, args.seed, &mut progress);
+    let (filled, planes_used) = if planes.is_empty() {
+        (filled, false)
+    } else {
+        progress.begin("judge planes", 0);
+        planes_or_wall(&key_rgb, &mask, &sources, &planes, filled, &params, args.seed)
+    };
     for (a, s) in aligned.iter().zip(&filled.report.sources) {
         let r = &mut reports[a.report];
         r.covered_pixels = s.covered;
@@ -448,7 +498,10 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         share_doubtful: fr.doubtful_share(),
         expected_quality: fr.expected_quality(),
         auto_mask: auto,
-        surfaces: args.planes.then(|| SurfaceReport::of(&planes, filled.surface.as_slice(), &mask)),
+        planes: args.planes.then(|| PlanesReport {
+            surfaces: SurfaceReport::of(&planes, filled.surface.as_slice(), &mask),
+            used: planes_used,
+        }),
         views: reports,
         timings_ms: timings,
     };
@@ -610,17 +663,19 @@ fn print_summary(r: &Report<'_>) {
             100.0 * a.share_judged
         );
     }
-    if let Some(surfaces) = &r.surfaces {
-        let filled: usize = surfaces.iter().map(|s| s.filled_pixels).sum();
-        match surfaces.len() {
-            0 => {
-                println!("  planes: no surface off the wall found; the wall's homography filled every pixel")
-            }
-            n => println!(
-                "  planes: {n} surface{} off the wall found, {filled} masked pixels filled through {}",
-                if n == 1 { "" } else { "s" },
+    if let Some(p) = &r.planes {
+        let filled: usize = p.surfaces.iter().map(|s| s.filled_pixels).sum();
+        let n = p.surfaces.len();
+        let found = format!("{n} surface{} off the wall found", if n == 1 { "" } else { "s" });
+        if n == 0 {
+            println!("  planes: no surface off the wall found; the wall's homography filled every pixel");
+        } else if p.used {
+            println!(
+                "  planes: {found}, {filled} masked pixels filled through {}",
                 if n == 1 { "it" } else { "them" }
-            ),
+            );
+        } else {
+            println!("  planes: {found}, but the views back the wall's fill better: the result is that fill");
         }
     }
     for v in &r.views {
