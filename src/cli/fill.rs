@@ -77,8 +77,9 @@ pub struct FillArgs {
     #[arg(long, default_value_t = crate::DEFAULT_SEED)]
     pub seed: u64,
     /// Also sweep the surfaces standing off the wall (balconies, pilasters, signs) and fill
-    /// each masked pixel through the one the views agree on. Off by default: on generated
-    /// facades it gains on some and loses on others (BENCHMARKS.md, "Parallax").
+    /// each masked pixel through the one the views agree on, where the views back that fill
+    /// better than the walls' alone. Off by default: it costs seconds where it finds
+    /// surfaces, and on generated facades it still loses on some (BENCHMARKS.md, "Parallax").
     #[arg(long)]
     pub planes: bool,
     /// Other photographs of the scene.
