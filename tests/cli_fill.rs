@@ -29,17 +29,8 @@ impl Scene {
 /// A keyframe with a tree in front of the facade, its mask, and three views from elsewhere,
 /// each with a person in a different place and its own exposure.
 fn scene() -> Scene {
-    let dir = tempfile::tempdir().unwrap();
-    let synth::TreeScene { truth, key, mask, views: rendered } = synth::tree_scene(W, H, 21, 8);
-    to_rgb8(&key).save(dir.path().join("key.png")).unwrap();
-    mask_to_luma8(&mask).save(dir.path().join("key.mask.png")).unwrap();
-    let mut views = Vec::new();
-    for (i, view) in rendered.iter().enumerate() {
-        let p = dir.path().join(format!("view-{i}.png"));
-        to_rgb8(view).save(&p).unwrap();
-        views.push(p);
-    }
-    Scene { dir, truth, mask, views }
+    let synth::TreeScene { truth, key, mask, views } = synth::tree_scene(W, H, 21, 8);
+    write_scene(&key, &mask, truth, &views)
 }
 
 fn fill<S: AsRef<std::ffi::OsStr>>(args: impl IntoIterator<Item = S>) -> Output {
