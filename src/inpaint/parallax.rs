@@ -151,8 +151,97 @@ fn levels_for(w: usize, h: usize, max_pixels: usize) -> u32 {
     levels
 }
 
-/// The paper's matching again, guided: keyframe corners away from the mask matched by
-/// normalised cross-correlation in each view, searched around where the wall puts them.
+/// The paper's matching again, guided: keyframe points matched by normalised
+/// cross-correlation in each view, searched around where the wall puts them. Holds the
+/// keyframe at the matching resolution and half of it (the coarse search).
+struct Matcher {
+    levels: u32,
+    /// Full resolution → matching resolution, and back.
+    t: Homography,
+    t_inv: Homography,
+    key_s: GrayF32,
+    key_c: GrayF32,
+}
+
+impl Matcher {
+    fn new(key: &GrayF32, params: &SurfaceParams) -> Self {
+        let levels = levels_for(key.width(), key.height(), params.max_pixels);
+        let t = shrink_map(levels);
+        let key_s = Self::shrink(levels, key);
+        let key_c = half(&key_s);
+        Self { levels, t_inv: t.inverse().expect("regular"), t, key_s, key_c }
+    }
+
+    fn shrink(levels: u32, img: &GrayF32) -> GrayF32 {
+        (0..levels).fold(img.clone(), |g, _| half(&g))
+    }
+
+    /// Full-resolution pixels within which of the mask no point is taken (its patch would
+    /// reach the occluder).
+    fn guard(&self) -> isize {
+        3 * (1isize << self.levels)
+    }
+
+    /// The keyframe's corners away from the mask (Harris, spread over a grid).
+    fn corners(&self, mask: &Mask, params: &SurfaceParams) -> Vec<Point2<f64>> {
+        let hp = HarrisParams {
+            max_corners: params.corners,
+            border: params.patch_radius + 2,
+            ..HarrisParams::default()
+        };
+        let guard = self.guard();
+        harris(&self.key_s, &hp)
+            .into_iter()
+            .map(|c| Point2::new(f64::from(c.x), f64::from(c.y)))
+            .filter(|p| {
+                let q = self.t_inv.apply(*p).expect("affine");
+                let (x, y) = (q.x.round() as isize, q.y.round() as isize);
+                !(-guard..=guard).any(|dy| {
+                    (-guard..=guard).any(|dx| mask.get_checked(x + dx, y + dy).is_some_and(|m| m > 127))
+                })
+            })
+            .collect()
+    }
+
+    /// The wall at the matching resolution.
+    fn wall(&self, wall: &Homography) -> Homography {
+        self.t.after(wall).after(&self.t_inv)
+    }
+
+    /// `points` (matching resolution) matched in `view` (full resolution) around where
+    /// `wall` puts them. Coarse to fine: the search at half the matching resolution
+    /// (parallax of tens of pixels), then a small one around its answer.
+    fn matches(
+        &self,
+        view: &GrayF32,
+        wall: &Homography,
+        points: &[Point2<f64>],
+        params: &SurfaceParams,
+    ) -> Vec<Correspondence> {
+        let t1 = shrink_map(1);
+        let t1_inv = t1.inverse().expect("regular");
+        let coarse: Vec<(Point2<f64>, (f64, f64))> =
+            points.iter().map(|p| (t1.apply(*p).expect("affine"), (0.0, 0.0))).collect();
+        let view_s = Self::shrink(self.levels, view);
+        let wall_s = self.wall(wall);
+        let view_c = half(&view_s);
+        let wall_c = t1.after(&wall_s).after(&t1_inv);
+        let found = guided_matches(&self.key_c, &view_c, &wall_c, &coarse, params.search_radius, params);
+        let fine: Vec<(Point2<f64>, (f64, f64))> =
+            points.iter().zip(&found).filter_map(|(p, d)| d.map(|d| (*p, (2.0 * d.0, 2.0 * d.1)))).collect();
+        let refined = guided_matches(&self.key_s, &view_s, &wall_s, &fine, 2, params);
+        fine.iter()
+            .zip(refined)
+            .filter_map(|((p, _), d)| {
+                let d = d?;
+                let q = wall_s.apply(Point2::new(p.x + d.0, p.y + d.1))?;
+                Some(Correspondence::new(*p, q))
+            })
+            .collect()
+    }
+}
+
+/// The keyframe's corners away from the mask matched in every view ([`Matcher`]).
 fn guided(
     key: &GrayF32,
     views: &[&GrayF32],
@@ -160,63 +249,12 @@ fn guided(
     mask: &Mask,
     params: &SurfaceParams,
 ) -> Guided {
-    let (w, h) = (key.width(), key.height());
-    let levels = levels_for(w, h, params.max_pixels);
-    let shrink = |img: &GrayF32| (0..levels).fold(img.clone(), |g, _| half(&g));
-    let t = shrink_map(levels);
-    let t_inv = t.inverse().expect("regular");
-    let key_s = shrink(key);
-    let hp = HarrisParams {
-        max_corners: params.corners,
-        border: params.patch_radius + 2,
-        ..HarrisParams::default()
-    };
-    let guard = 3 * (1usize << levels) as isize;
-    let points: Vec<Point2<f64>> = harris(&key_s, &hp)
-        .into_iter()
-        .map(|c| Point2::new(f64::from(c.x), f64::from(c.y)))
-        .filter(|p| {
-            let q = t_inv.apply(*p).expect("affine");
-            let (x, y) = (q.x.round() as isize, q.y.round() as isize);
-            !(-guard..=guard).any(|dy| {
-                (-guard..=guard).any(|dx| mask.get_checked(x + dx, y + dy).is_some_and(|m| m > 127))
-            })
-        })
-        .collect();
-    // Coarse to fine: the search at half the matching resolution (parallax of tens of
-    // pixels), then a small one around its answer.
-    let t1 = shrink_map(1);
-    let t1_inv = t1.inverse().expect("regular");
-    let key_c = half(&key_s);
-    let coarse: Vec<(Point2<f64>, (f64, f64))> =
-        points.iter().map(|p| (t1.apply(*p).expect("affine"), (0.0, 0.0))).collect();
-    let matches: Vec<Vec<Correspondence>> = views
-        .iter()
-        .zip(walls)
-        .map(|(view, wall)| {
-            let view_s = shrink(view);
-            let wall_s = t.after(wall).after(&t_inv);
-            let view_c = half(&view_s);
-            let wall_c = t1.after(&wall_s).after(&t1_inv);
-            let found = guided_matches(&key_c, &view_c, &wall_c, &coarse, params.search_radius, params);
-            let fine: Vec<(Point2<f64>, (f64, f64))> = points
-                .iter()
-                .zip(&found)
-                .filter_map(|(p, d)| d.map(|d| (*p, (2.0 * d.0, 2.0 * d.1))))
-                .collect();
-            let refined = guided_matches(&key_s, &view_s, &wall_s, &fine, 2, params);
-            fine.iter()
-                .zip(refined)
-                .filter_map(|((p, _), d)| {
-                    let d = d?;
-                    let q = wall_s.apply(Point2::new(p.x + d.0, p.y + d.1))?;
-                    Some(Correspondence::new(*p, q))
-                })
-                .collect()
-        })
-        .collect();
-    let walls = walls.iter().map(|h| t.after(h).after(&t_inv)).collect();
-    Guided { t, matches, walls }
+    let m = Matcher::new(key, params);
+    let corners = m.corners(mask, params);
+    let matches =
+        views.iter().zip(walls).map(|(view, wall)| m.matches(view, wall, &corners, params)).collect();
+    let walls = walls.iter().map(|h| m.wall(h)).collect();
+    Guided { t: m.t, matches, walls }
 }
 
 /// Parameters of [`swept_planes`].
