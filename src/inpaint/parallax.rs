@@ -203,6 +203,29 @@ impl Matcher {
             .collect()
     }
 
+    /// Every `step`-th pixel (matching resolution) within `reach` of the mask, and not within
+    /// the guard of it: what stands off the wall right beside the occluder, where the
+    /// corners of the whole frame are too few.
+    fn around_mask(&self, mask: &Mask, step: usize, reach: usize, patch_radius: usize) -> Vec<Point2<f64>> {
+        let (w, h) = (self.key_s.width(), self.key_s.height());
+        let masked = Plane::from_fn(w, h, |x, y| {
+            let q = self.t_inv.apply(Point2::new(x as f64, y as f64)).expect("affine");
+            mask.get_checked(q.x.round() as isize, q.y.round() as isize).is_some_and(|m| m > 127)
+        });
+        let near = dilate(&masked, reach);
+        let close = dilate(&masked, (self.guard() as usize >> self.levels).max(3) + patch_radius);
+        let b = patch_radius + 2;
+        let mut points = Vec::new();
+        for y in (b..h.saturating_sub(b)).step_by(step.max(1)) {
+            for x in (b..w.saturating_sub(b)).step_by(step.max(1)) {
+                if near.get(x, y) && !close.get(x, y) {
+                    points.push(Point2::new(x as f64, y as f64));
+                }
+            }
+        }
+        points
+    }
+
     /// The wall at the matching resolution.
     fn wall(&self, wall: &Homography) -> Homography {
         self.t.after(wall).after(&self.t_inv)
@@ -264,6 +287,14 @@ pub struct SweepParams {
     pub matching: SurfaceParams,
     /// The epipoles' fit (thresholds in matching-resolution pixels).
     pub epipoles: ParallaxFitParams,
+    /// A view whose corners give it no epipole (the occluder hides most of what stands off
+    /// the wall, and the wall's corners take the corner budget) is matched again at every
+    /// `dense_step`-th pixel within `dense_reach` of the mask (matching resolution; 0: not)...
+    pub dense_step: usize,
+    pub dense_reach: usize,
+    /// ...each match beating any other peak of its search by this much (a grid point is not
+    /// picked for being a corner: repeats of texture must be told apart by a clear margin).
+    pub dense_margin: f32,
     /// The sweep runs on the images halved until they have at most this many pixels.
     pub max_pixels: usize,
     /// Consecutive depths move the fastest view's pixels by this much (sweep pixels)...
@@ -339,6 +370,9 @@ impl Default for SweepParams {
         Self {
             matching: SurfaceParams::default(),
             epipoles: ParallaxFitParams::default(),
+            dense_step: 3,
+            dense_reach: 48,
+            dense_margin: 0.2,
             max_pixels: 330_000,
             step_px: 1.0,
             reach_px: 12.0,
@@ -1031,6 +1065,12 @@ pub fn matching_map(width: usize, height: usize, params: &SurfaceParams) -> Homo
 
 /// The plane + parallax family of [`swept_planes`] (at the matching resolution) and the map
 /// from full resolution to it; `None` when no view shows parallax.
+///
+/// The epipoles come from the keyframe's corners matched in the views. A view they give no
+/// epipole (too few of its matches off the wall agree) is matched again on a grid of points
+/// beside the mask ([`SweepParams::dense_step`]): the surfaces that matter stand there, half
+/// hidden by the occluder, and a sign board or a balcony end beside a tree has only a few
+/// of the frame's corners. Its epipole is fitted again from both; the other views keep theirs.
 pub fn parallax_family(
     key: &GrayF32,
     views: &[&GrayF32],
@@ -1039,9 +1079,41 @@ pub fn parallax_family(
     params: &SweepParams,
     seed: u64,
 ) -> Option<(ParallaxFamily, Guided)> {
-    let g = guided(key, views, walls, mask, &params.matching);
-    let family = fit_parallax(&g.matches, &g.walls, &params.epipoles, seed)?;
-    Some((family, g))
+    let m = Matcher::new(key, &params.matching);
+    let corners = m.corners(mask, &params.matching);
+    let mut matches: Vec<Vec<Correspondence>> = views
+        .iter()
+        .zip(walls)
+        .map(|(view, wall)| m.matches(view, wall, &corners, &params.matching))
+        .collect();
+    let walls_m: Vec<Homography> = walls.iter().map(|h| m.wall(h)).collect();
+    let first = fit_parallax(&matches, &walls_m, &params.epipoles, seed);
+    let starved: Vec<usize> =
+        (0..views.len()).filter(|&v| first.as_ref().is_none_or(|f| f.epipoles[v].is_none())).collect();
+    let family = if starved.is_empty() || params.dense_step == 0 {
+        first?
+    } else {
+        let grid = m.around_mask(mask, params.dense_step, params.dense_reach, params.matching.patch_radius);
+        let strict = SurfaceParams { min_margin: params.dense_margin, ..params.matching.clone() };
+        for &v in &starved {
+            matches[v].extend(m.matches(views[v], &walls[v], &grid, &strict));
+        }
+        let again = fit_parallax(&matches, &walls_m, &params.epipoles, seed);
+        match (first, again) {
+            // The views that had an epipole keep it as it was (the refit draws its samples
+            // in another order).
+            (Some(mut f), Some(again)) => {
+                for &v in &starved {
+                    f.epipoles[v] = again.epipoles[v];
+                    f.observed[v].clone_from(&again.observed[v]);
+                }
+                f
+            }
+            (Some(f), None) => f,
+            (None, again) => again?,
+        }
+    };
+    Some((family, Guided { t: m.t, matches, walls: walls_m }))
 }
 
 /// The keyframe's band around the mask that the sweep scores (sweep resolution).
@@ -2361,6 +2433,75 @@ mod tests {
         let s = Sweep::new(&key, &refs, &mask, &params, &id).expect("a band");
         let found = rejoin(&s, &lost, family(Some(truth[1]))).expect("two views or more");
         assert!(found.epipoles[1].is_none(), "another texture does not agree");
+    }
+
+    /// Parallax seed 3's pattern (`synth::facade::parallax_case`): view 0 gives no epipole
+    /// from the frame's corners. Matched again on the grid beside the mask, it gets one that
+    /// puts the slabs it sees there within half a pixel of their true planes; the views that
+    /// had one keep it as it was. Without the grid, view 0 stays without.
+    #[test]
+    fn a_view_its_corners_give_no_epipole_is_matched_again_beside_the_mask() {
+        use crate::imaging::convert::luminance;
+        let c = crate::synth::facade::parallax_case(640, 480, 3, 3, false);
+        let key = luminance(&c.key);
+        let grays: Vec<GrayF32> = c.views.iter().map(luminance).collect();
+        let refs: Vec<&GrayF32> = grays.iter().collect();
+        let walls = c.wall();
+        let family = |dense_step: usize| {
+            let params = SweepParams { dense_step, ..SweepParams::default() };
+            parallax_family(&key, &refs, &walls, &c.mask, &params, 1).expect("parallax").0
+        };
+        let (corners, dense) = (family(0), family(SweepParams::default().dense_step));
+        assert!(corners.epipoles[0].is_none(), "view 0's corners give it an epipole: not this case");
+        assert!(corners.epipoles[1].is_some() && corners.epipoles[2].is_some());
+        assert_eq!(dense.epipoles[1..], corners.epipoles[1..], "the others keep theirs");
+        let e = dense.epipoles[0].expect("view 0 matched again");
+        // Per slab beside the mask: the depth that best explains its true plane over its
+        // pixels there, and the mean distance left (full-resolution pixels; the matching
+        // runs at full resolution here).
+        let near = dilate(&Plane::from_fn(640, 480, |x, y| c.mask.is_hole(x, y)), 40);
+        let m = corners.walls[0];
+        let z = nalgebra::RowVector3::new(0.0, 0.0, 1.0);
+        let mut checked = 0;
+        for p in 1..c.planes[0].len() {
+            let pixels: Vec<Point2<f64>> = (0..480)
+                .flat_map(|y| (0..640).map(move |x| (x, y)))
+                .filter(|&(x, y)| {
+                    usize::from(c.surface.get(x, y)) == p && near.get(x, y) && !c.mask.is_hole(x, y)
+                })
+                .step_by(7)
+                .map(|(x, y)| Point2::new(x as f64, y as f64))
+                .collect();
+            if pixels.len() < 50 {
+                continue;
+            }
+            let truth: Vec<Point2<f64>> =
+                pixels.iter().map(|&q| c.planes[0][p].apply(q).expect("seen")).collect();
+            let off = |gamma: f64| -> f64 {
+                let h = Homography::from_matrix(m + e * z * gamma).expect("regular");
+                pixels.iter().zip(&truth).map(|(&q, t)| (h.apply(q).expect("seen") - t).norm()).sum::<f64>()
+                    / pixels.len() as f64
+            };
+            // Each pixel's own depth (least squares on `t × (m·x + γ·e) = 0`), their median,
+            // then the best around it.
+            let mut gammas: Vec<f64> = pixels
+                .iter()
+                .zip(&truth)
+                .map(|(q, t)| {
+                    let t = nalgebra::Vector3::new(t.x, t.y, 1.0);
+                    let (a, b) = (t.cross(&(m * nalgebra::Vector3::new(q.x, q.y, 1.0))), t.cross(&e));
+                    -a.dot(&b) / b.norm_squared()
+                })
+                .collect();
+            gammas.sort_by(f64::total_cmp);
+            let median = gammas[gammas.len() / 2];
+            let best = (-100..=100)
+                .map(|i| off(median * (1.0 + 0.002 * f64::from(i))))
+                .fold(f64::INFINITY, f64::min);
+            assert!(best < 0.5, "slab {p}: {best:.2} px off its true plane");
+            checked += 1;
+        }
+        assert!(checked > 0, "no slab beside the mask");
     }
 
     /// Fresh seed 21's pattern: a balcony crosses the hole and ends in the band on the
