@@ -204,10 +204,25 @@ impl Matcher {
     }
 
     /// Every `step`-th pixel (matching resolution) within `reach` of the mask, and not within
-    /// the guard of it: what stands off the wall right beside the occluder, where the
-    /// corners of the whole frame are too few.
-    fn around_mask(&self, mask: &Mask, step: usize, reach: usize, patch_radius: usize) -> Vec<Point2<f64>> {
+    /// the guard of it, whose patch has a standard deviation of at least `min_std`: what
+    /// stands off the wall right beside the occluder, where the corners of the whole frame
+    /// are too few.
+    fn around_mask(
+        &self,
+        mask: &Mask,
+        step: usize,
+        reach: usize,
+        min_std: f32,
+        patch_radius: usize,
+    ) -> Vec<Point2<f64>> {
         let (w, h) = (self.key_s.width(), self.key_s.height());
+        // Per patch: the sum, the sum of squares, the count.
+        let terms: Vec<[f32; 3]> = self.key_s.as_slice().iter().map(|&v| [v, v * v, 1.0]).collect();
+        let sums = box_sums(&terms, w, h, patch_radius);
+        let textured = |i: usize| {
+            let [sum, sum2, n] = sums[i];
+            (sum2 - sum * sum / n).max(0.0) / n >= min_std * min_std
+        };
         let masked = Plane::from_fn(w, h, |x, y| {
             let q = self.t_inv.apply(Point2::new(x as f64, y as f64)).expect("affine");
             mask.get_checked(q.x.round() as isize, q.y.round() as isize).is_some_and(|m| m > 127)
@@ -218,7 +233,7 @@ impl Matcher {
         let mut points = Vec::new();
         for y in (b..h.saturating_sub(b)).step_by(step.max(1)) {
             for x in (b..w.saturating_sub(b)).step_by(step.max(1)) {
-                if near.get(x, y) && !close.get(x, y) {
+                if near.get(x, y) && !close.get(x, y) && textured(y * w + x) {
                     points.push(Point2::new(x as f64, y as f64));
                 }
             }
@@ -295,6 +310,10 @@ pub struct SweepParams {
     /// ...each match beating any other peak of its search by this much (a grid point is not
     /// picked for being a corner: repeats of texture must be told apart by a clear margin).
     pub dense_margin: f32,
+    /// ...at points whose patch has at least this standard deviation (0–1 levels): not the
+    /// soft texture of clouds, which drift between shots all alike and point at an epipole
+    /// of their own.
+    pub dense_texture: f32,
     /// The sweep runs on the images halved until they have at most this many pixels.
     pub max_pixels: usize,
     /// Consecutive depths move the fastest view's pixels by this much (sweep pixels)...
@@ -373,6 +392,7 @@ impl Default for SweepParams {
             dense_step: 3,
             dense_reach: 48,
             dense_margin: 0.2,
+            dense_texture: 0.03,
             max_pixels: 330_000,
             step_px: 1.0,
             reach_px: 12.0,
@@ -1093,7 +1113,13 @@ pub fn parallax_family(
     let family = if starved.is_empty() || params.dense_step == 0 {
         first?
     } else {
-        let grid = m.around_mask(mask, params.dense_step, params.dense_reach, params.matching.patch_radius);
+        let grid = m.around_mask(
+            mask,
+            params.dense_step,
+            params.dense_reach,
+            params.dense_texture,
+            params.matching.patch_radius,
+        );
         let strict = SurfaceParams { min_margin: params.dense_margin, ..params.matching.clone() };
         for &v in &starved {
             matches[v].extend(m.matches(views[v], &walls[v], &grid, &strict));
@@ -2433,6 +2459,45 @@ mod tests {
         let s = Sweep::new(&key, &refs, &mask, &params, &id).expect("a band");
         let found = rejoin(&s, &lost, family(Some(truth[1]))).expect("two views or more");
         assert!(found.epipoles[1].is_none(), "another texture does not agree");
+    }
+
+    /// The grid beside the mask: within the reach, outside the guard, and only where the
+    /// keyframe has texture. A soft gradient (a sky's clouds) gives no points however near
+    /// the mask it is.
+    #[test]
+    fn grid_points_beside_the_mask_skip_soft_texture() {
+        let (w, h) = (200, 120);
+        // Texture left of x = 100, a soft gradient right of it; a hole across the boundary.
+        let key =
+            GrayF32::from_fn(
+                w,
+                h,
+                |x, y| if x < 100 { tex(x as f64, y as f64) } else { 0.4 + 0.002 * y as f32 },
+            );
+        let mask =
+            Mask::from_fn(w, h, |x, y| if (80..120).contains(&x) && (40..80).contains(&y) { 255 } else { 0 });
+        let params = SurfaceParams::default();
+        let m = Matcher::new(&key, &params);
+        let r = params.patch_radius;
+        let points = |min_std: f32| m.around_mask(&mask, 3, 20, min_std, r);
+        let dist = |p: &Point2<f64>| {
+            let dx = (80.0 - p.x).max(p.x - 119.0).max(0.0);
+            let dy = (40.0 - p.y).max(p.y - 79.0).max(0.0);
+            dx.max(dy)
+        };
+        let all = points(0.0);
+        assert!(all.iter().any(|p| p.x > 120.0), "without the texture test the gradient is sampled");
+        assert!(
+            all.iter().all(|p| dist(p) <= 20.0 && dist(p) > (3 + r) as f64),
+            "within the reach, outside the guard"
+        );
+        let textured = points(0.03);
+        assert!(textured.len() > 100, "{} points on the texture", textured.len());
+        assert!(
+            textured.iter().all(|p| p.x < (100 + r) as f64),
+            "a point on the gradient: {:?}",
+            textured.iter().find(|p| p.x >= (100 + r) as f64)
+        );
     }
 
     /// Parallax seed 3's pattern (`synth::facade::parallax_case`): view 0 gives no epipole
