@@ -22,7 +22,7 @@ use rayon::prelude::*;
 
 use nalgebra::Point2;
 
-use crate::features::harris::{HarrisParams, harris};
+use crate::features::harris::{HarrisParams, harris, response as harris_response};
 use crate::geometry::planes::{
     ParallaxFamily, ParallaxFitParams, PlaneParams, common_scales, fit_parallax, fit_planes,
 };
@@ -184,13 +184,8 @@ impl Matcher {
 
     /// The keyframe's corners away from the mask (Harris, spread over a grid).
     fn corners(&self, mask: &Mask, params: &SurfaceParams) -> Vec<Point2<f64>> {
-        let hp = HarrisParams {
-            max_corners: params.corners,
-            border: params.patch_radius + 2,
-            ..HarrisParams::default()
-        };
         let guard = self.guard();
-        harris(&self.key_s, &hp)
+        harris(&self.key_s, &Self::harris_params(params))
             .into_iter()
             .map(|c| Point2::new(f64::from(c.x), f64::from(c.y)))
             .filter(|p| {
@@ -203,19 +198,30 @@ impl Matcher {
             .collect()
     }
 
+    fn harris_params(params: &SurfaceParams) -> HarrisParams {
+        HarrisParams {
+            max_corners: params.corners,
+            border: params.patch_radius + 2,
+            ..HarrisParams::default()
+        }
+    }
+
     /// Every `step`-th pixel (matching resolution) within `reach` of the mask, and not within
-    /// the guard of it, whose patch has a standard deviation of at least `min_std`: what
-    /// stands off the wall right beside the occluder, where the corners of the whole frame
-    /// are too few.
+    /// the guard of it, whose patch has a standard deviation of at least `min_std` and that
+    /// is not on an edge (a negative Harris response: a match slides along it): what stands
+    /// off the wall right beside the occluder, where the corners of the whole frame are too
+    /// few.
     fn around_mask(
         &self,
         mask: &Mask,
         step: usize,
         reach: usize,
         min_std: f32,
-        patch_radius: usize,
+        params: &SurfaceParams,
     ) -> Vec<Point2<f64>> {
+        let patch_radius = params.patch_radius;
         let (w, h) = (self.key_s.width(), self.key_s.height());
+        let response = harris_response(&self.key_s, &Self::harris_params(params));
         // Per patch: the sum, the sum of squares, the count.
         let terms: Vec<[f32; 3]> = self.key_s.as_slice().iter().map(|&v| [v, v * v, 1.0]).collect();
         let sums = box_sums(&terms, w, h, patch_radius);
@@ -233,7 +239,7 @@ impl Matcher {
         let mut points = Vec::new();
         for y in (b..h.saturating_sub(b)).step_by(step.max(1)) {
             for x in (b..w.saturating_sub(b)).step_by(step.max(1)) {
-                if near.get(x, y) && !close.get(x, y) && textured(y * w + x) {
+                if near.get(x, y) && !close.get(x, y) && response.get(x, y) >= 0.0 && textured(y * w + x) {
                     points.push(Point2::new(x as f64, y as f64));
                 }
             }
@@ -1118,7 +1124,7 @@ pub fn parallax_family(
             params.dense_step,
             params.dense_reach,
             params.dense_texture,
-            params.matching.patch_radius,
+            &params.matching,
         );
         let strict = SurfaceParams { min_margin: params.dense_margin, ..params.matching.clone() };
         for &v in &starved {
@@ -2462,31 +2468,30 @@ mod tests {
     }
 
     /// The grid beside the mask: within the reach, outside the guard, and only where the
-    /// keyframe has texture. A soft gradient (a sky's clouds) gives no points however near
-    /// the mask it is.
+    /// keyframe has texture. Faint texture (a sky's clouds) gives no points however near the
+    /// mask it is.
     #[test]
     fn grid_points_beside_the_mask_skip_soft_texture() {
         let (w, h) = (200, 120);
-        // Texture left of x = 100, a soft gradient right of it; a hole across the boundary.
-        let key =
-            GrayF32::from_fn(
-                w,
-                h,
-                |x, y| if x < 100 { tex(x as f64, y as f64) } else { 0.4 + 0.002 * y as f32 },
-            );
+        // Texture left of x = 100, the same texture faint right of it (a sky's clouds); a hole
+        // across the boundary.
+        let key = GrayF32::from_fn(w, h, |x, y| {
+            let t = tex(x as f64, y as f64);
+            if x < 100 { t } else { 0.5 + 0.03 * (t - 0.5) }
+        });
         let mask =
             Mask::from_fn(w, h, |x, y| if (80..120).contains(&x) && (40..80).contains(&y) { 255 } else { 0 });
         let params = SurfaceParams::default();
         let m = Matcher::new(&key, &params);
         let r = params.patch_radius;
-        let points = |min_std: f32| m.around_mask(&mask, 3, 20, min_std, r);
+        let points = |min_std: f32| m.around_mask(&mask, 3, 20, min_std, &params);
         let dist = |p: &Point2<f64>| {
             let dx = (80.0 - p.x).max(p.x - 119.0).max(0.0);
             let dy = (40.0 - p.y).max(p.y - 79.0).max(0.0);
             dx.max(dy)
         };
         let all = points(0.0);
-        assert!(all.iter().any(|p| p.x > 120.0), "without the texture test the gradient is sampled");
+        assert!(all.iter().any(|p| p.x > 120.0), "without the texture test the faint side is sampled");
         assert!(
             all.iter().all(|p| dist(p) <= 20.0 && dist(p) > (3 + r) as f64),
             "within the reach, outside the guard"
@@ -2495,7 +2500,7 @@ mod tests {
         assert!(textured.len() > 100, "{} points on the texture", textured.len());
         assert!(
             textured.iter().all(|p| p.x < (100 + r) as f64),
-            "a point on the gradient: {:?}",
+            "a point on the faint side: {:?}",
             textured.iter().find(|p| p.x >= (100 + r) as f64)
         );
     }
