@@ -176,8 +176,8 @@ impl Matcher {
         (0..levels).fold(img.clone(), |g, _| half(&g))
     }
 
-    /// Full-resolution pixels within which of the mask no point is taken (its patch would
-    /// reach the occluder).
+    /// How near the mask (full-resolution pixels) no point is taken: its patch would reach
+    /// the occluder.
     fn guard(&self) -> isize {
         3 * (1isize << self.levels)
     }
