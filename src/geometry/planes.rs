@@ -363,7 +363,7 @@ impl ParallaxFamily {
 }
 
 /// `γ` of a match under wall matrix `m` and epipole `e` (least squares on `x_v × (m·x + γ·e) = 0`).
-fn gamma_of(c: &Correspondence, m: &nalgebra::Matrix3<f64>, e: &nalgebra::Vector3<f64>) -> f64 {
+pub(crate) fn gamma_of(c: &Correspondence, m: &nalgebra::Matrix3<f64>, e: &nalgebra::Vector3<f64>) -> f64 {
     let p = m * nalgebra::Vector3::new(c.key.x, c.key.y, 1.0);
     let q = nalgebra::Vector3::new(c.view.x, c.view.y, 1.0);
     let a = q.cross(&p);

@@ -100,7 +100,9 @@ pub fn surface_planes(
     seed: u64,
 ) -> Vec<SurfacePlane> {
     let (w, h) = (key.width(), key.height());
-    let g = guided(key, views, walls, mask, params);
+    let m = Matcher::new(key, params);
+    let levels: Vec<ViewLevels> = views.iter().map(|v| m.levels_of(v)).collect();
+    let g = guided(&m, &levels, walls, mask, params);
     let t_inv = g.t.inverse().expect("regular");
     fit_planes(&g.matches, &g.walls, &|_| false, &params.fit, seed)
         .into_iter()
@@ -151,6 +153,15 @@ fn levels_for(w: usize, h: usize, max_pixels: usize) -> u32 {
     levels
 }
 
+/// Matching-resolution pixels around the mask where no keyframe point is taken.
+const GUARD: usize = 3;
+
+/// A view halved to the matching resolution and once more (the coarse search).
+struct ViewLevels {
+    fine: GrayF32,
+    coarse: GrayF32,
+}
+
 /// The paper's matching again, guided: keyframe points matched by normalised
 /// cross-correlation in each view, searched around where the wall puts them. Holds the
 /// keyframe at the matching resolution and half of it (the coarse search).
@@ -176,10 +187,10 @@ impl Matcher {
         (0..levels).fold(img.clone(), |g, _| half(&g))
     }
 
-    /// How near the mask (full-resolution pixels) no point is taken: its patch would reach
-    /// the occluder.
+    /// How near the mask (full-resolution pixels) no corner is taken: its patch would reach
+    /// the occluder ([`GUARD`] at the matching resolution).
     fn guard(&self) -> isize {
-        3 * (1isize << self.levels)
+        (GUARD << self.levels) as isize
     }
 
     /// The keyframe's corners away from the mask (Harris, spread over a grid).
@@ -234,7 +245,7 @@ impl Matcher {
             mask.get_checked(q.x.round() as isize, q.y.round() as isize).is_some_and(|m| m > 127)
         });
         let near = dilate(&masked, reach);
-        let close = dilate(&masked, (self.guard() as usize >> self.levels).max(3) + patch_radius);
+        let close = dilate(&masked, GUARD + patch_radius);
         let b = patch_radius + 2;
         let mut points = Vec::new();
         for y in (b..h.saturating_sub(b)).step_by(step.max(1)) {
@@ -247,17 +258,24 @@ impl Matcher {
         points
     }
 
+    /// `view` (full resolution) at the resolutions [`Self::matches`] searches.
+    fn levels_of(&self, view: &GrayF32) -> ViewLevels {
+        let fine = Self::shrink(self.levels, view);
+        let coarse = half(&fine);
+        ViewLevels { fine, coarse }
+    }
+
     /// The wall at the matching resolution.
     fn wall(&self, wall: &Homography) -> Homography {
         self.t.after(wall).after(&self.t_inv)
     }
 
-    /// `points` (matching resolution) matched in `view` (full resolution) around where
-    /// `wall` puts them. Coarse to fine: the search at half the matching resolution
+    /// `points` (matching resolution) matched in `view` around where `wall` (full
+    /// resolution) puts them. Coarse to fine: the search at half the matching resolution
     /// (parallax of tens of pixels), then a small one around its answer.
     fn matches(
         &self,
-        view: &GrayF32,
+        view: &ViewLevels,
         wall: &Homography,
         points: &[Point2<f64>],
         params: &SurfaceParams,
@@ -266,14 +284,13 @@ impl Matcher {
         let t1_inv = t1.inverse().expect("regular");
         let coarse: Vec<(Point2<f64>, (f64, f64))> =
             points.iter().map(|p| (t1.apply(*p).expect("affine"), (0.0, 0.0))).collect();
-        let view_s = Self::shrink(self.levels, view);
+        let (view_s, view_c) = (&view.fine, &view.coarse);
         let wall_s = self.wall(wall);
-        let view_c = half(&view_s);
         let wall_c = t1.after(&wall_s).after(&t1_inv);
-        let found = guided_matches(&self.key_c, &view_c, &wall_c, &coarse, params.search_radius, params);
+        let found = guided_matches(&self.key_c, view_c, &wall_c, &coarse, params.search_radius, params);
         let fine: Vec<(Point2<f64>, (f64, f64))> =
             points.iter().zip(&found).filter_map(|(p, d)| d.map(|d| (*p, (2.0 * d.0, 2.0 * d.1)))).collect();
-        let refined = guided_matches(&self.key_s, &view_s, &wall_s, &fine, 2, params);
+        let refined = guided_matches(&self.key_s, view_s, &wall_s, &fine, 2, params);
         fine.iter()
             .zip(refined)
             .filter_map(|((p, _), d)| {
@@ -287,13 +304,12 @@ impl Matcher {
 
 /// The keyframe's corners away from the mask matched in every view ([`Matcher`]).
 fn guided(
-    key: &GrayF32,
-    views: &[&GrayF32],
+    m: &Matcher,
+    views: &[ViewLevels],
     walls: &[Homography],
     mask: &Mask,
     params: &SurfaceParams,
 ) -> Guided {
-    let m = Matcher::new(key, params);
     let corners = m.corners(mask, params);
     let matches =
         views.iter().zip(walls).map(|(view, wall)| m.matches(view, wall, &corners, params)).collect();
@@ -316,7 +332,7 @@ pub struct SweepParams {
     /// ...each match beating any other peak of its search by this much (a grid point is not
     /// picked for being a corner: repeats of texture must be told apart by a clear margin).
     pub dense_margin: f32,
-    /// ...at points whose patch has at least this standard deviation (0–1 levels): not the
+    /// ...at points whose patch has at least this standard deviation (0–1 scale): not the
     /// soft texture of clouds, which drift between shots all alike and point at an epipole
     /// of their own.
     pub dense_texture: f32,
@@ -1106,13 +1122,8 @@ pub fn parallax_family(
     seed: u64,
 ) -> Option<(ParallaxFamily, Guided)> {
     let m = Matcher::new(key, &params.matching);
-    let corners = m.corners(mask, &params.matching);
-    let mut matches: Vec<Vec<Correspondence>> = views
-        .iter()
-        .zip(walls)
-        .map(|(view, wall)| m.matches(view, wall, &corners, &params.matching))
-        .collect();
-    let walls_m: Vec<Homography> = walls.iter().map(|h| m.wall(h)).collect();
+    let levels: Vec<ViewLevels> = views.iter().map(|v| m.levels_of(v)).collect();
+    let Guided { t, mut matches, walls: walls_m } = guided(&m, &levels, walls, mask, &params.matching);
     let first = fit_parallax(&matches, &walls_m, &params.epipoles, seed);
     let starved: Vec<usize> =
         (0..views.len()).filter(|&v| first.as_ref().is_none_or(|f| f.epipoles[v].is_none())).collect();
@@ -1128,7 +1139,7 @@ pub fn parallax_family(
         );
         let strict = SurfaceParams { min_margin: params.dense_margin, ..params.matching.clone() };
         for &v in &starved {
-            matches[v].extend(m.matches(views[v], &walls[v], &grid, &strict));
+            matches[v].extend(m.matches(&levels[v], &walls[v], &grid, &strict));
         }
         let again = fit_parallax(&matches, &walls_m, &params.epipoles, seed);
         match (first, again) {
@@ -1145,7 +1156,7 @@ pub fn parallax_family(
             (None, again) => again?,
         }
     };
-    Some((family, Guided { t: m.t, matches, walls: walls_m }))
+    Some((family, Guided { t, matches, walls: walls_m }))
 }
 
 /// The keyframe's band around the mask that the sweep scores (sweep resolution).
@@ -2511,6 +2522,7 @@ mod tests {
     /// had one keep it as it was. Without the grid, view 0 stays without.
     #[test]
     fn a_view_its_corners_give_no_epipole_is_matched_again_beside_the_mask() {
+        use crate::geometry::planes::gamma_of;
         use crate::imaging::convert::luminance;
         let c = crate::synth::facade::parallax_case(640, 480, 3, 3, false);
         let key = luminance(&c.key);
@@ -2552,16 +2564,11 @@ mod tests {
                 pixels.iter().zip(&truth).map(|(&q, t)| (h.apply(q).expect("seen") - t).norm()).sum::<f64>()
                     / pixels.len() as f64
             };
-            // Each pixel's own depth (least squares on `t × (m·x + γ·e) = 0`), their median,
-            // then the best around it.
+            // Each pixel's own depth, their median, then the best around it.
             let mut gammas: Vec<f64> = pixels
                 .iter()
                 .zip(&truth)
-                .map(|(q, t)| {
-                    let t = nalgebra::Vector3::new(t.x, t.y, 1.0);
-                    let (a, b) = (t.cross(&(m * nalgebra::Vector3::new(q.x, q.y, 1.0))), t.cross(&e));
-                    -a.dot(&b) / b.norm_squared()
-                })
+                .map(|(&q, &t)| gamma_of(&Correspondence::new(q, t), &m, &e))
                 .collect();
             gammas.sort_by(f64::total_cmp);
             let median = gammas[gammas.len() / 2];
