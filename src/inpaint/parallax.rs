@@ -2516,6 +2516,44 @@ mod tests {
         );
     }
 
+    /// A mask over the whole frame leaves no grid to match again (nothing lies beside it),
+    /// and the family is what the corners give: none, here, with no corner outside the mask.
+    #[test]
+    fn a_mask_over_the_whole_frame_gives_an_empty_grid_and_the_corners_answer() {
+        use crate::imaging::convert::luminance;
+        let c = crate::synth::facade::parallax_case(320, 240, 3, 3, false);
+        let key = luminance(&c.key);
+        let grays: Vec<GrayF32> = c.views.iter().map(luminance).collect();
+        let refs: Vec<&GrayF32> = grays.iter().collect();
+        let walls = c.wall();
+        let full = Mask::new(320, 240, 255);
+        let params = SweepParams::default();
+        let m = Matcher::new(&key, &params.matching);
+        assert!(
+            m.around_mask(
+                &full,
+                params.dense_step,
+                params.dense_reach,
+                params.dense_texture,
+                &params.matching
+            )
+            .is_empty()
+        );
+        let family = |dense_step: usize| {
+            parallax_family(
+                &key,
+                &refs,
+                &walls,
+                &full,
+                &SweepParams { dense_step, ..SweepParams::default() },
+                1,
+            )
+            .map(|(f, _)| f.epipoles)
+        };
+        assert_eq!(family(params.dense_step), None);
+        assert_eq!(family(0), None);
+    }
+
     /// Parallax seed 3's pattern (`synth::facade::parallax_case`): view 0 gives no epipole
     /// from the frame's corners. Matched again on the grid beside the mask, it gets one that
     /// puts the slabs it sees there within half a pixel of their true planes; the views that
