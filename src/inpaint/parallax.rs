@@ -2516,14 +2516,21 @@ mod tests {
         );
     }
 
+    /// Parallax seed 3 (`synth::facade::parallax_case`, three views) at `w × h`, with the
+    /// keyframe's and the views' luminance.
+    fn seed3_luminance(w: usize, h: usize) -> (crate::synth::facade::ParallaxCase, GrayF32, Vec<GrayF32>) {
+        use crate::imaging::convert::luminance;
+        let c = crate::synth::facade::parallax_case(w, h, 3, 3, false);
+        let key = luminance(&c.key);
+        let grays = c.views.iter().map(luminance).collect();
+        (c, key, grays)
+    }
+
     /// A mask over the whole frame leaves no grid to match again (nothing lies beside it),
     /// and the family is what the corners give: none, here, with no corner outside the mask.
     #[test]
     fn a_mask_over_the_whole_frame_gives_an_empty_grid_and_the_corners_answer() {
-        use crate::imaging::convert::luminance;
-        let c = crate::synth::facade::parallax_case(320, 240, 3, 3, false);
-        let key = luminance(&c.key);
-        let grays: Vec<GrayF32> = c.views.iter().map(luminance).collect();
+        let (c, key, grays) = seed3_luminance(320, 240);
         let refs: Vec<&GrayF32> = grays.iter().collect();
         let walls = c.wall();
         let full = Mask::new(320, 240, 255);
@@ -2561,10 +2568,7 @@ mod tests {
     #[test]
     fn a_view_its_corners_give_no_epipole_is_matched_again_beside_the_mask() {
         use crate::geometry::planes::gamma_of;
-        use crate::imaging::convert::luminance;
-        let c = crate::synth::facade::parallax_case(640, 480, 3, 3, false);
-        let key = luminance(&c.key);
-        let grays: Vec<GrayF32> = c.views.iter().map(luminance).collect();
+        let (c, key, grays) = seed3_luminance(640, 480);
         let refs: Vec<&GrayF32> = grays.iter().collect();
         let walls = c.wall();
         let family = |dense_step: usize| {
