@@ -208,12 +208,21 @@ fn add_symmetric_tap(d: &mut [f32], a: &[f32], b: &[f32], k: f32) {
 
 /// Harris corners of `img`, strongest first within each grid cell, spread by the grid.
 pub fn harris(img: &GrayF32, params: &HarrisParams) -> Vec<Corner> {
-    let (w, h) = (img.width(), img.height());
+    let b = params.border.max(params.nms_radius).max(1);
+    if img.width() <= 2 * b || img.height() <= 2 * b {
+        return Vec::new();
+    }
+    corners_of(&response(img, params), params)
+}
+
+/// [`harris`] from the image's [`response`] (made with the same `params`), for a caller
+/// that reads the response too.
+pub fn corners_of(r: &GrayF32, params: &HarrisParams) -> Vec<Corner> {
+    let (w, h) = (r.width(), r.height());
     let b = params.border.max(params.nms_radius).max(1);
     if w <= 2 * b || h <= 2 * b {
         return Vec::new();
     }
-    let r = response(img, params);
     let max = r.as_slice().iter().copied().fold(0.0f32, f32::max);
     let threshold = (params.relative_threshold * max).max(params.absolute_threshold);
     let nr = params.nms_radius as isize;

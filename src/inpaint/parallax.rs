@@ -22,7 +22,7 @@ use rayon::prelude::*;
 
 use nalgebra::Point2;
 
-use crate::features::harris::{HarrisParams, harris, response as harris_response};
+use crate::features::harris::{HarrisParams, corners_of, response as harris_response};
 use crate::geometry::planes::{
     ParallaxFamily, ParallaxFitParams, PlaneParams, common_scales, fit_parallax, fit_planes,
 };
@@ -172,6 +172,10 @@ struct Matcher {
     t_inv: Homography,
     key_s: GrayF32,
     key_c: GrayF32,
+    /// The Harris parameters of the keyframe's corners, and its response at the matching
+    /// resolution (the corners and the grid's edge test both read it).
+    harris: HarrisParams,
+    response: GrayF32,
 }
 
 impl Matcher {
@@ -180,7 +184,13 @@ impl Matcher {
         let t = shrink_map(levels);
         let key_s = Self::shrink(levels, key);
         let key_c = half(&key_s);
-        Self { levels, t_inv: t.inverse().expect("regular"), t, key_s, key_c }
+        let harris = HarrisParams {
+            max_corners: params.corners,
+            border: params.patch_radius + 2,
+            ..HarrisParams::default()
+        };
+        let response = harris_response(&key_s, &harris);
+        Self { levels, t_inv: t.inverse().expect("regular"), t, key_s, key_c, harris, response }
     }
 
     fn shrink(levels: u32, img: &GrayF32) -> GrayF32 {
@@ -194,9 +204,9 @@ impl Matcher {
     }
 
     /// The keyframe's corners away from the mask (Harris, spread over a grid).
-    fn corners(&self, mask: &Mask, params: &SurfaceParams) -> Vec<Point2<f64>> {
+    fn corners(&self, mask: &Mask) -> Vec<Point2<f64>> {
         let guard = self.guard();
-        harris(&self.key_s, &Self::harris_params(params))
+        corners_of(&self.response, &self.harris)
             .into_iter()
             .map(|c| Point2::new(f64::from(c.x), f64::from(c.y)))
             .filter(|p| {
@@ -207,14 +217,6 @@ impl Matcher {
                 })
             })
             .collect()
-    }
-
-    fn harris_params(params: &SurfaceParams) -> HarrisParams {
-        HarrisParams {
-            max_corners: params.corners,
-            border: params.patch_radius + 2,
-            ..HarrisParams::default()
-        }
     }
 
     /// Every `step`-th pixel (matching resolution) within `reach` of the mask, and not within
@@ -232,7 +234,6 @@ impl Matcher {
     ) -> Vec<Point2<f64>> {
         let patch_radius = params.patch_radius;
         let (w, h) = (self.key_s.width(), self.key_s.height());
-        let response = harris_response(&self.key_s, &Self::harris_params(params));
         // Per patch: the sum, the sum of squares, the count.
         let terms: Vec<[f32; 3]> = self.key_s.as_slice().iter().map(|&v| [v, v * v, 1.0]).collect();
         let sums = box_sums(&terms, w, h, patch_radius);
@@ -250,7 +251,8 @@ impl Matcher {
         let mut points = Vec::new();
         for y in (b..h.saturating_sub(b)).step_by(step.max(1)) {
             for x in (b..w.saturating_sub(b)).step_by(step.max(1)) {
-                if near.get(x, y) && !close.get(x, y) && response.get(x, y) >= 0.0 && textured(y * w + x) {
+                if near.get(x, y) && !close.get(x, y) && self.response.get(x, y) >= 0.0 && textured(y * w + x)
+                {
                     points.push(Point2::new(x as f64, y as f64));
                 }
             }
@@ -310,7 +312,7 @@ fn guided(
     mask: &Mask,
     params: &SurfaceParams,
 ) -> Guided {
-    let corners = m.corners(mask, params);
+    let corners = m.corners(mask);
     let matches =
         views.iter().zip(walls).map(|(view, wall)| m.matches(view, wall, &corners, params)).collect();
     let walls = walls.iter().map(|h| m.wall(h)).collect();
