@@ -475,7 +475,15 @@ fn explain_by_parallax(key: &RgbF32, ev: &mut Evidence, params: &AutoMaskParams)
         return;
     }
     const HALF: isize = 2;
+    const WINDOW: usize = ((2 * HALF + 1) * (2 * HALF + 1)) as usize;
     let t2 = params.threshold * params.threshold;
+    // The patch's sum can only grow: past this no count of its pixels would pass.
+    let hopeless = t2 * WINDOW as f32;
+    // The nearest moves first: the building moved by a pixel or two is the usual answer,
+    // and the search stops at the first move that explains the pixel.
+    let mut moves: Vec<(isize, isize)> =
+        (-r..=r).flat_map(|dy| (-r..=r).map(move |dx| (dx, dy))).filter(|&m| m != (0, 0)).collect();
+    moves.sort_by_key(|&(dx, dy)| dx * dx + dy * dy);
     let seen: &Evidence = ev;
     // Each pixel is judged on its own: in parallel, the same pixels as one at a time.
     let explained: Vec<usize> = (0..w * h)
@@ -497,10 +505,13 @@ fn explain_by_parallax(key: &RgbF32, ev: &mut Evidence, params: &AutoMaskParams)
                         sum += (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>();
                         n += 1;
                     }
+                    if sum > hopeless {
+                        return false;
+                    }
                 }
-                n * 2 > ((2 * HALF + 1) * (2 * HALF + 1)) as usize && sum <= t2 * n as f32
+                n * 2 > WINDOW && sum <= t2 * n as f32
             };
-            (-r..=r).any(|dy| (-r..=r).any(|dx| (dx, dy) != (0, 0) && matches(dx, dy)))
+            moves.iter().any(|&(dx, dy)| matches(dx, dy))
         })
         .collect();
     for i in explained {
