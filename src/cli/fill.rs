@@ -312,9 +312,11 @@ fn planes_or_wall(
     params: &FillParams,
     seed: u64,
 ) -> (Filled, bool) {
+    // The walls' fill is the one without `--planes`, the views' own occluders marked.
     let wall = fill_with(key, mask, sources, &FillExtras::default(), params, seed, &mut ());
-    // Only the rival's judgement is wanted of these: one composition, no averaging.
-    let judging = FillParams { select_views: false, fuse: None, ..params.clone() };
+    // Only the rival's judgement is wanted of these: one composition, no averaging, and,
+    // as through the surfaces (`fill_with` marks no view's occluders there), no marks.
+    let judging = FillParams { select_views: false, fuse: None, own: None, ..params.clone() };
     let judged = |rival: &Filled, planes: &[SurfacePlane]| {
         let extras = FillExtras { planes, rival: Some(&rival.judged_image()), ..FillExtras::default() };
         fill_with(key, mask, sources, &extras, &judging, seed, &mut ()).rival_quality.unwrap_or(0.0)

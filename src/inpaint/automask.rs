@@ -147,6 +147,23 @@ pub fn auto_mask_report<P: RgbPixel>(
     sources: &[Source<'_, P>],
     params: &AutoMaskParams,
 ) -> AutoMask {
+    auto_mask_excluding(key, sources, &[], params)
+}
+
+/// [`auto_mask_report`] where some of the sources' pixels are known to show something in
+/// front of the building (`known`: per source, or empty; source-sized, > 127 = an occluder,
+/// as [`super::FillExtras::occluders`]): those pixels are no evidence, for or against the
+/// keyframe.
+///
+/// # Panics
+/// If `known` is neither empty nor one per source.
+fn auto_mask_excluding<P: RgbPixel>(
+    key: &RgbF32,
+    sources: &[Source<'_, P>],
+    known: &[Option<&Mask>],
+    params: &AutoMaskParams,
+) -> AutoMask {
+    assert!(known.is_empty() || known.len() == sources.len(), "known occluders per source");
     let (w, h) = (key.width(), key.height());
     let empty = || AutoMask {
         mask: Mask::new(w, h, 0),
@@ -171,10 +188,12 @@ pub fn auto_mask_report<P: RgbPixel>(
     let from_full = to_full.inverse().expect("scaling is regular");
     let warped: Vec<(RgbF32, Plane<bool>)> = sources
         .iter()
-        .map(|s| {
+        .enumerate()
+        .map(|(v, s)| {
             let view_r = reduce(s.image, f);
             let hr = from_full.after(&s.homography).after(&to_full);
-            let wv = warp(&view_r, &hr, Rect::full(rw, rh), None, Interpolation::Bilinear);
+            let mut wv = warp(&view_r, &hr, Rect::full(rw, rh), None, Interpolation::Bilinear);
+            super::exclude(&mut wv, &s.homography.after(&to_full), known.get(v).copied().flatten());
             let gain = fit_whole(&key_r, &wv.image, &wv.valid);
             let img = wv.image.map(|&p| gain.apply(p));
             (box_blur(&img, &wv.valid, params.blur_radius), wv.valid)
@@ -726,6 +745,261 @@ fn fit_whole(key: &RgbF32, view: &RgbF32, valid: &Plane<bool>) -> Gain {
         .map(|(i, _)| (view.as_slice()[i], key.as_slice()[i]))
         .collect();
     fit_gain(&pairs, &GainParams::default())
+}
+
+/// Parameters of [`own_occluders`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct OwnParams {
+    /// Views needed (the keyframe not counted) before any view is judged: with fewer, a
+    /// view is judged against the keyframe and one other, and a disagreement of two says
+    /// nothing of which one is wrong.
+    pub min_views: usize,
+    /// The judgement runs on images brought down to at most this many pixels.
+    pub work_pixels: usize,
+    /// The automatic mask's parallax radius there: a disagreement that is the same
+    /// building moved by up to this many (reduced) pixels is parallax, not an occluder. On
+    /// the real photo cases the default 3 took the depth of a curved glass wall or a
+    /// cornice for occluders (BENCHMARKS.md, "Each view's own occluders").
+    pub parallax_radius: usize,
+    /// The mark given ([`super::FillExtras::occluders`]): soft, a doubt rather than a
+    /// verdict, so that a pixel every view is marked on is still copied.
+    pub mark: u8,
+    /// A view is judged against the keyframe and at most this many other views
+    /// ([`references`]). Against every other view, 16 frames of a walk took 14 s.
+    pub references: usize,
+    /// Views are judged over the mask's bounds grown by this many keyframe pixels (and
+    /// what the views show of them), whatever the caller cropped the images to: the
+    /// command and the service crop differently and must find the same occluders (judged
+    /// over the whole crops, 8 of the service's 96 cases ended more than 0.5 dB from the
+    /// command's fill; BENCHMARKS.md, "Each view's own occluders, judged near the mask").
+    pub margin: usize,
+    /// Whether another view's pixels in the colours of the keyframe's occluder (rather than
+    /// of its building) still count as witnesses. Where every view shows the keyframe's
+    /// tree a little displaced, two of them agreeing on it outvote a view that sees the
+    /// wall there.
+    pub foreign_witnesses: bool,
+}
+
+impl Default for OwnParams {
+    fn default() -> Self {
+        Self {
+            min_views: 3,
+            work_pixels: 500_000,
+            parallax_radius: 8,
+            mark: 160,
+            references: 4,
+            margin: 48,
+            foreign_witnesses: false,
+        }
+    }
+}
+
+/// Per source, the pixels where it shows something in front of the building, marked
+/// [`OwnParams::mark`] (source-sized, as [`super::FillExtras::occluders`]): the automatic
+/// mask of that view, judged near the keyframe's mask ([`OwnParams::margin`]) against the
+/// keyframe (its masked pixels kept out: there it shows its own occluder) and a few other
+/// views ([`OwnParams::references`]). A view's car or passer-by next to the keyframe's
+/// tree is otherwise copied into the hole whenever it happens to look like the building
+/// around it (planar-8: 27.79 → 33.25 dB; BENCHMARKS.md, "Each view's own occluders,
+/// judged near the mask"). Empty below [`OwnParams::min_views`] views or with an empty
+/// mask; `None` for a view that does not see the mask's surroundings or whose map cannot
+/// be inverted.
+pub fn own_occluders<P: RgbPixel>(
+    key: &RgbF32,
+    mask: &Mask,
+    sources: &[Source<'_, P>],
+    params: &OwnParams,
+    auto: &AutoMaskParams,
+) -> Vec<Option<Mask>> {
+    if sources.len() < params.min_views.max(1) {
+        return Vec::new();
+    }
+    let Some(bounds) = mask.hole_bounds() else { return Vec::new() };
+    // Judged near the mask only, whatever the caller cropped the images to.
+    let r = bounds.grown(params.margin, key.width(), key.height());
+    let key_c = key.crop(r);
+    let mask_c = mask.crop(r);
+    let into_r = Homography::translation(r.x as f64, r.y as f64);
+    let cut: Vec<Option<(Rect, Plane<P>, Homography)>> = sources
+        .iter()
+        .map(|s| {
+            let h = s.homography.after(&into_r);
+            let f = super::region::footprint(
+                &Rect::full(r.width, r.height),
+                &h,
+                s.image.width(),
+                s.image.height(),
+                0,
+            )?;
+            Some((f, s.image.crop(f), super::region::into_crop(&h, &f)))
+        })
+        .collect();
+    let kept: Vec<usize> = (0..sources.len()).filter(|&v| cut[v].is_some()).collect();
+    let inner: Vec<Source<'_, P>> = kept
+        .iter()
+        .map(|&v| {
+            let (_, img, h) = cut[v].as_ref().expect("kept");
+            Source { image: img, homography: *h }
+        })
+        .collect();
+    let found = own_occluders_in(&key_c, &mask_c, &inner, params, auto);
+    if found.is_empty() {
+        return Vec::new();
+    }
+    let mut out: Vec<Option<Mask>> = vec![None; sources.len()];
+    for (k, &v) in kept.iter().enumerate() {
+        let Some(m) = &found[k] else { continue };
+        let (f, _, _) = cut[v].as_ref().expect("kept");
+        let (w, h) = (sources[v].image.width(), sources[v].image.height());
+        out[v] = Some(Mask::from_fn(w, h, |x, y| {
+            if x >= f.x && y >= f.y && x < f.x + f.width && y < f.y + f.height {
+                m.get(x - f.x, y - f.y)
+            } else {
+                0
+            }
+        }));
+    }
+    out
+}
+
+/// [`own_occluders`] over images already cut to the region judged.
+fn own_occluders_in<P: RgbPixel>(
+    key: &RgbF32,
+    mask: &Mask,
+    sources: &[Source<'_, P>],
+    params: &OwnParams,
+    auto: &AutoMaskParams,
+) -> Vec<Option<Mask>> {
+    if sources.len() < params.min_views.max(1) {
+        return Vec::new();
+    }
+    let factor = |w: usize, h: usize| {
+        ((w * h) as f64 / params.work_pixels.max(1) as f64).sqrt().ceil().max(1.0) as usize
+    };
+    // Reduced pixel → full pixel, for a factor f.
+    let to_full = |f: usize| {
+        let f = f as f64;
+        Homography::from_rows([[f, 0.0, (f - 1.0) / 2.0], [0.0, f, (f - 1.0) / 2.0], [0.0, 0.0, 1.0]])
+            .expect("scaling is regular")
+    };
+    let fk = factor(key.width(), key.height());
+    let key_r = reduce(key, fk);
+    let mask_r = Mask::from_fn(key_r.width(), key_r.height(), |x, y| {
+        let any = (y * fk..((y + 1) * fk).min(mask.height()))
+            .any(|yy| (x * fk..((x + 1) * fk).min(mask.width())).any(|xx| mask.is_hole(xx, yy)));
+        if any { 255 } else { 0 }
+    });
+    let views: Vec<(RgbF32, usize, Homography)> = sources
+        .par_iter()
+        .map(|s| {
+            let fv = factor(s.image.width(), s.image.height());
+            let back = to_full(fv).inverse().expect("scaling is regular");
+            (reduce(s.image, fv), fv, back.after(&s.homography).after(&to_full(fk)))
+        })
+        .collect();
+    // A view's pixels in the colours of the keyframe's occluder rather than its building
+    // are no witness for the building around another view ([`OwnParams::foreign_witnesses`]).
+    let unlike: Vec<Option<Mask>> = if params.foreign_witnesses {
+        vec![None; views.len()]
+    } else {
+        let hole = Plane::from_fn(key_r.width(), key_r.height(), |x, y| mask_r.is_hole(x, y));
+        let inner = erode(&hole, 2);
+        let full = Rect::full(key_r.width(), key_r.height());
+        let occluder = ColourHistogram::within(&key_r, &full, |x, y| inner.get(x, y));
+        let building = ColourHistogram::within(&key_r, &full, |x, y| !hole.get(x, y));
+        views
+            .iter()
+            .map(|(img, _, _)| {
+                Some(img.map(|&p| if occluder.density(p) > 2.0 * building.density(p) { 255 } else { 0 }))
+            })
+            .collect()
+    };
+    let mut auto = auto.clone();
+    auto.parallax_radius = params.parallax_radius;
+    auto.min_views = auto.min_views.min(params.references + 1);
+    (0..sources.len())
+        .into_par_iter()
+        .map(|i| {
+            let (img, fv, h) = &views[i];
+            let back = h.inverse()?;
+            let mut refs: Vec<Source<'_, [f32; 3]>> = vec![Source { image: &key_r, homography: back }];
+            let mut known: Vec<Option<&Mask>> = vec![Some(&mask_r)];
+            for j in references(img, &back, &views, i, params.references) {
+                refs.push(Source { image: &views[j].0, homography: views[j].2.after(&back) });
+                known.push(unlike[j].as_ref());
+            }
+            let found = auto_mask_excluding(img, &refs, &known, &auto).mask;
+            let (w, h) = (sources[i].image.width(), sources[i].image.height());
+            let (rw, rh) = (found.width(), found.height());
+            Some(Mask::from_fn(w, h, |x, y| {
+                if found.get((x / fv).min(rw - 1), (y / fv).min(rh - 1)) > 127 { params.mark } else { 0 }
+            }))
+        })
+        .collect()
+}
+
+/// The views (but `i`) that view `i`'s own occluders are judged against, at most `k` of
+/// them (`img`: view `i`'s image; `back`: its pixels to the keyframe's; `views`' maps:
+/// keyframe to view). Among the views that see at least half as much of it as the one
+/// that sees most, those farthest apart in viewpoint: each next one the farthest from view
+/// `i` and from those already taken, the distance being how far the map from view `i` to
+/// it is from a translation (its Jacobian at view `i`'s centre, less the identity; a
+/// translation says nothing, as the images may be crops). Frames taken next to view `i`
+/// on a walk show its own tree nearly where it stands and agree with it there; the frames
+/// farther along show the tree moved off the wall behind. Overlap is counted on a grid of
+/// about 32 × 32 points.
+fn references(
+    img: &RgbF32,
+    back: &Homography,
+    views: &[(RgbF32, usize, Homography)],
+    i: usize,
+    k: usize,
+) -> Vec<usize> {
+    use nalgebra::Point2;
+    let (w, h) = (img.width(), img.height());
+    let step = (w.max(h) / 32).max(1);
+    let points: Vec<Point2<f64>> = (0..h)
+        .step_by(step)
+        .flat_map(|y| (0..w).step_by(step).map(move |x| Point2::new(x as f64, y as f64)))
+        .filter_map(|p| back.apply(p))
+        .collect();
+    let centre = Point2::new((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+    // Per other view: the points of view `i` it sees, and its Jacobian less the identity.
+    let seen: Vec<(usize, usize, [f64; 4])> = views
+        .iter()
+        .enumerate()
+        .filter(|&(j, _)| j != i)
+        .filter_map(|(j, (other, _, hj))| {
+            let (ow, oh) = (other.width() as f64, other.height() as f64);
+            let inside = |r: &Point2<f64>| r.x >= 0.0 && r.y >= 0.0 && r.x <= ow - 1.0 && r.y <= oh - 1.0;
+            let n = points.iter().filter_map(|q| hj.apply(*q)).filter(inside).count();
+            let to_j = hj.after(back);
+            let at = |dx: f64, dy: f64| to_j.apply(Point2::new(centre.x + dx, centre.y + dy));
+            let (c, x, y) = (at(0.0, 0.0)?, at(1.0, 0.0)?, at(0.0, 1.0)?);
+            let jac = [x.x - c.x - 1.0, y.x - c.x, x.y - c.y, y.y - c.y - 1.0];
+            (n > 0).then_some((j, n, jac))
+        })
+        .collect();
+    let most = seen.iter().map(|s| s.1).max().unwrap_or(0);
+    let mut left: Vec<(usize, [f64; 4])> =
+        seen.iter().filter(|s| s.1 * 2 >= most).map(|s| (s.0, s.2)).collect();
+    let mut taken: Vec<[f64; 4]> = vec![[0.0; 4]];
+    let mut chosen = Vec::new();
+    while chosen.len() < k && !left.is_empty() {
+        let distance = |m: &[f64; 4]| {
+            let d = |t: &[f64; 4]| (0..4).map(|c| (m[c] - t[c]).powi(2)).sum::<f64>();
+            taken.iter().map(d).fold(f64::INFINITY, f64::min)
+        };
+        let best = (0..left.len())
+            .max_by(|&a, &b| {
+                distance(&left[a].1).total_cmp(&distance(&left[b].1)).then(left[b].0.cmp(&left[a].0))
+            })
+            .expect("some left");
+        let (j, m) = left.swap_remove(best);
+        taken.push(m);
+        chosen.push(j);
+    }
+    chosen
 }
 
 /// Box average of `f × f` blocks (the last ones partial).

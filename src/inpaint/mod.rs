@@ -31,7 +31,7 @@ use occlusion::{KeyRegion, OcclusionMap, OcclusionParams, RegionInput, occlusion
 use parallax::{ParallaxParams, PlaneInput, SurfacePlane, WarpedView, choose_planes};
 use shift::{Shift, ShiftBand, ShiftParams, local_shift};
 
-pub use automask::{AutoMask, AutoMaskParams, auto_mask, auto_mask_report};
+pub use automask::{AutoMask, AutoMaskParams, OwnParams, auto_mask, auto_mask_report, own_occluders};
 pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_guided, exemplar_fill_until};
 
 /// Where each pixel of a result came from: [`KEYFRAME`] outside the mask, [`FALLBACK`]
@@ -78,6 +78,9 @@ pub struct Source<'a, P: RgbPixel = [f32; 3]> {
 /// The stages of [`fill`], in the order they run (for timings and progress).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Stage {
+    /// Each view's own occluders, judged against the keyframe and the other views
+    /// ([`FillParams::own`]).
+    Own,
     Warp,
     Photometric,
     Planes,
@@ -94,6 +97,7 @@ pub enum Stage {
 impl Stage {
     pub fn name(self) -> &'static str {
         match self {
+            Self::Own => "own occluders",
             Self::Warp => "warp",
             Self::Photometric => "photometric",
             Self::Planes => "planes",
@@ -283,6 +287,10 @@ pub struct FillParams {
     /// misregistrations average out. The views are chosen on the copies (the judge would
     /// otherwise favour any view an average agrees with). `None`: copies only.
     pub fuse: Option<FuseParams>,
+    /// Each view's own occluders found before the fill ([`own_occluders`]) and never
+    /// copied with certainty, when the caller gives none of its own
+    /// ([`FillExtras::occluders`]). `None`: views are judged only by the occlusion model.
+    pub own: Option<OwnParams>,
 }
 
 impl Default for FillParams {
@@ -313,6 +321,7 @@ impl Default for FillParams {
             select_budget: 4_000_000,
             local_shift: Some(ShiftParams::default()),
             fuse: Some(FuseParams::default()),
+            own: Some(OwnParams::default()),
         }
     }
 }
@@ -465,6 +474,21 @@ pub fn fill_with<P: RgbPixel>(
         return unfinished(surface, report);
     }
     let parts = regions(mask, params.margin(), params.ring_gap, params.ring_width);
+    // Each view's own occluders, where the caller found none by other means. Not with
+    // surfaces off the wall: a slab seen through the wall's homography disagrees like an
+    // occluder, and its marks took the pixels the surfaces fill from (the swept fill and
+    // its judgement were measured without them).
+    let own: Vec<Option<Mask>> = match &params.own {
+        Some(p)
+            if extras.occluders.is_empty() && extras.planes.is_empty() && sources.len() >= p.min_views =>
+        {
+            observer.stage(Stage::Own);
+            own_occluders(key, mask, sources, p, &AutoMaskParams::default())
+        }
+        _ => Vec::new(),
+    };
+    let own_refs: Vec<Option<&Mask>> = own.iter().map(Option::as_ref).collect();
+    let occluders: &[Option<&Mask>] = if own.is_empty() { extras.occluders } else { &own_refs };
 
     // Warp: every view over every region's needed pixels.
     observer.stage(Stage::Warp);
@@ -481,7 +505,7 @@ pub fn fill_with<P: RgbPixel>(
                 sources
                     .par_iter()
                     .enumerate()
-                    .map(|(v, s)| local_shift(&band, s, extras.occluders.get(v).copied().flatten(), p))
+                    .map(|(v, s)| local_shift(&band, s, occluders.get(v).copied().flatten(), p))
                     .collect()
             }
             None => vec![None; nv],
@@ -507,7 +531,7 @@ pub fn fill_with<P: RgbPixel>(
             .par_iter()
             .zip(hs.par_iter())
             .enumerate()
-            .map(|(v, (wv, hv))| mark_levels(wv, hv, extras.occluders.get(v).copied().flatten()))
+            .map(|(v, (wv, hv))| mark_levels(wv, hv, occluders.get(v).copied().flatten()))
             .collect();
         lifted.push(exclude_marked(&mut ws, &levels, key, mask));
         for (v, wv) in ws.iter().enumerate() {
@@ -532,7 +556,7 @@ pub fn fill_with<P: RgbPixel>(
                             hp.map(|hp| {
                                 let mut wv =
                                     warp(s.image, &hp, part.rect, Some(&part.need), params.interpolation);
-                                exclude(&mut wv, &hp, extras.occluders.get(v).copied().flatten());
+                                exclude(&mut wv, &hp, occluders.get(v).copied().flatten());
                                 wv
                             })
                         })
@@ -551,7 +575,7 @@ pub fn fill_with<P: RgbPixel>(
     if params.photometric {
         for v in 0..nv {
             if params.tone {
-                let occluders = extras.occluders.get(v).copied().flatten();
+                let occluders = occluders.get(v).copied().flatten();
                 let overlap = overlap_pairs(key, mask, &sources[v], occluders);
                 let fit = fit_tone(&overlap, &params.tone_params);
                 if let Some(curve) = fit.curve {

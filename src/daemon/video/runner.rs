@@ -630,11 +630,17 @@ fn detail_along(px: &Rgb8, motion: [f32; 2], r: usize) -> crate::imaging::Plane<
 /// The frames are averaged into the copies as elsewhere (`FillParams::fuse`): on the walks
 /// of seeds 13–20 the mean went 34.61 → 34.79 dB, four cases gained 0.37–0.85 dB, none
 /// lost 0.3 (BENCHMARKS.md, "Averaging the views").
+///
+/// The fill does not look for the frames' own occluders itself (`FillParams::own`): the
+/// runner marks them, against more frames and with what came after
+/// ([`Runner::own_occluders`]), and the fill's own judgement runs only where a caller has
+/// none.
 fn walk_params(mut params: SessionParams) -> SessionParams {
     let fill = &mut params.fill;
     fill.occlusion_model.sure = fill.occlusion_model.cut;
     fill.select_views = false;
     fill.local_shift = None;
+    fill.own = None;
     params
 }
 
@@ -798,11 +804,13 @@ mod tests {
         assert_eq!(model.sure, model.cut, "a pixel every frame doubts is not copied");
         assert!(!fill.select_views, "a walk's fill chooses no frames");
         assert!(fill.local_shift.is_none(), "a walk's frames are not moved around the hole");
+        assert!(fill.own.is_none(), "the runner marks the frames' own occluders, not the fill");
         // The rest is the service's: the fallback's guide among it.
         let mut back = walk.clone();
         back.fill.occlusion_model.sure = base.fill.occlusion_model.sure;
         back.fill.select_views = base.fill.select_views;
         back.fill.local_shift = base.fill.local_shift.clone();
+        back.fill.own = base.fill.own.clone();
         assert_eq!(back, base);
     }
 
