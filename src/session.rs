@@ -806,7 +806,11 @@ impl Session {
             (Some(_), Some(rival)) => {
                 filled.report.witnessed_quality >= rival - self.params.fill.select_margin
             }
-            (Some(b), None) => score >= b - 1e-9,
+            // A near tie goes to the new fill here too: the marks of the views' own
+            // occluders, found again with each view, move the mean confidence a little
+            // either way (a fourth view after a restart: 0.6056 against 0.6091, its fill
+            // 0.19 dB closer to the truth).
+            (Some(b), None) => score >= b - self.params.fill.select_margin,
         };
         let mut confidence = Confidence::new(key.rgb.width(), key.rgb.height(), 0);
         confidence.paste(&filled.confidence, region);
