@@ -835,6 +835,9 @@ pub fn own_occluders<P: RgbPixel>(
         })
         .collect();
     let kept: Vec<usize> = (0..sources.len()).filter(|&v| cut[v].is_some()).collect();
+    if kept.len() < params.min_views.max(1) {
+        return Vec::new();
+    }
     let inner: Vec<Source<'_, P>> = kept
         .iter()
         .map(|&v| {
@@ -842,10 +845,7 @@ pub fn own_occluders<P: RgbPixel>(
             Source { image: img, homography: *h }
         })
         .collect();
-    let found = own_occluders_in(&key_c, &mask_c, &inner, params, auto);
-    if found.is_empty() {
-        return Vec::new();
-    }
+    let found = judge_views(&key_c, &mask_c, &inner, params, auto);
     let mut out: Vec<Option<Mask>> = vec![None; sources.len()];
     for (k, &v) in kept.iter().enumerate() {
         let Some(m) = &found[k] else { continue };
@@ -862,17 +862,15 @@ pub fn own_occluders<P: RgbPixel>(
     out
 }
 
-/// [`own_occluders`] over images already cut to the region judged.
-fn own_occluders_in<P: RgbPixel>(
+/// [`own_occluders`] of `cut_sources`, views already cut to the region judged (`key` and
+/// `mask` are), one mark per view.
+fn judge_views<P: RgbPixel>(
     key: &RgbF32,
     mask: &Mask,
-    sources: &[Source<'_, P>],
+    cut_sources: &[Source<'_, P>],
     params: &OwnParams,
     auto: &AutoMaskParams,
 ) -> Vec<Option<Mask>> {
-    if sources.len() < params.min_views.max(1) {
-        return Vec::new();
-    }
     let factor = |w: usize, h: usize| {
         ((w * h) as f64 / params.work_pixels.max(1) as f64).sqrt().ceil().max(1.0) as usize
     };
@@ -889,7 +887,7 @@ fn own_occluders_in<P: RgbPixel>(
             .any(|yy| (x * fk..((x + 1) * fk).min(mask.width())).any(|xx| mask.is_hole(xx, yy)));
         if any { 255 } else { 0 }
     });
-    let views: Vec<(RgbF32, usize, Homography)> = sources
+    let views: Vec<(RgbF32, usize, Homography)> = cut_sources
         .par_iter()
         .map(|s| {
             let fv = factor(s.image.width(), s.image.height());
@@ -917,7 +915,7 @@ fn own_occluders_in<P: RgbPixel>(
     let mut auto = auto.clone();
     auto.parallax_radius = params.parallax_radius;
     auto.min_views = auto.min_views.min(params.references + 1);
-    (0..sources.len())
+    (0..cut_sources.len())
         .into_par_iter()
         .map(|i| {
             let (img, fv, h) = &views[i];
@@ -929,7 +927,7 @@ fn own_occluders_in<P: RgbPixel>(
                 known.push(unlike[j].as_ref());
             }
             let found = auto_mask_excluding(img, &refs, &known, &auto).mask;
-            let (w, h) = (sources[i].image.width(), sources[i].image.height());
+            let (w, h) = (cut_sources[i].image.width(), cut_sources[i].image.height());
             let (rw, rh) = (found.width(), found.height());
             Some(Mask::from_fn(w, h, |x, y| {
                 if found.get((x / fv).min(rw - 1), (y / fv).min(rh - 1)) > 127 { params.mark } else { 0 }
