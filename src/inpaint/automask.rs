@@ -175,16 +175,10 @@ fn auto_mask_excluding<P: RgbPixel>(
     if sources.len() < params.min_views.max(1) || w == 0 || h == 0 {
         return empty();
     }
-    let f = ((w * h) as f64 / params.work_pixels.max(1) as f64).sqrt().ceil().max(1.0) as usize;
+    let f = work_factor(w, h, params.work_pixels);
     let key_r = reduce(key, f);
     let (rw, rh) = (key_r.width(), key_r.height());
-    // x_full = f·x_reduced + (f − 1)/2 on both sides.
-    let to_full = Homography::from_rows([
-        [f as f64, 0.0, (f as f64 - 1.0) / 2.0],
-        [0.0, f as f64, (f as f64 - 1.0) / 2.0],
-        [0.0, 0.0, 1.0],
-    ])
-    .expect("scaling is regular");
+    let to_full = reduced_to_full(f);
     let from_full = to_full.inverse().expect("scaling is regular");
     let warped: Vec<(RgbF32, Plane<bool>)> = sources
         .iter()
@@ -871,15 +865,8 @@ fn judge_views<P: RgbPixel>(
     params: &OwnParams,
     auto: &AutoMaskParams,
 ) -> Vec<Option<Mask>> {
-    let factor = |w: usize, h: usize| {
-        ((w * h) as f64 / params.work_pixels.max(1) as f64).sqrt().ceil().max(1.0) as usize
-    };
-    // Reduced pixel → full pixel, for a factor f.
-    let to_full = |f: usize| {
-        let f = f as f64;
-        Homography::from_rows([[f, 0.0, (f - 1.0) / 2.0], [0.0, f, (f - 1.0) / 2.0], [0.0, 0.0, 1.0]])
-            .expect("scaling is regular")
-    };
+    let factor = |w: usize, h: usize| work_factor(w, h, params.work_pixels);
+    let to_full = reduced_to_full;
     let fk = factor(key.width(), key.height());
     let key_r = reduce(key, fk);
     let mask_r = Mask::from_fn(key_r.width(), key_r.height(), |x, y| {
@@ -998,6 +985,19 @@ fn references(
         chosen.push(j);
     }
     chosen
+}
+
+/// The factor [`reduce`] brings a `w × h` image down by to at most `work_pixels` pixels.
+fn work_factor(w: usize, h: usize, work_pixels: usize) -> usize {
+    ((w * h) as f64 / work_pixels.max(1) as f64).sqrt().ceil().max(1.0) as usize
+}
+
+/// Reduced pixel → full pixel for [`reduce`] by `f`: x_full = f·x_reduced + (f − 1)/2 on
+/// both axes.
+fn reduced_to_full(f: usize) -> Homography {
+    let f = f as f64;
+    Homography::from_rows([[f, 0.0, (f - 1.0) / 2.0], [0.0, f, (f - 1.0) / 2.0], [0.0, 0.0, 1.0]])
+        .expect("scaling is regular")
 }
 
 /// Box average of `f × f` blocks (the last ones partial).
