@@ -495,6 +495,27 @@ fn a_fill_cancelled_while_averaging_returns_nothing_of_it() {
 }
 
 #[test]
+fn a_fill_cancelled_while_marking_the_views_occluders_goes_no_further() {
+    use clearview::inpaint::{Observer, Stage};
+    // The views' own occluders take seconds on many views: a stop asked for then is heard
+    // before the views are warped.
+    struct StopAt(Vec<Stage>);
+    impl Observer for StopAt {
+        fn stage(&mut self, stage: Stage) {
+            self.0.push(stage);
+        }
+        fn cancelled(&self) -> bool {
+            self.0.contains(&Stage::Own)
+        }
+    }
+    let s = scene(3);
+    let mut stop = StopAt(Vec::new());
+    let out = fill(&s.key, &s.mask, &s.sources(), &FillParams::default(), 1, &mut stop);
+    assert_eq!(stop.0, vec![Stage::Own], "stages after the stop was asked for");
+    assert!(out.image == s.key, "a cancelled fill returned an image of its own");
+}
+
+#[test]
 fn views_that_share_their_error_are_not_averaged() {
     // Every view a blurred rendering of the facade: their errors around the hole are the
     // same blur, and an average of them would only be as blurred as each.

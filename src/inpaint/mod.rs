@@ -487,6 +487,9 @@ pub fn fill_with<P: RgbPixel>(
         }
         _ => Vec::new(),
     };
+    if observer.cancelled() {
+        return unfinished(surface, report);
+    }
     let own_refs: Vec<Option<&Mask>> = own.iter().map(Option::as_ref).collect();
     let occluders: &[Option<&Mask>] = if own.is_empty() { extras.occluders } else { &own_refs };
 
