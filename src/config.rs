@@ -111,6 +111,7 @@ pub struct RawSession {
     pub margin_px: usize,
     pub auto_mask_views: usize,
     pub seed: u64,
+    pub planes: bool,
 }
 
 impl Default for RawSession {
@@ -126,6 +127,7 @@ impl Default for RawSession {
             margin_px: p.margin_px,
             auto_mask_views: 2,
             seed: p.seed,
+            planes: p.sweep.is_some(),
         }
     }
 }
@@ -573,6 +575,7 @@ impl RawConfig {
             witnesses: s.witnesses,
             margin_px: s.margin_px,
             seed: s.seed,
+            sweep: s.planes.then(crate::inpaint::parallax::SweepParams::default),
             ..crate::session::SessionParams::default()
         };
         let c = self.compute;

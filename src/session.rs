@@ -47,6 +47,7 @@ use crate::align::{AlignParams, Alignment, Frame, align};
 use crate::geometry::Homography;
 use crate::imaging::convert::luminance;
 use crate::imaging::{GrayF32, Mask, Rect, RgbF32, RgbPixel};
+use crate::inpaint::parallax::{SurfacePlane, SweepParams, ViewMatches};
 use crate::inpaint::region::{footprint, into_crop};
 use crate::inpaint::{
     self, AutoMaskParams, CONFIDENT, Confidence, FALLBACK, FillParams, FillReport, Observer, Provenance,
@@ -92,6 +93,10 @@ pub struct SessionParams {
     pub retries: usize,
     pub align: AlignParams,
     pub fill: FillParams,
+    /// The surfaces off the wall swept around the mask before each fill, and the fill made
+    /// through them where the views back it better than the walls' alone
+    /// ([`inpaint::fill_swept`], as `clearview fill` does). `None`: the walls' fill only.
+    pub sweep: Option<SweepParams>,
     pub auto_mask: AutoMaskParams,
 }
 
@@ -106,6 +111,7 @@ impl Default for SessionParams {
             retries: 2,
             align: AlignParams::default(),
             fill: FillParams::default(),
+            sweep: Some(SweepParams::default()),
             auto_mask: AutoMaskParams::default(),
         }
     }
@@ -175,6 +181,9 @@ struct Crop {
     /// Crop-sized: the view's own pixels known to show an occluder (never copied; see
     /// [`Session::set_view_occluders`]).
     occluders: Option<Mask>,
+    /// What the sweep for surfaces off the wall matched in the crop, kept for the next
+    /// fills (it depends on the keyframe and the mask, which keep the crop too).
+    sweep: ViewMatches,
 }
 
 /// One buffered view.
@@ -499,6 +508,7 @@ impl Session {
                     homography: into_crop(&homography, &rect),
                     rect,
                     occluders: None,
+                    sweep: ViewMatches::default(),
                 });
             }
         }
@@ -709,6 +719,8 @@ impl Session {
             h.write(marks.as_slice());
         }
         h.write(&self.params.seed.to_le_bytes());
+        // Whether the surfaces off the wall are swept: the same views make another fill.
+        h.write(if self.params.sweep.is_some() { b"swept" } else { b"walls" });
         h.write(SCORE_RULE);
         h.finish()
     }
@@ -775,16 +787,44 @@ impl Session {
             occluders,
             ..inpaint::FillExtras::default()
         };
-        let filled = inpaint::fill_with(
+        // The surfaces are swept on the whole keyframe, as `clearview fill` sweeps them (the
+        // views' crops are what both hold of the views), and taken into the part.
+        // Each view's matches are kept in its crop: a fill with one more view matches only
+        // that one.
+        let mut memo: Vec<ViewMatches> =
+            used.iter().map(|&i| self.buffer[i].crop.as_ref().expect("filtered").sweep.clone()).collect();
+        let planes: Vec<SurfacePlane> = match &self.params.sweep {
+            Some(sweep) => {
+                let whole: Vec<Source<'_, [u8; 3]>> = used
+                    .iter()
+                    .map(|&i| {
+                        let crop = self.buffer[i].crop.as_ref().expect("filtered");
+                        Source { image: &crop.image, homography: crop.homography }
+                    })
+                    .collect();
+                let (seed, mask) = (self.params.seed, &mask.mask);
+                let found = inpaint::sweep_surfaces(&key.rgb, mask, &whole, sweep, seed, &mut memo, observer);
+                found.iter().map(|p| p.in_part(region)).collect()
+            }
+            None => Vec::new(),
+        };
+        let filled = inpaint::fill_swept(
             &key_region,
             &mask_region,
             &sources,
             &extras,
             &self.params.fill,
+            planes,
             self.params.seed,
             observer,
-        );
+        )
+        .filled;
         drop(sources);
+        for (&i, m) in used.iter().zip(memo) {
+            if let Some(c) = self.buffer[i].crop.as_mut() {
+                c.sweep = m;
+            }
+        }
         if observer.cancelled() {
             // Unfinished: thrown away, and the session still wants its fill.
             self.dirty = true;

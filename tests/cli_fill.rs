@@ -198,14 +198,15 @@ fn slab_scene(flat: bool) -> Scene {
     write_scene(&c.key, &c.mask, c.truth, &c.views)
 }
 
-/// `clearview fill` with and without `--planes`: the result, the report, stdout.
+/// `clearview fill` with `--no-planes` and as it runs by default: the result, the report,
+/// stdout.
 fn with_and_without_planes(s: &Scene) -> [(RgbF32, serde_json::Value, String); 2] {
     [false, true].map(|planes| {
         let name = if planes { "planes" } else { "wall" };
         let (out, report) = (s.path(&format!("{name}.png")), s.path(&format!("{name}.json")));
         let mut a = args(s, &out, &report);
-        if planes {
-            a.insert(0, "--planes".into());
+        if !planes {
+            a.insert(0, "--no-planes".into());
         }
         let o = fill(a);
         assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
@@ -214,11 +215,12 @@ fn with_and_without_planes(s: &Scene) -> [(RgbF32, serde_json::Value, String); 2
     })
 }
 
-/// `--planes` says what it did: the report lists the surfaces off the wall the sweep found,
-/// whether the result was filled through them and the masked pixels each filled, and the
-/// summary tells it. On a facade with slabs they fill part of the mask and the result is
-/// closer to the truth than the wall's homography alone; on the same facade without slabs
-/// nothing is found and no pixel changes. Without `--planes` the report has no `planes`.
+/// The sweep for surfaces off the wall is on by default and says what it did: the report
+/// lists the surfaces the sweep found, whether the result was filled through them and the
+/// masked pixels each filled, and the summary tells it. On a facade with slabs they fill
+/// part of the mask and the result is closer to the truth than the wall's homography alone;
+/// on the same facade without slabs nothing is found and no pixel changes. With
+/// `--no-planes` the report has no `planes`.
 #[test]
 fn planes_reports_the_surfaces_it_filled_through() {
     let s = slab_scene(false);
@@ -236,13 +238,13 @@ fn planes_reports_the_surfaces_it_filled_through() {
     }
     assert!(stdout.contains(&format!("{filled} masked pixels filled through")), "{stdout}");
     let (a, b) = (masked_psnr(&wall, &s.truth, &s.mask), masked_psnr(&swept, &s.truth, &s.mask));
-    assert!(b > a + 1.5, "--planes {b:.2} dB vs the wall alone {a:.2} dB");
+    assert!(b > a + 1.5, "swept {b:.2} dB vs the wall alone {a:.2} dB");
 
     let [(plain, _, _), (same, report, stdout)] = with_and_without_planes(&slab_scene(true));
     assert_eq!(report["planes"]["surfaces"].as_array().map(Vec::len), Some(0), "{report}");
     assert_eq!(report["planes"]["used"], false, "{report}");
     assert!(stdout.contains("no surface off the wall found"), "{stdout}");
-    assert!(plain == same, "--planes changed pixels on a flat wall");
+    assert!(plain == same, "the sweep changed pixels on a flat wall");
 }
 
 /// `service_cases`' nonplanar-5: a pier stands off the wall, and the sweep finds it in

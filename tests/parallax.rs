@@ -136,3 +136,42 @@ fn the_sweep_finds_slabs_where_there_are_some_and_nothing_on_a_flat_wall() {
     );
     assert!(none.is_empty(), "{} surfaces on a flat wall", none.len());
 }
+
+/// The service sweeps as `clearview fill` does: a session fed a facade with slabs view by
+/// view (the camera uploading) and all at once (a batch) ends filled through the surfaces,
+/// well above the same session with the sweep off (`SessionParams::sweep`), and one by one
+/// within the issues' 0.5 dB of all at once. `tests/cli_fill.rs` checks the command on the
+/// same scene.
+#[test]
+fn a_session_fills_through_the_surfaces_view_by_view_as_the_command_does() {
+    use clearview::imaging::convert::luminance;
+    use clearview::session::{Session, SessionParams};
+
+    let c = parallax_case(640, 480, 3, 13, false);
+    let run = |sweep: bool, batches: &[usize]| {
+        let params = SessionParams { sweep: sweep.then(Default::default), ..SessionParams::default() };
+        let mut s = Session::new(params);
+        s.set_key("key".into(), c.key.clone());
+        s.set_mask("mask".into(), c.mask.clone()).unwrap();
+        let mut views = c.views.iter().enumerate();
+        let mut last = None;
+        for &n in batches {
+            for (i, v) in views.by_ref().take(n) {
+                let record = s.align(luminance(v)).unwrap();
+                assert!(record.accepted, "view {i} refused: {:?}", record.reason);
+                let pixels = v.map(|p| p.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8));
+                s.admit(format!("view{i}"), record, Some(&pixels)).unwrap();
+            }
+            s.request_fill();
+            if let Some(image) = s.fill(&mut ()).expect("a fill").image {
+                last = Some(masked_psnr(&image, &c.truth, &c.mask));
+            }
+        }
+        last.expect("a published result")
+    };
+    let walls = run(false, &[3]);
+    let (all, one_by_one) = (run(true, &[3]), run(true, &[1, 1, 1]));
+    eprintln!("walls only {walls:.2} dB; swept, all at once {all:.2} dB, one by one {one_by_one:.2} dB");
+    assert!(all > walls + 1.5, "swept {all:.2} dB against the walls' {walls:.2} dB");
+    assert!(one_by_one >= all - 0.5, "one by one {one_by_one:.2} dB against all at once {all:.2} dB");
+}

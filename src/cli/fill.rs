@@ -17,15 +17,16 @@ use super::load::{LoadError, load_image, load_photo};
 use super::save::{output_format, result_format, save_image, save_result};
 use crate::align::{AlignParams, Frame, align};
 use crate::geometry::{Homography, Rows};
-use crate::imaging::convert::{crop_rgb8, luminance, mask_to_luma8, to_luminance, to_mask, to_rgb};
+use crate::imaging::convert::{crop_rgb8, mask_to_luma8, to_luminance, to_mask, to_rgb};
 use crate::imaging::decode::DecodeLimits;
 use crate::imaging::encode::{EncodeOptions, OutputSpace};
 use crate::imaging::meta::{Metadata, Provenance};
-use crate::imaging::{GrayF32, Mask, Rect, Rgb8, RgbF32};
-use crate::inpaint::parallax::{SurfacePlane, SweepParams, swept_planes};
+use crate::imaging::{Mask, Rect, Rgb8, RgbF32};
+use crate::inpaint::parallax::{SurfacePlane, SweepParams, ViewMatches};
 use crate::inpaint::region::{footprint, into_crop};
 use crate::inpaint::{
-    AutoMaskParams, FillExtras, FillParams, Filled, Observer, Source, Stage, auto_mask_report, fill_with,
+    AutoMaskParams, FillExtras, FillParams, Observer, Source, Stage, Swept, auto_mask_report, fill_swept,
+    sweep_surfaces,
 };
 
 /// Views decoded and aligned at the same time. JPEG decoding is sequential, so with two in
@@ -76,11 +77,15 @@ pub struct FillArgs {
     /// Seed for every random choice.
     #[arg(long, default_value_t = crate::DEFAULT_SEED)]
     pub seed: u64,
-    /// Also sweep the surfaces standing off the wall (balconies, pilasters, signs) and fill
-    /// each masked pixel through the one the views agree on, where the views back that fill
-    /// better than the walls' alone. Off by default: it costs seconds where it finds
-    /// surfaces, and on generated facades it still loses on some (BENCHMARKS.md, "Parallax").
+    /// Fill through each view's wall alone: do not sweep for the surfaces standing off the
+    /// wall (balconies, pilasters, signs). By default they are swept, and each masked pixel
+    /// is filled through the one the views agree on wherever the views back that fill better
+    /// than the walls' alone; where the sweep finds surfaces that costs seconds
+    /// (BENCHMARKS.md, "Parallax").
     #[arg(long)]
+    pub no_planes: bool,
+    /// The default; kept so that commands written when the sweep was opt-in still run.
+    #[arg(long, hide = true, conflicts_with = "no_planes")]
     pub planes: bool,
     /// Other photographs of the scene.
     #[arg(required = true)]
@@ -152,8 +157,8 @@ struct Report<'a> {
     /// With `--mask auto`: what was found and how sure it is.
     #[serde(skip_serializing_if = "Option::is_none")]
     auto_mask: Option<AutoMaskSummary>,
-    /// With `--planes`: the surfaces off the wall the sweep found, whether the result was
-    /// filled through them, and what each filled.
+    /// Unless `--no-planes`: the surfaces off the wall the sweep found, whether the result
+    /// was filled through them, and what each filled.
     #[serde(skip_serializing_if = "Option::is_none")]
     planes: Option<PlanesReport>,
     views: Vec<ViewReport>,
@@ -174,7 +179,7 @@ struct AutoMaskSummary {
     share_judged: f64,
 }
 
-/// What `--planes` found and did.
+/// What the sweep for surfaces off the wall found and did.
 #[derive(Debug, Serialize)]
 struct PlanesReport {
     /// The surfaces off the wall the sweep found (empty: none).
@@ -184,7 +189,7 @@ struct PlanesReport {
     used: bool,
 }
 
-/// A surface off the wall that `--planes` found.
+/// A surface off the wall that the sweep found.
 #[derive(Debug, Serialize)]
 struct SurfaceReport {
     /// The keyframe rectangle it may be chosen in: x, y, width, height.
@@ -273,59 +278,6 @@ struct Aligned {
     crop: Rgb8,
     homography: Homography,
     report: usize,
-}
-
-/// The surfaces off the wall around the mask, swept from the aligned views (`--planes`).
-fn swept(
-    key: &RgbF32,
-    aligned: &[Aligned],
-    mask: &Mask,
-    seed: u64,
-    progress: &mut Progress,
-) -> Vec<SurfacePlane> {
-    progress.begin("plane sweep", 0);
-    let key_gray = luminance(key);
-    let grays: Vec<GrayF32> =
-        aligned.iter().map(|a| luminance(&a.crop.map(|p| p.map(|c| f32::from(c) / 255.0)))).collect();
-    let refs: Vec<&GrayF32> = grays.iter().collect();
-    let walls: Vec<Homography> = aligned.iter().map(|a| a.homography).collect();
-    swept_planes(&key_gray, &refs, &walls, mask, &SweepParams::default(), seed)
-}
-
-/// The fill through the surfaces (`through`) or the fill through the walls alone,
-/// whichever the views back better, and whether it is the first.
-///
-/// Each fill is judged by the views ([`crate::inpaint::Filled::rival_quality`]: the share
-/// of the mask the views that show the building back) twice: the views warped through their
-/// walls' homographies, and through the surfaces. Each fill agrees best with the evidence it
-/// was made from, so neither judgement alone can tell; the surfaces are kept when their
-/// fill gains more under the surfaces' evidence than it loses under the walls'. A surface
-/// that is there lines the views up and gains much; one that is not (a label carried into
-/// the wall where a view it lacks shows an occluder, a repeat of texture) gains little and
-/// loses where it moved the wall's lines (BENCHMARKS.md, "Parallax").
-fn planes_or_wall(
-    key: &RgbF32,
-    mask: &Mask,
-    sources: &[Source<'_, [u8; 3]>],
-    planes: &[SurfacePlane],
-    through: Filled,
-    params: &FillParams,
-    seed: u64,
-) -> (Filled, bool) {
-    // The walls' fill is the one without `--planes`, the views' own occluders marked.
-    let wall = fill_with(key, mask, sources, &FillExtras::default(), params, seed, &mut ());
-    // Only the rival's judgement is wanted of these: one composition, no averaging, and,
-    // as through the surfaces (`fill_with` marks no view's occluders there), no marks.
-    let judging = FillParams { select_views: false, fuse: None, own: None, ..params.clone() };
-    let judged = |rival: &Filled, planes: &[SurfacePlane]| {
-        let extras = FillExtras { planes, rival: Some(&rival.judged_image()), ..FillExtras::default() };
-        fill_with(key, mask, sources, &extras, &judging, seed, &mut ()).rival_quality.unwrap_or(0.0)
-    };
-    let (through_by_walls, wall_by_planes) = (judged(&through, &[]), judged(&wall, planes));
-    let gain = (through.report.witnessed_quality - wall_by_planes)
-        + (through_by_walls - wall.report.witnessed_quality);
-    tracing::debug!(gain, "surfaces judged against the walls");
-    if gain > 0.0 { (through, true) } else { (wall, false) }
 }
 
 pub fn run(args: &FillArgs) -> u8 {
@@ -443,17 +395,32 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
             (found.mask, Some(summary))
         }
     };
-    let planes =
-        if args.planes { swept(&key_rgb, &aligned, &mask, args.seed, &mut progress) } else { Vec::new() };
-    let extras = FillExtras { planes: &planes, ..FillExtras::default() };
+    let sweep = !args.no_planes;
     let params = FillParams::default();
-    let filled = fill_with(&key_rgb, &mask, &sources, &extras, &params, args.seed, &mut progress);
-    let (filled, planes_used) = if planes.is_empty() {
-        (filled, false)
+    let planes = if sweep {
+        let mut memo = vec![ViewMatches::default(); sources.len()];
+        sweep_surfaces(
+            &key_rgb,
+            &mask,
+            &sources,
+            &SweepParams::default(),
+            args.seed,
+            &mut memo,
+            &mut progress,
+        )
     } else {
-        progress.begin("judge planes", 0);
-        planes_or_wall(&key_rgb, &mask, &sources, &planes, filled, &params, args.seed)
+        Vec::new()
     };
+    let Swept { filled, planes, used: planes_used } = fill_swept(
+        &key_rgb,
+        &mask,
+        &sources,
+        &FillExtras::default(),
+        &params,
+        planes,
+        args.seed,
+        &mut progress,
+    );
     for (a, s) in aligned.iter().zip(&filled.report.sources) {
         let r = &mut reports[a.report];
         r.covered_pixels = s.covered;
@@ -501,7 +468,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         share_doubtful: fr.doubtful_share(),
         expected_quality: fr.expected_quality(),
         auto_mask: auto,
-        planes: args.planes.then(|| PlanesReport {
+        planes: sweep.then(|| PlanesReport {
             surfaces: SurfaceReport::of(&planes, filled.surface.as_slice(), &mask),
             used: planes_used,
         }),

@@ -16,6 +16,7 @@ pub mod parallax;
 pub mod priority;
 pub mod region;
 pub mod shift;
+pub mod swept;
 
 use rayon::prelude::*;
 
@@ -33,6 +34,7 @@ use shift::{Shift, ShiftBand, ShiftParams, local_shift};
 
 pub use automask::{AutoMask, AutoMaskParams, OwnParams, auto_mask, auto_mask_report, own_occluders};
 pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_guided, exemplar_fill_until};
+pub use swept::{Swept, fill_swept, sweep_surfaces};
 
 /// Where each pixel of a result came from: [`KEYFRAME`] outside the mask, [`FALLBACK`]
 /// for the single-image fallback, otherwise `1 + i` for `sources[i]`.
@@ -78,6 +80,11 @@ pub struct Source<'a, P: RgbPixel = [f32; 3]> {
 /// The stages of [`fill`], in the order they run (for timings and progress).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Stage {
+    /// The surfaces off the wall swept from the views ([`swept::sweep_surfaces`]).
+    Sweep,
+    /// The fill through the surfaces judged against the walls' ([`swept::fill_swept`]: the
+    /// walls' fill and two judging fills).
+    Judge,
     /// Each view's own occluders, judged against the keyframe and the other views
     /// ([`FillParams::own`]).
     Own,
@@ -97,6 +104,8 @@ pub enum Stage {
 impl Stage {
     pub fn name(self) -> &'static str {
         match self {
+            Self::Sweep => "plane sweep",
+            Self::Judge => "judge planes",
             Self::Own => "own occluders",
             Self::Warp => "warp",
             Self::Photometric => "photometric",

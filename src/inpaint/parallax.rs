@@ -42,6 +42,26 @@ pub struct SurfacePlane {
     pub region: Rect,
 }
 
+impl SurfacePlane {
+    /// The same surface for the part `part` of the keyframe, in the part's coordinates (the
+    /// service fills the mask's neighbourhood only); its region is empty where it lies
+    /// outside the part.
+    pub fn in_part(&self, part: Rect) -> Self {
+        let r = &self.region;
+        let clip = |a: usize, lo: usize, hi: usize| a.clamp(lo, hi) - lo;
+        let into_part = Homography::translation(part.x as f64, part.y as f64);
+        Self {
+            views: self.views.iter().map(|h| h.map(|h| h.after(&into_part))).collect(),
+            region: Rect::from_corners(
+                clip(r.x, part.x, part.x1()),
+                clip(r.y, part.y, part.y1()),
+                clip(r.x1(), part.x, part.x1()),
+                clip(r.y1(), part.y, part.y1()),
+            ),
+        }
+    }
+}
+
 /// Parameters of [`surface_planes`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct SurfaceParams {
@@ -474,6 +494,42 @@ pub fn swept_planes(
     }
     let Some((own, g)) = parallax_family(key, views, walls, mask, params, seed) else { return Vec::new() };
     sweep_family(key, views, mask, params, &own, &g.matches, &g.t, false)
+}
+
+/// [`swept_planes`] with each view's guided matches kept in `memo` (one entry per view,
+/// in order) and taken from it where they are there: the same keyframe, mask and view give
+/// the same matches, so a session that fills again with one more view matches only that
+/// one. `view(v)` gives view `v`'s luminance, asked for only where its matches are not in
+/// `memo` and, for every view, once the views show parallax (the sweep itself). The
+/// caller clears an entry whose keyframe, mask or view changed.
+#[allow(clippy::too_many_arguments)]
+pub fn swept_planes_memo(
+    key: &GrayF32,
+    view: &(dyn Fn(usize) -> GrayF32 + Sync),
+    walls: &[Homography],
+    mask: &Mask,
+    params: &SweepParams,
+    seed: u64,
+    memo: &mut [ViewMatches],
+) -> Vec<SurfacePlane> {
+    assert_eq!(memo.len(), walls.len(), "one memo entry per view");
+    if mask.hole_count() == 0 || walls.is_empty() {
+        return Vec::new();
+    }
+    let Some((own, g)) = family_memo(key, view, walls, mask, params, seed, memo) else { return Vec::new() };
+    let grays: Vec<GrayF32> = (0..walls.len()).into_par_iter().map(view).collect();
+    let views: Vec<&GrayF32> = grays.iter().collect();
+    sweep_family(key, &views, mask, params, &own, &g.matches, &g.t, false)
+}
+
+/// What the guided matching of [`parallax_family`] found for one view, kept between the
+/// fills of a session ([`swept_planes_memo`]).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ViewMatches {
+    /// The keyframe's corners matched in the view.
+    corners: Option<Vec<Correspondence>>,
+    /// The grid beside the mask matched in the view, once its corners gave it no epipole.
+    grid: Option<Vec<Correspondence>>,
 }
 
 /// The sweep of [`swept_planes`] over a given plane + parallax family (`own`, in the
@@ -1123,25 +1179,78 @@ pub fn parallax_family(
     params: &SweepParams,
     seed: u64,
 ) -> Option<(ParallaxFamily, Guided)> {
+    let mut memo = vec![ViewMatches::default(); views.len()];
+    family_memo(key, &|v| views[v].clone(), walls, mask, params, seed, &mut memo)
+}
+
+/// [`parallax_family`] with the views' matches taken from and kept in `memo`
+/// ([`swept_planes_memo`]).
+#[allow(clippy::too_many_arguments)]
+fn family_memo(
+    key: &GrayF32,
+    view: &(dyn Fn(usize) -> GrayF32 + Sync),
+    walls: &[Homography],
+    mask: &Mask,
+    params: &SweepParams,
+    seed: u64,
+    memo: &mut [ViewMatches],
+) -> Option<(ParallaxFamily, Guided)> {
     let m = Matcher::new(key, &params.matching);
-    let levels: Vec<ViewLevels> = views.iter().map(|v| m.levels_of(v)).collect();
-    let Guided { t, mut matches, walls: walls_m } = guided(&m, &levels, walls, mask, &params.matching);
+    let corners = m.corners(mask);
+    // Each view's levels, made once and only for a view whose matches are not kept.
+    let mut levels: Vec<Option<ViewLevels>> = (0..walls.len()).map(|_| None).collect();
+    let missing: Vec<usize> = (0..walls.len()).filter(|&v| memo[v].corners.is_none()).collect();
+    let made: Vec<(usize, ViewLevels, Vec<Correspondence>)> = missing
+        .par_iter()
+        .map(|&v| {
+            let l = m.levels_of(&view(v));
+            let found = m.matches(&l, &walls[v], &corners, &params.matching);
+            (v, l, found)
+        })
+        .collect();
+    for (v, l, found) in made {
+        levels[v] = Some(l);
+        memo[v].corners = Some(found);
+    }
+    let mut matches: Vec<Vec<Correspondence>> =
+        memo.iter().map(|e| e.corners.clone().expect("matched above")).collect();
+    let walls_m: Vec<Homography> = walls.iter().map(|h| m.wall(h)).collect();
     let first = fit_parallax(&matches, &walls_m, &params.epipoles, seed);
     let starved: Vec<usize> =
-        (0..views.len()).filter(|&v| first.as_ref().is_none_or(|f| f.epipoles[v].is_none())).collect();
+        (0..walls.len()).filter(|&v| first.as_ref().is_none_or(|f| f.epipoles[v].is_none())).collect();
     let family = if starved.is_empty() || params.dense_step == 0 {
         first?
     } else {
-        let grid = m.around_mask(
-            mask,
-            params.dense_step,
-            params.dense_reach,
-            params.dense_texture,
-            &params.matching,
-        );
         let strict = SurfaceParams { min_margin: params.dense_margin, ..params.matching.clone() };
+        let unmatched: Vec<usize> = starved.iter().copied().filter(|&v| memo[v].grid.is_none()).collect();
+        if !unmatched.is_empty() {
+            let grid = m.around_mask(
+                mask,
+                params.dense_step,
+                params.dense_reach,
+                params.dense_texture,
+                &params.matching,
+            );
+            let made: Vec<(usize, Vec<Correspondence>)> = unmatched
+                .par_iter()
+                .map(|&v| {
+                    let own;
+                    let l = match &levels[v] {
+                        Some(l) => l,
+                        None => {
+                            own = m.levels_of(&view(v));
+                            &own
+                        }
+                    };
+                    (v, m.matches(l, &walls[v], &grid, &strict))
+                })
+                .collect();
+            for (v, found) in made {
+                memo[v].grid = Some(found);
+            }
+        }
         for &v in &starved {
-            matches[v].extend(m.matches(&levels[v], &walls[v], &grid, &strict));
+            matches[v].extend(memo[v].grid.iter().flatten().copied());
         }
         let again = fit_parallax(&matches, &walls_m, &params.epipoles, seed);
         match (first, again) {
@@ -1158,7 +1267,7 @@ pub fn parallax_family(
             (None, again) => again?,
         }
     };
-    Some((family, Guided { t, matches, walls: walls_m }))
+    Some((family, Guided { t: m.t, matches, walls: walls_m }))
 }
 
 /// The keyframe's band around the mask that the sweep scores (sweep resolution).
@@ -2516,6 +2625,44 @@ mod tests {
             "a point on the faint side: {:?}",
             textured.iter().find(|p| p.x >= (100 + r) as f64)
         );
+    }
+
+    /// A session sweeps again with each new view; the views' matches kept from the last
+    /// sweep give the same surfaces, and a view already matched is not matched again: on a
+    /// flat wall (where the sweep stops after the matching) no view's image is asked for at
+    /// all, and with one view new only that one. With slabs every view is asked for once
+    /// more, for the sweep itself.
+    #[test]
+    fn matches_kept_from_the_last_sweep_give_the_same_surfaces_without_matching_again() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        let params = SweepParams::default();
+        for flat in [false, true] {
+            let c = crate::synth::facade::parallax_case(640, 480, 3, 3, flat);
+            let key = crate::imaging::convert::luminance(&c.key);
+            let grays: Vec<GrayF32> = c.views.iter().map(crate::imaging::convert::luminance).collect();
+            let walls = c.wall();
+            let asked: Vec<AtomicUsize> = (0..grays.len()).map(|_| AtomicUsize::new(0)).collect();
+            let view = |v: usize| {
+                asked[v].fetch_add(1, Ordering::Relaxed);
+                grays[v].clone()
+            };
+            let count = || asked.iter().map(|a| a.swap(0, Ordering::Relaxed)).collect::<Vec<_>>();
+            let refs: Vec<&GrayF32> = grays.iter().collect();
+            let plain = swept_planes(&key, &refs, &walls, &c.mask, &params, 1);
+            assert_eq!(plain.is_empty(), flat, "flat {flat}: {} surfaces", plain.len());
+            let mut memo = vec![ViewMatches::default(); grays.len()];
+            let first = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo);
+            assert_eq!(first, plain, "flat {flat}: the memo changed the surfaces");
+            let sweep = if flat { 0 } else { 1 };
+            assert_eq!(count(), vec![1 + sweep; 3], "flat {flat}: each view once, and once to sweep");
+            let again = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo);
+            assert_eq!(again, plain, "flat {flat}: the kept matches changed the surfaces");
+            assert_eq!(count(), vec![sweep; 3], "flat {flat}: matched again");
+            memo[1] = ViewMatches::default();
+            let new_view = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo);
+            assert_eq!(new_view, plain, "flat {flat}");
+            assert_eq!(count(), vec![sweep, 1 + sweep, sweep], "flat {flat}: only the new view is matched");
+        }
     }
 
     /// Parallax seed 3 (`synth::facade::parallax_case`, three views) at `w × h`, with the

@@ -635,12 +635,17 @@ fn detail_along(px: &Rgb8, motion: [f32; 2], r: usize) -> crate::imaging::Plane<
 /// runner marks them, against more frames and with what came after
 /// ([`Runner::own_occluders`]), and the fill's own judgement runs only where a caller has
 /// none.
+///
+/// Nor does it sweep the surfaces off the wall (`SessionParams::sweep`): a walk fills with
+/// up to the whole buffer of frames, each a view for the sweep to tie, and the sweep was
+/// neither measured on walks nor timed against a stream's pace.
 fn walk_params(mut params: SessionParams) -> SessionParams {
     let fill = &mut params.fill;
     fill.occlusion_model.sure = fill.occlusion_model.cut;
     fill.select_views = false;
     fill.local_shift = None;
     fill.own = None;
+    params.sweep = None;
     params
 }
 
@@ -805,8 +810,10 @@ mod tests {
         assert!(!fill.select_views, "a walk's fill chooses no frames");
         assert!(fill.local_shift.is_none(), "a walk's frames are not moved around the hole");
         assert!(fill.own.is_none(), "the runner marks the frames' own occluders, not the fill");
+        assert!(walk.sweep.is_none(), "a walk is not swept for surfaces off the wall");
         // The rest is the service's: the fallback's guide among it.
         let mut back = walk.clone();
+        back.sweep = base.sweep.clone();
         back.fill.occlusion_model.sure = base.fill.occlusion_model.sure;
         back.fill.select_views = base.fill.select_views;
         back.fill.local_shift = base.fill.local_shift.clone();

@@ -1,0 +1,120 @@
+//! The fill through the surfaces standing off the wall (issue 14), as `clearview fill` and
+//! the service both make it: the surfaces swept around the mask from the views
+//! ([`swept_planes`]); where there are any, the fill through them and the fill through the
+//! walls alone, each judged by the views both ways, and the one the views back better
+//! (pure layer).
+
+use super::parallax::{SurfacePlane, SweepParams, ViewMatches, swept_planes_memo};
+use super::{FillExtras, FillParams, Filled, Observer, Quiet, Source, Stage, fill_with};
+use crate::imaging::convert::{luma, luminance};
+use crate::imaging::{GrayF32, Mask, RgbF32, RgbPixel};
+
+/// A fill made by [`fill_swept`].
+#[derive(Debug, Clone)]
+pub struct Swept {
+    pub filled: Filled,
+    /// The surfaces off the wall the sweep found (empty: none, and `filled` is the walls').
+    pub planes: Vec<SurfacePlane>,
+    /// Whether `filled` was made through `planes` ([`Filled::surface`] says where).
+    pub used: bool,
+}
+
+/// The surfaces off the wall around the mask, swept from the views ([`swept_planes_memo`]),
+/// in the keyframe's coordinates (see [`SurfacePlane::in_part`] for a part of it). `memo`
+/// holds one entry per source: each view's guided matches, kept for the next sweep of the
+/// same keyframe and mask (a session's next fill matches only its new views); give fresh
+/// entries (`ViewMatches::default()`) for a view not swept before.
+pub fn sweep_surfaces<P: RgbPixel>(
+    key: &RgbF32,
+    mask: &Mask,
+    sources: &[Source<'_, P>],
+    params: &SweepParams,
+    seed: u64,
+    memo: &mut [ViewMatches],
+    observer: &mut dyn Observer,
+) -> Vec<SurfacePlane> {
+    if mask.hole_count() == 0 || sources.is_empty() {
+        return Vec::new();
+    }
+    observer.stage(Stage::Sweep);
+    let key_gray = luminance(key);
+    let view = |v: usize| {
+        let image = sources[v].image;
+        GrayF32::from_fn(image.width(), image.height(), |x, y| luma(image.get(x, y).to_f32()))
+    };
+    let walls: Vec<_> = sources.iter().map(|s| s.homography).collect();
+    swept_planes_memo(&key_gray, &view, &walls, mask, params, seed, memo)
+}
+
+/// [`fill_with`] through the surfaces off the wall `planes` ([`sweep_surfaces`]) where the
+/// views back that fill better than the walls' alone; without surfaces, the walls' fill
+/// itself (`extras.planes` must be empty: the surfaces are given here).
+///
+/// Each fill is judged by the views ([`Filled::rival_quality`]: the share of the mask the
+/// views that show the building back) twice: the views warped through their walls'
+/// homographies, and through the surfaces. Each fill agrees best with the evidence it was
+/// made from, so neither judgement alone can tell; the surfaces are kept when their fill
+/// gains more under the surfaces' evidence than it loses under the walls', by more than
+/// [`FillParams::select_margin`]. A surface that is there lines the views up and gains much;
+/// one that is not (a label carried into the wall where a view it lacks shows an occluder, a
+/// repeat of texture) gains little and loses where it moved the wall's lines (BENCHMARKS.md,
+/// "Parallax").
+///
+/// A cancelled fill returns what [`fill_with`] returns when cancelled.
+#[allow(clippy::too_many_arguments)]
+pub fn fill_swept<P: RgbPixel>(
+    key: &RgbF32,
+    mask: &Mask,
+    sources: &[Source<'_, P>],
+    extras: &FillExtras<'_>,
+    params: &FillParams,
+    planes: Vec<SurfacePlane>,
+    seed: u64,
+    observer: &mut dyn Observer,
+) -> Swept {
+    assert!(extras.planes.is_empty(), "the surfaces are given as `planes`");
+    if planes.is_empty() {
+        let filled = fill_with(key, mask, sources, extras, params, seed, observer);
+        return Swept { filled, planes, used: false };
+    }
+    let through =
+        fill_with(key, mask, sources, &FillExtras { planes: &planes, ..*extras }, params, seed, observer);
+    if observer.cancelled() {
+        return Swept { filled: through, planes, used: false };
+    }
+    observer.stage(Stage::Judge);
+    let quiet = &mut Quiet(&*observer);
+    // The walls' fill is the one made without the surfaces, the views' own occluders marked.
+    let wall = fill_with(key, mask, sources, extras, params, seed, quiet);
+    // Only the rival's judgement is wanted of these: one composition over every view, no
+    // averaging, and, as through the surfaces (`fill_with` marks no view's occluders
+    // there), no marks.
+    let judging = FillParams { select_views: false, fuse: None, own: None, ..params.clone() };
+    let mut judged = |rival: &Filled, planes: &[SurfacePlane]| {
+        let image = rival.judged_image();
+        let by = FillExtras { planes, rival: Some(&image), choice: &[], ..*extras };
+        fill_with(key, mask, sources, &by, &judging, seed, &mut *quiet).rival_quality.unwrap_or(0.0)
+    };
+    let through_by_walls = judged(&through, &[]);
+    let wall_by_planes = judged(&wall, &planes);
+    let gain = (through.report.witnessed_quality - wall_by_planes)
+        + (through_by_walls - wall.report.witnessed_quality);
+    tracing::debug!(
+        gain,
+        through = through.report.witnessed_quality,
+        through_by_walls,
+        wall = wall.report.witnessed_quality,
+        wall_by_planes,
+        regions = ?planes.iter().map(|p| p.region).collect::<Vec<_>>(),
+        "surfaces judged against the walls"
+    );
+    // A near tie goes to the walls' fill, the one that assumes less: within the judge's
+    // resolution (the publish rule's margin) two fills are not told apart, and a "surface"
+    // the sweep made of a real photograph's clouds and trees gains about that much
+    // (photo-hunt-8 in the service: 0.004 of the mask, and 5.4 dB lost).
+    if gain > params.select_margin {
+        Swept { filled: through, planes, used: true }
+    } else {
+        Swept { filled: wall, planes, used: false }
+    }
+}
