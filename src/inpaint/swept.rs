@@ -1,8 +1,11 @@
 //! The fill through the surfaces standing off the wall (issue 14), as `clearview fill` and
 //! the service both make it: the surfaces swept around the mask from the views
-//! ([`swept_planes`]); where there are any, the fill through them and the fill through the
-//! walls alone, each judged by the views both ways, and the one the views back better
+//! ([`swept_planes_memo`]); where there are any, the fill through them and the fill through
+//! the walls alone, each judged by the views both ways, and the one the views back better
 //! (pure layer).
+//!
+//! The sweep itself does not hear a stop: a session asked to stop during it stops at the
+//! fill that follows (seconds at most, inside the service's grace period).
 
 use super::parallax::{SurfacePlane, SweepParams, ViewMatches, swept_planes_memo};
 use super::{FillExtras, FillParams, Filled, Observer, Quiet, Source, Stage, fill_with};
