@@ -50,8 +50,8 @@ use crate::imaging::{GrayF32, Mask, Rect, RgbF32, RgbPixel};
 use crate::inpaint::parallax::{SurfacePlane, SweepParams, ViewMatches};
 use crate::inpaint::region::{footprint, into_crop};
 use crate::inpaint::{
-    self, AutoMaskParams, CONFIDENT, Confidence, FALLBACK, FillParams, FillReport, Observer, Provenance,
-    Source,
+    self, AutoMaskParams, CONFIDENT, Confidence, FALLBACK, FillParams, FillReport, Observer, OwnMarks,
+    Provenance, Source, Stage,
 };
 
 /// An 8-bit RGB image: what the buffer keeps of a view (the fill samples it as it is).
@@ -184,6 +184,9 @@ struct Crop {
     /// What the sweep for surfaces off the wall matched in the crop, kept for the next
     /// fills (it depends on the keyframe and the mask, which keep the crop too).
     sweep: ViewMatches,
+    /// The view's own occluders as the last fill found them, with what they were judged
+    /// against (they depend on the keyframe and the mask too).
+    own: OwnMarks,
 }
 
 /// One buffered view.
@@ -509,6 +512,7 @@ impl Session {
                     rect,
                     occluders: None,
                     sweep: ViewMatches::default(),
+                    own: OwnMarks::default(),
                 });
             }
         }
@@ -780,11 +784,34 @@ impl Session {
         let occluders: Vec<Option<&Mask>> =
             used.iter().map(|&i| self.buffer[i].crop.as_ref().and_then(|c| c.occluders.as_ref())).collect();
         let occluders = if occluders.iter().any(Option::is_some) { &occluders[..] } else { &[] };
+        // Each view's own occluders, where the fill would look for them: kept in the
+        // views' crops, so that a view is judged again only when the views it is judged
+        // against changed (a new view is one of them).
+        let mut own_memo: Vec<OwnMarks> =
+            used.iter().map(|&i| self.buffer[i].crop.as_ref().expect("filtered").own.clone()).collect();
+        let own: Option<Vec<Option<&Mask>>> = match &self.params.fill.own {
+            Some(p) if occluders.is_empty() && sources.len() >= p.min_views => {
+                observer.stage(Stage::Own);
+                let ids: Vec<u64> = used.iter().map(|&i| self.buffer[i].seq).collect();
+                let auto = AutoMaskParams::default();
+                Some(inpaint::own_occluders_memo(
+                    &key_region,
+                    &mask_region,
+                    &sources,
+                    &ids,
+                    p,
+                    &auto,
+                    &mut own_memo,
+                ))
+            }
+            _ => None,
+        };
         let extras = inpaint::FillExtras {
             rival: rival.as_ref(),
             choice: &choice,
             whole: Some((key.rgb.width(), key.rgb.height())),
             occluders,
+            own: own.as_deref(),
             ..inpaint::FillExtras::default()
         };
         // The surfaces are swept on the whole keyframe, as `clearview fill` sweeps them (the
@@ -819,10 +846,11 @@ impl Session {
             observer,
         )
         .filled;
-        drop(sources);
-        for (&i, m) in used.iter().zip(memo) {
+        drop((sources, own));
+        for ((&i, m), o) in used.iter().zip(memo).zip(own_memo) {
             if let Some(c) = self.buffer[i].crop.as_mut() {
                 c.sweep = m;
+                c.own = o;
             }
         }
         if observer.cancelled() {
@@ -1056,6 +1084,38 @@ mod tests {
         assert!(s.mask().is_none() && !s.needs_fill());
         assert_eq!(s.buffered().len(), 1);
         assert!(!s.buffered()[0].has_pixels());
+    }
+
+    /// Views arriving one by one: each fill, made with the views' own occluders kept from
+    /// the fills before, is the fill of the same session judging every view afresh.
+    #[test]
+    fn own_occluders_kept_between_fills_make_the_fill_judged_afresh() {
+        let c = synth::occlusion_case(synth::CaseFamily::Planar, 320, 240, 8, 21);
+        let session = || {
+            let mut s = Session::new(SessionParams { min_new_pixels: 1, ..SessionParams::default() });
+            s.set_key("key".into(), c.key.clone());
+            s.set_mask("mask".into(), c.mask.clone()).unwrap();
+            s
+        };
+        let (mut s, mut afresh) = (session(), session());
+        let mut compared = 0;
+        for (i, (view, h)) in c.views.iter().zip(&c.homographies).enumerate() {
+            for t in [&mut s, &mut afresh] {
+                let record = AlignRecord { view_size: (view.width(), view.height()), ..record(h) };
+                t.admit(format!("v{i}"), record, Some(&to8(view))).unwrap();
+                t.request_fill();
+            }
+            for b in &mut afresh.buffer {
+                if let Some(crop) = b.crop.as_mut() {
+                    crop.own = OwnMarks::default();
+                }
+            }
+            let (kept, judged) = (s.fill(&mut ()).unwrap(), afresh.fill(&mut ()).unwrap());
+            assert_eq!(kept.score, judged.score, "view {i}");
+            assert!(kept.image == judged.image, "view {i}: the fills differ");
+            compared += usize::from(kept.image.is_some());
+        }
+        assert!(compared >= 4, "only {compared} fills published");
     }
 
     /// Three views show a red board over the mask (their own occluder, at the same place).

@@ -805,16 +805,54 @@ pub fn own_occluders<P: RgbPixel>(
     params: &OwnParams,
     auto: &AutoMaskParams,
 ) -> Vec<Option<Mask>> {
+    let ids: Vec<u64> = (0..sources.len() as u64).collect();
+    let mut memo = vec![OwnMarks::default(); sources.len()];
+    let judged = !own_occluders_memo(key, mask, sources, &ids, params, auto, &mut memo).is_empty();
+    if !judged {
+        return Vec::new();
+    }
+    memo.into_iter().map(|m| m.judged.and_then(|(_, marks)| marks)).collect()
+}
+
+/// One view's marks from an earlier [`own_occluders_memo`], with the references they were
+/// judged against. A view's marks depend on the keyframe, the mask, the parameters, the
+/// view itself and its references only: they stand while the view would be judged against
+/// the same references.
+#[derive(Debug, Clone, Default)]
+pub struct OwnMarks {
+    /// The view's identity and its references' (in the order taken), and the marks.
+    judged: Option<(Vec<u64>, Option<Mask>)>,
+}
+
+/// [`own_occluders`] for a caller that keeps each view's marks from one call to the next
+/// (a session's fills, one more view each time): a view is judged again only when its
+/// references changed (a new view joined them, or one of them left). `ids` names each
+/// source (a source's pixels and map never change under its identity); `memo`, one entry
+/// per source, holds what the last call found for it (`OwnMarks::default()` for a source
+/// not judged before), and is only valid for the same keyframe, mask and parameters. The
+/// marks are returned borrowed from `memo`: empty where [`own_occluders`] is empty.
+///
+/// # Panics
+/// If `ids` or `memo` do not give one entry per source.
+pub fn own_occluders_memo<'m, P: RgbPixel>(
+    key: &RgbF32,
+    mask: &Mask,
+    sources: &[Source<'_, P>],
+    ids: &[u64],
+    params: &OwnParams,
+    auto: &AutoMaskParams,
+    memo: &'m mut [OwnMarks],
+) -> Vec<Option<&'m Mask>> {
+    assert!(ids.len() == sources.len() && memo.len() == sources.len(), "ids and memo per source");
     if sources.len() < params.min_views.max(1) {
         return Vec::new();
     }
     let Some(bounds) = mask.hole_bounds() else { return Vec::new() };
     // Judged near the mask only, whatever the caller cropped the images to.
     let r = bounds.grown(params.margin, key.width(), key.height());
-    let key_c = key.crop(r);
-    let mask_c = mask.crop(r);
     let into_r = Homography::translation(r.x as f64, r.y as f64);
-    let cut: Vec<Option<(Rect, Plane<P>, Homography)>> = sources
+    // Per source: the part of it that shows the region judged, and the map into that part.
+    let cut: Vec<Option<(Rect, Homography)>> = sources
         .iter()
         .map(|s| {
             let h = s.homography.after(&into_r);
@@ -825,106 +863,149 @@ pub fn own_occluders<P: RgbPixel>(
                 s.image.height(),
                 0,
             )?;
-            Some((f, s.image.crop(f), super::region::into_crop(&h, &f)))
+            Some((f, super::region::into_crop(&h, &f)))
         })
         .collect();
     let kept: Vec<usize> = (0..sources.len()).filter(|&v| cut[v].is_some()).collect();
     if kept.len() < params.min_views.max(1) {
         return Vec::new();
     }
-    let inner: Vec<Source<'_, P>> = kept
+    // Each kept view brought down to the working size (its size and map there; the pixels
+    // only where they are needed).
+    let factor = |w: usize, h: usize| work_factor(w, h, params.work_pixels);
+    let fk = factor(r.width, r.height);
+    let reduced: Vec<Reduced> = kept
         .iter()
         .map(|&v| {
-            let (_, img, h) = cut[v].as_ref().expect("kept");
-            Source { image: img, homography: *h }
+            let (f, h) = cut[v].expect("kept");
+            let fv = factor(f.width, f.height);
+            let back = reduced_to_full(fv).inverse().expect("scaling is regular");
+            Reduced {
+                factor: fv,
+                size: (f.width.div_ceil(fv), f.height.div_ceil(fv)),
+                map: back.after(&h).after(&reduced_to_full(fk)),
+            }
         })
         .collect();
-    let found = judge_views(&key_c, &mask_c, &inner, params, auto);
-    let mut out: Vec<Option<Mask>> = vec![None; sources.len()];
-    for (k, &v) in kept.iter().enumerate() {
-        let Some(m) = &found[k] else { continue };
-        let (f, _, _) = cut[v].as_ref().expect("kept");
-        let (w, h) = (sources[v].image.width(), sources[v].image.height());
-        out[v] = Some(Mask::from_fn(w, h, |x, y| {
-            if x >= f.x && y >= f.y && x < f.x + f.width && y < f.y + f.height {
-                m.get(x - f.x, y - f.y)
-            } else {
-                0
+    // Per kept view: its map back to the keyframe and its references; judged again only
+    // when these are not those its marks were judged against.
+    let plans: Vec<Option<(Homography, Vec<usize>)>> = reduced
+        .iter()
+        .enumerate()
+        .map(|(k, red)| {
+            let back = red.map.inverse()?;
+            let refs = references(red.size, &back, &reduced, k, params.references);
+            Some((back, refs))
+        })
+        .collect();
+    // What a view's marks are judged from: the view itself, then its references.
+    let wanted = |k: usize| -> Vec<u64> {
+        let refs = plans[k].as_ref().map_or(&[][..], |(_, refs)| &refs[..]);
+        std::iter::once(ids[kept[k]]).chain(refs.iter().map(|&j| ids[kept[j]])).collect()
+    };
+    let stale: Vec<usize> = (0..kept.len())
+        .filter(|&k| memo[kept[k]].judged.as_ref().is_none_or(|(refs, _)| *refs != wanted(k)))
+        .collect();
+    tracing::debug!(judged = stale.len(), kept = kept.len(), "views' own occluders");
+    if !stale.is_empty() {
+        let mut needed = vec![false; kept.len()];
+        for &k in &stale {
+            needed[k] = true;
+            if let Some((_, refs)) = &plans[k] {
+                for &j in refs {
+                    needed[j] = true;
+                }
             }
-        }));
+        }
+        let key_c = key.crop(r);
+        let mask_c = mask.crop(r);
+        let key_r = reduce(&key_c, fk);
+        let mask_r = Mask::from_fn(key_r.width(), key_r.height(), |x, y| {
+            let any = (y * fk..((y + 1) * fk).min(mask_c.height()))
+                .any(|yy| (x * fk..((x + 1) * fk).min(mask_c.width())).any(|xx| mask_c.is_hole(xx, yy)));
+            if any { 255 } else { 0 }
+        });
+        let images: Vec<Option<RgbF32>> = (0..kept.len())
+            .into_par_iter()
+            .map(|k| {
+                needed[k].then(|| {
+                    let (f, _) = cut[kept[k]].expect("kept");
+                    reduce(&sources[kept[k]].image.crop(f), reduced[k].factor)
+                })
+            })
+            .collect();
+        // A view's pixels in the colours of the keyframe's occluder rather than its
+        // building are no witness for the building around another view
+        // ([`OwnParams::foreign_witnesses`]).
+        let unlike: Vec<Option<Mask>> = if params.foreign_witnesses {
+            vec![None; kept.len()]
+        } else {
+            let hole = Plane::from_fn(key_r.width(), key_r.height(), |x, y| mask_r.is_hole(x, y));
+            let inner = erode(&hole, 2);
+            let full = Rect::full(key_r.width(), key_r.height());
+            let occluder = ColourHistogram::within(&key_r, &full, |x, y| inner.get(x, y));
+            let building = ColourHistogram::within(&key_r, &full, |x, y| !hole.get(x, y));
+            images
+                .iter()
+                .map(|img| {
+                    let img = img.as_ref()?;
+                    Some(img.map(|&p| if occluder.density(p) > 2.0 * building.density(p) { 255 } else { 0 }))
+                })
+                .collect()
+        };
+        let mut auto = auto.clone();
+        auto.parallax_radius = params.parallax_radius;
+        auto.min_views = auto.min_views.min(params.references + 1);
+        let found: Vec<Option<Mask>> = stale
+            .par_iter()
+            .map(|&k| {
+                let (back, refs) = plans[k].as_ref()?;
+                let img = images[k].as_ref().expect("needed");
+                let mut witnesses: Vec<Source<'_, [f32; 3]>> =
+                    vec![Source { image: &key_r, homography: *back }];
+                let mut known: Vec<Option<&Mask>> = vec![Some(&mask_r)];
+                for &j in refs {
+                    let image = images[j].as_ref().expect("needed");
+                    witnesses.push(Source { image, homography: reduced[j].map.after(back) });
+                    known.push(unlike[j].as_ref());
+                }
+                let found = auto_mask_excluding(img, &witnesses, &known, &auto).mask;
+                // Back to the source's pixels: the reduced marks over the part judged.
+                let (f, _) = cut[kept[k]].expect("kept");
+                let s = &sources[kept[k]].image;
+                let (fv, rw, rh) = (reduced[k].factor, found.width(), found.height());
+                Some(Mask::from_fn(s.width(), s.height(), |x, y| {
+                    let inside = x >= f.x && y >= f.y && x < f.x + f.width && y < f.y + f.height;
+                    if inside && found.get(((x - f.x) / fv).min(rw - 1), ((y - f.y) / fv).min(rh - 1)) > 127 {
+                        params.mark
+                    } else {
+                        0
+                    }
+                }))
+            })
+            .collect();
+        for (&k, marks) in stale.iter().zip(found) {
+            memo[kept[k]].judged = Some((wanted(k), marks));
+        }
+    }
+    let mut out: Vec<Option<&Mask>> = vec![None; sources.len()];
+    let memo: &'m [OwnMarks] = memo;
+    for &v in &kept {
+        out[v] = memo[v].judged.as_ref().and_then(|(_, marks)| marks.as_ref());
     }
     out
 }
 
-/// [`own_occluders`] of `cut_sources`, views already cut to the region judged (`key` and
-/// `mask` are), one mark per view.
-fn judge_views<P: RgbPixel>(
-    key: &RgbF32,
-    mask: &Mask,
-    cut_sources: &[Source<'_, P>],
-    params: &OwnParams,
-    auto: &AutoMaskParams,
-) -> Vec<Option<Mask>> {
-    let factor = |w: usize, h: usize| work_factor(w, h, params.work_pixels);
-    let to_full = reduced_to_full;
-    let fk = factor(key.width(), key.height());
-    let key_r = reduce(key, fk);
-    let mask_r = Mask::from_fn(key_r.width(), key_r.height(), |x, y| {
-        let any = (y * fk..((y + 1) * fk).min(mask.height()))
-            .any(|yy| (x * fk..((x + 1) * fk).min(mask.width())).any(|xx| mask.is_hole(xx, yy)));
-        if any { 255 } else { 0 }
-    });
-    let views: Vec<(RgbF32, usize, Homography)> = cut_sources
-        .par_iter()
-        .map(|s| {
-            let fv = factor(s.image.width(), s.image.height());
-            let back = to_full(fv).inverse().expect("scaling is regular");
-            (reduce(s.image, fv), fv, back.after(&s.homography).after(&to_full(fk)))
-        })
-        .collect();
-    // A view's pixels in the colours of the keyframe's occluder rather than its building
-    // are no witness for the building around another view ([`OwnParams::foreign_witnesses`]).
-    let unlike: Vec<Option<Mask>> = if params.foreign_witnesses {
-        vec![None; views.len()]
-    } else {
-        let hole = Plane::from_fn(key_r.width(), key_r.height(), |x, y| mask_r.is_hole(x, y));
-        let inner = erode(&hole, 2);
-        let full = Rect::full(key_r.width(), key_r.height());
-        let occluder = ColourHistogram::within(&key_r, &full, |x, y| inner.get(x, y));
-        let building = ColourHistogram::within(&key_r, &full, |x, y| !hole.get(x, y));
-        views
-            .iter()
-            .map(|(img, _, _)| {
-                Some(img.map(|&p| if occluder.density(p) > 2.0 * building.density(p) { 255 } else { 0 }))
-            })
-            .collect()
-    };
-    let mut auto = auto.clone();
-    auto.parallax_radius = params.parallax_radius;
-    auto.min_views = auto.min_views.min(params.references + 1);
-    (0..cut_sources.len())
-        .into_par_iter()
-        .map(|i| {
-            let (img, fv, h) = &views[i];
-            let back = h.inverse()?;
-            let mut refs: Vec<Source<'_, [f32; 3]>> = vec![Source { image: &key_r, homography: back }];
-            let mut known: Vec<Option<&Mask>> = vec![Some(&mask_r)];
-            for j in references(img, &back, &views, i, params.references) {
-                refs.push(Source { image: &views[j].0, homography: views[j].2.after(&back) });
-                known.push(unlike[j].as_ref());
-            }
-            let found = auto_mask_excluding(img, &refs, &known, &auto).mask;
-            let (w, h) = (cut_sources[i].image.width(), cut_sources[i].image.height());
-            let (rw, rh) = (found.width(), found.height());
-            Some(Mask::from_fn(w, h, |x, y| {
-                if found.get((x / fv).min(rw - 1), (y / fv).min(rh - 1)) > 127 { params.mark } else { 0 }
-            }))
-        })
-        .collect()
+/// A view as [`own_occluders_memo`] judges it: brought down by `factor` to `size`, and the
+/// map from the reduced keyframe region into it.
+struct Reduced {
+    factor: usize,
+    size: (usize, usize),
+    map: Homography,
 }
 
 /// The views (but `i`) that view `i`'s own occluders are judged against, at most `k` of
-/// them (`img`: view `i`'s image; `back`: its pixels to the keyframe's; `views`' maps:
+/// them (`size`: view `i`'s reduced size; `back`: its pixels to the keyframe's; `views`' maps:
 /// keyframe to view). Among the views that see at least half as much of it as the one
 /// that sees most, those farthest apart in viewpoint: each next one the farthest from view
 /// `i` and from those already taken, the distance being how far the map from view `i` to
@@ -933,15 +1014,9 @@ fn judge_views<P: RgbPixel>(
 /// on a walk show its own tree nearly where it stands and agree with it there; the frames
 /// farther along show the tree moved off the wall behind. Overlap is counted on a grid of
 /// about 32 × 32 points.
-fn references(
-    img: &RgbF32,
-    back: &Homography,
-    views: &[(RgbF32, usize, Homography)],
-    i: usize,
-    k: usize,
-) -> Vec<usize> {
+fn references(size: (usize, usize), back: &Homography, views: &[Reduced], i: usize, k: usize) -> Vec<usize> {
     use nalgebra::Point2;
-    let (w, h) = (img.width(), img.height());
+    let (w, h) = size;
     let step = (w.max(h) / 32).max(1);
     let points: Vec<Point2<f64>> = (0..h)
         .step_by(step)
@@ -954,8 +1029,9 @@ fn references(
         .iter()
         .enumerate()
         .filter(|&(j, _)| j != i)
-        .filter_map(|(j, (other, _, hj))| {
-            let (ow, oh) = (other.width() as f64, other.height() as f64);
+        .filter_map(|(j, other)| {
+            let (ow, oh) = (other.size.0 as f64, other.size.1 as f64);
+            let hj = &other.map;
             let inside = |r: &Point2<f64>| r.x >= 0.0 && r.y >= 0.0 && r.x <= ow - 1.0 && r.y <= oh - 1.0;
             let n = points.iter().filter_map(|q| hj.apply(*q)).filter(inside).count();
             let to_j = hj.after(back);
@@ -1105,6 +1181,58 @@ mod tests {
         assert!(d.get(8, 12) && !d.get(7, 10));
         assert_eq!(erode(&d, 2).as_slice().iter().filter(|&&v| v).count(), 1);
         assert!(erode(&d, 3).as_slice().iter().all(|&v| !v));
+    }
+
+    /// Views arriving one by one, and one leaving, as in a session: the marks kept from call
+    /// to call are at each step those found afresh, views whose references stayed are not
+    /// judged again, and a view whose references changed is.
+    #[test]
+    fn marks_kept_between_calls_are_those_found_afresh() {
+        let c = crate::synth::occlusion_case(crate::synth::CaseFamily::Planar, 320, 240, 10, 11);
+        let all = c.sources();
+        let (params, auto) = (OwnParams::default(), AutoMaskParams::default());
+        // (id, memo) of the views present, in arrival order; view 2 leaves after view 5.
+        let mut present: Vec<(u64, OwnMarks)> = Vec::new();
+        let (mut judged_again, mut kept) = (0, 0);
+        for step in 0..all.len() {
+            present.push((step as u64, OwnMarks::default()));
+            if step == 5 {
+                present.retain(|(id, _)| *id != 2);
+            }
+            let ids: Vec<u64> = present.iter().map(|(id, _)| *id).collect();
+            let sources: Vec<Source<'_, [f32; 3]>> = ids.iter().map(|&id| all[id as usize]).collect();
+            let before: Vec<Option<Vec<u64>>> =
+                present.iter().map(|(_, m)| m.judged.as_ref().map(|(refs, _)| refs.clone())).collect();
+            let mut memo: Vec<OwnMarks> = present.iter().map(|(_, m)| m.clone()).collect();
+            let fresh = own_occluders(&c.key, &c.mask, &sources, &params, &auto);
+            let kept_marks: Vec<Option<Mask>> =
+                own_occluders_memo(&c.key, &c.mask, &sources, &ids, &params, &auto, &mut memo)
+                    .into_iter()
+                    .map(|m| m.cloned())
+                    .collect();
+            assert_eq!(kept_marks.len(), fresh.len(), "step {step}");
+            for (k, (a, b)) in kept_marks.iter().zip(&fresh).enumerate() {
+                assert!(a == b, "step {step}, view {}: the kept marks are not those found afresh", ids[k]);
+            }
+            for (k, (entry, m)) in present.iter_mut().zip(memo).enumerate() {
+                let now = m.judged.as_ref().map(|(refs, _)| refs.clone());
+                match &before[k] {
+                    Some(refs) if Some(refs) == now.as_ref() => kept += 1,
+                    Some(_) => judged_again += 1,
+                    None => {}
+                }
+                entry.1 = m;
+            }
+        }
+        assert!(fresh_marks_exist(&c, &params, &auto), "the case marks nothing: the test says nothing");
+        assert!(kept > 0 && judged_again > 0, "kept {kept}, judged again {judged_again}");
+    }
+
+    fn fresh_marks_exist(c: &crate::synth::OcclusionCase, params: &OwnParams, auto: &AutoMaskParams) -> bool {
+        own_occluders(&c.key, &c.mask, &c.sources(), params, auto)
+            .iter()
+            .flatten()
+            .any(|m| m.as_slice().iter().any(|&v| v > 0))
     }
 
     /// Views with occluders of their own over the keyframe's (so that they agree with it

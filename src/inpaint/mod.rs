@@ -32,7 +32,10 @@ use occlusion::{KeyRegion, OcclusionMap, OcclusionParams, RegionInput, occlusion
 use parallax::{ParallaxParams, PlaneInput, SurfacePlane, WarpedView, choose_planes};
 use shift::{Shift, ShiftBand, ShiftParams, local_shift};
 
-pub use automask::{AutoMask, AutoMaskParams, OwnParams, auto_mask, auto_mask_report, own_occluders};
+pub use automask::{
+    AutoMask, AutoMaskParams, OwnMarks, OwnParams, auto_mask, auto_mask_report, own_occluders,
+    own_occluders_memo,
+};
 pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_guided, exemplar_fill_until};
 pub use swept::{Swept, fill_swept, sweep_surfaces};
 
@@ -378,6 +381,10 @@ pub struct FillExtras<'a> {
     /// neighbourhood only): what scales with the keyframe (parallax, misregistration) is
     /// measured on the whole, so that the part is filled as the whole would be.
     pub whole: Option<(usize, usize)>,
+    /// Each view's own occluders as [`own_occluders`] finds them for this keyframe, mask
+    /// and these sources, found already ([`own_occluders_memo`]: a session keeps them from
+    /// one fill to the next): used where [`FillParams::own`] would find them.
+    pub own: Option<&'a [Option<&'a Mask>]>,
 }
 
 /// A filled keyframe: the image, where each pixel came from, how sure the fill is of it,
@@ -456,6 +463,7 @@ pub fn fill_with<P: RgbPixel>(
 ) -> Filled {
     let (w, h) = (key.width(), key.height());
     assert!(extras.occluders.is_empty() || extras.occluders.len() == sources.len(), "occluders per source");
+    assert!(extras.own.is_none_or(|o| o.is_empty() || o.len() == sources.len()), "own occluders per source");
     assert!(extras.planes.iter().all(|p| p.views.len() == sources.len()), "plane homographies per source");
     assert_eq!((mask.width(), mask.height()), (w, h), "mask size");
     let nv = sources.len();
@@ -487,20 +495,26 @@ pub fn fill_with<P: RgbPixel>(
     // surfaces off the wall: a slab seen through the wall's homography disagrees like an
     // occluder, and its marks took the pixels the surfaces fill from (the swept fill and
     // its judgement were measured without them).
-    let own: Vec<Option<Mask>> = match &params.own {
-        Some(p)
+    let found: Vec<Option<Mask>>;
+    let own: Vec<Option<&Mask>> = match (&params.own, extras.own) {
+        (Some(p), given)
             if extras.occluders.is_empty() && extras.planes.is_empty() && sources.len() >= p.min_views =>
         {
-            observer.stage(Stage::Own);
-            own_occluders(key, mask, sources, p, &AutoMaskParams::default())
+            match given {
+                Some(given) => given.to_vec(),
+                None => {
+                    observer.stage(Stage::Own);
+                    found = own_occluders(key, mask, sources, p, &AutoMaskParams::default());
+                    found.iter().map(Option::as_ref).collect()
+                }
+            }
         }
         _ => Vec::new(),
     };
     if observer.cancelled() {
         return unfinished(surface, report);
     }
-    let own_refs: Vec<Option<&Mask>> = own.iter().map(Option::as_ref).collect();
-    let occluders: &[Option<&Mask>] = if own.is_empty() { extras.occluders } else { &own_refs };
+    let occluders: &[Option<&Mask>] = if own.is_empty() { extras.occluders } else { &own };
 
     // Warp: every view over every region's needed pixels.
     observer.stage(Stage::Warp);
