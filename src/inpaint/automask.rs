@@ -181,7 +181,7 @@ fn auto_mask_excluding<P: RgbPixel>(
     let to_full = reduced_to_full(f);
     let from_full = to_full.inverse().expect("scaling is regular");
     let warped: Vec<(RgbF32, Plane<bool>)> = sources
-        .iter()
+        .par_iter()
         .enumerate()
         .map(|(v, s)| {
             let view_r = reduce(s.image, f);
@@ -355,51 +355,63 @@ fn dist(a: [f32; 3], b: [f32; 3]) -> f32 {
 /// keyframe's distance to it.
 fn evidence(key: &RgbF32, warped: &[(RgbF32, Plane<bool>)], params: &AutoMaskParams) -> Evidence {
     let (w, h) = (key.width(), key.height());
+    // Each pixel is judged on its own: rows in parallel, each pixel's verdict as it was
+    // one at a time ((strong, weak, judged), and the consensus where judged).
+    type Verdict = (bool, bool, Option<[f32; 3]>);
+    let rows: Vec<Vec<Verdict>> = (0..h)
+        .into_par_iter()
+        .map(|y| {
+            let mut vals: Vec<[f32; 3]> = Vec::with_capacity(warped.len());
+            let mut chan: Vec<f32> = Vec::with_capacity(warped.len());
+            (0..w)
+                .map(|x| {
+                    vals.clear();
+                    vals.extend(warped.iter().filter(|(_, v)| v.get(x, y)).map(|(img, _)| img.get(x, y)));
+                    if vals.is_empty() {
+                        return (false, false, None);
+                    }
+                    let k = key.get(x, y);
+                    // No view shows what the keyframe shows: weak evidence even where the
+                    // views do not agree with each other (each may have an occluder of its
+                    // own).
+                    let unlike_all = vals.iter().all(|&v| dist(k, v) > params.threshold);
+                    if vals.len() < params.min_views {
+                        return (false, unlike_all, None);
+                    }
+                    let med: [f32; 3] = std::array::from_fn(|c| {
+                        chan.clear();
+                        chan.extend(vals.iter().map(|v| v[c]));
+                        chan.sort_unstable_by(f32::total_cmp);
+                        let n = chan.len();
+                        0.5 * (chan[(n - 1) / 2] + chan[n / 2])
+                    });
+                    let (mut sum, mut n) = ([0.0f32; 3], 0usize);
+                    for v in vals.iter().filter(|&&v| dist(v, med) < params.agreement) {
+                        (0..3).for_each(|c| sum[c] += v[c]);
+                        n += 1;
+                    }
+                    if n < params.min_views {
+                        return (false, unlike_all, None);
+                    }
+                    let mean = sum.map(|s| s / n as f32);
+                    let d = dist(k, mean);
+                    let strong = d > params.threshold;
+                    (strong, unlike_all || (!strong && d > params.low_threshold), Some(mean))
+                })
+                .collect()
+        })
+        .collect();
     let mut strong = Plane::new(w, h, false);
     let mut weak = Plane::new(w, h, false);
     let mut judged = Plane::new(w, h, false);
     let mut consensus = key.clone();
-    let mut vals: Vec<[f32; 3]> = Vec::with_capacity(warped.len());
-    let mut chan: Vec<f32> = Vec::with_capacity(warped.len());
-    for y in 0..h {
-        for x in 0..w {
-            vals.clear();
-            vals.extend(warped.iter().filter(|(_, v)| v.get(x, y)).map(|(img, _)| img.get(x, y)));
-            if vals.is_empty() {
-                continue;
-            }
-            let k = key.get(x, y);
-            // No view shows what the keyframe shows: weak evidence even where the views do
-            // not agree with each other (each may have an occluder of its own).
-            if vals.iter().all(|&v| dist(k, v) > params.threshold) {
-                weak.set(x, y, true);
-            }
-            if vals.len() < params.min_views {
-                continue;
-            }
-            let med: [f32; 3] = std::array::from_fn(|c| {
-                chan.clear();
-                chan.extend(vals.iter().map(|v| v[c]));
-                chan.sort_unstable_by(f32::total_cmp);
-                let n = chan.len();
-                0.5 * (chan[(n - 1) / 2] + chan[n / 2])
-            });
-            let (mut sum, mut n) = ([0.0f32; 3], 0usize);
-            for v in vals.iter().filter(|&&v| dist(v, med) < params.agreement) {
-                (0..3).for_each(|c| sum[c] += v[c]);
-                n += 1;
-            }
-            if n < params.min_views {
-                continue;
-            }
-            let mean = sum.map(|s| s / n as f32);
-            judged.set(x, y, true);
-            consensus.set(x, y, mean);
-            let d = dist(k, mean);
-            if d > params.threshold {
-                strong.set(x, y, true);
-            } else if d > params.low_threshold {
-                weak.set(x, y, true);
+    for (y, row) in rows.into_iter().enumerate() {
+        for (x, (s, wk, mean)) in row.into_iter().enumerate() {
+            strong.set(x, y, s);
+            weak.set(x, y, wk);
+            if let Some(mean) = mean {
+                judged.set(x, y, true);
+                consensus.set(x, y, mean);
             }
         }
     }
@@ -498,33 +510,41 @@ fn explain_by_parallax(key: &RgbF32, ev: &mut Evidence, params: &AutoMaskParams)
         (-r..=r).flat_map(|dy| (-r..=r).map(move |dx| (dx, dy))).filter(|&m| m != (0, 0)).collect();
     moves.sort_by_key(|&(dx, dy)| dx * dx + dy * dy);
     let seen: &Evidence = ev;
+    let (ks, judged, cs) = (key.as_slice(), seen.judged.as_slice(), seen.consensus.as_slice());
+    let (wi, hi) = (w as isize, h as isize);
+    // The window at `(x, y)` in the keyframe against the consensus moved by `(dx, dy)`, over
+    // the pixels inside both and judged there, row by row (taps in the order of a plain
+    // double loop: the sums are those of one).
+    let matches = |x: isize, y: isize, dx: isize, dy: isize| {
+        let (mut sum, mut n) = (0.0f32, 0usize);
+        let (lo, up) = ((x - HALF).max(0).max(-dx), (x + HALF).min(wi - 1).min(wi - 1 - dx));
+        for py in y - HALF..=y + HALF {
+            let qy = py + dy;
+            if py >= 0 && py < hi && qy >= 0 && qy < hi {
+                let (row, moved) = ((py * wi) as usize, qy * wi + dx);
+                for px in lo..=up {
+                    let q = (moved + px) as usize;
+                    if !judged[q] {
+                        continue;
+                    }
+                    let (a, b) = (ks[row + px as usize], cs[q]);
+                    sum += (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>();
+                    n += 1;
+                }
+            }
+            if sum > hopeless {
+                return false;
+            }
+        }
+        n * 2 > WINDOW && sum <= t2 * n as f32
+    };
     // Each pixel is judged on its own: in parallel, the same pixels as one at a time.
     let explained: Vec<usize> = (0..w * h)
         .into_par_iter()
         .filter(|&i| seen.strong.as_slice()[i])
         .filter(|&i| {
-            let ev = seen;
             let (x, y) = ((i % w) as isize, (i / w) as isize);
-            let matches = |dx: isize, dy: isize| {
-                let (mut sum, mut n) = (0.0f32, 0usize);
-                for py in y - HALF..=y + HALF {
-                    for px in x - HALF..=x + HALF {
-                        let (Some(a), Some(true)) =
-                            (key.get_checked(px, py), ev.judged.get_checked(px + dx, py + dy))
-                        else {
-                            continue;
-                        };
-                        let b = ev.consensus.get((px + dx) as usize, (py + dy) as usize);
-                        sum += (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>();
-                        n += 1;
-                    }
-                    if sum > hopeless {
-                        return false;
-                    }
-                }
-                n * 2 > WINDOW && sum <= t2 * n as f32
-            };
-            moves.iter().any(|&(dx, dy)| matches(dx, dy))
+            moves.iter().any(|&(dx, dy)| matches(x, y, dx, dy))
         })
         .collect();
     for i in explained {
@@ -1105,15 +1125,16 @@ fn box_blur(img: &RgbF32, valid: &Plane<bool>, r: usize) -> RgbF32 {
         return img.clone();
     }
     let (w, h) = (img.width(), img.height());
-    let r = r as isize;
+    let (px, ok) = (img.as_slice(), valid.as_slice());
     RgbF32::from_fn(w, h, |x, y| {
         let mut s = [0.0f32; 3];
         let mut n = 0.0;
-        for dy in -r..=r {
-            for dx in -r..=r {
-                let (xx, yy) = (x as isize + dx, y as isize + dy);
-                if valid.get_checked(xx, yy) == Some(true) {
-                    let p = img.get(xx as usize, yy as usize);
+        // The window clipped to the image, taps in the order of the plain double loop.
+        let (x0, x1) = (x.saturating_sub(r), (x + r).min(w - 1));
+        for yy in y.saturating_sub(r)..=(y + r).min(h - 1) {
+            for i in yy * w + x0..=yy * w + x1 {
+                if ok[i] {
+                    let p = px[i];
                     for c in 0..3 {
                         s[c] += p[c];
                     }

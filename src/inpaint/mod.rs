@@ -21,7 +21,7 @@ pub mod swept;
 use rayon::prelude::*;
 
 use crate::geometry::Homography;
-use crate::imaging::photometric::{GainParams, ToneParams, fit_gain, fit_tone};
+use crate::imaging::photometric::{Gain, GainParams, ToneCurve, ToneParams, fit_gain, fit_tone};
 use crate::imaging::warp::{Interpolation, Rect, Warped, warp};
 use crate::imaging::{Mask, Plane, RgbF32, RgbPixel, bilinear_rgb};
 use automask::dilate;
@@ -599,32 +599,42 @@ pub fn fill_with<P: RgbPixel>(
     }
     observer.stage(Stage::Photometric);
     if params.photometric {
-        for v in 0..nv {
-            if params.tone {
-                let occluders = occluders.get(v).copied().flatten();
-                let overlap = overlap_pairs(key, mask, &sources[v], occluders);
-                let fit = fit_tone(&overlap, &params.tone_params);
-                if let Some(curve) = fit.curve {
-                    report.sources[v].tone = true;
-                    map_view(&mut warps, &mut plane_warps, v, |p| curve.apply(p));
-                }
-            }
-            let mut pairs = Vec::new();
-            for (part, ws) in parts.iter().zip(&warps) {
-                let rw = part.rect.width;
-                for (i, &ring) in part.ring.as_slice().iter().enumerate() {
-                    if ring && ws[v].valid.as_slice()[i] {
-                        let (x, y) = (part.rect.x + i % rw, part.rect.y + i / rw);
-                        pairs.push((ws[v].image.as_slice()[i], key.get(x, y)));
+        // Per view (each on its own, in parallel): the tone curve from the whole overlap,
+        // then the gain from the rings around the regions as the curve leaves them.
+        let fits: Vec<(Option<ToneCurve>, Gain)> = (0..nv)
+            .into_par_iter()
+            .map(|v| {
+                let tone = if params.tone {
+                    let occluders = occluders.get(v).copied().flatten();
+                    let overlap = overlap_pairs(key, mask, &sources[v], occluders);
+                    fit_tone(&overlap, &params.tone_params).curve
+                } else {
+                    None
+                };
+                let mut pairs = Vec::new();
+                for (part, ws) in parts.iter().zip(&warps) {
+                    let rw = part.rect.width;
+                    for (i, &ring) in part.ring.as_slice().iter().enumerate() {
+                        if ring && ws[v].valid.as_slice()[i] {
+                            let (x, y) = (part.rect.x + i % rw, part.rect.y + i / rw);
+                            let p = ws[v].image.as_slice()[i];
+                            pairs.push((tone.as_ref().map_or(p, |c| c.apply(p)), key.get(x, y)));
+                        }
                     }
                 }
-            }
-            let step = (pairs.len() / GAIN_SAMPLES).max(1);
-            let sample: Vec<_> = pairs.into_iter().step_by(step).collect();
-            let gain = fit_gain(&sample, &params.gain);
+                let step = (pairs.len() / GAIN_SAMPLES).max(1);
+                let sample: Vec<_> = pairs.into_iter().step_by(step).collect();
+                (tone, fit_gain(&sample, &params.gain))
+            })
+            .collect();
+        for (v, (tone, gain)) in fits.into_iter().enumerate() {
+            report.sources[v].tone = tone.is_some();
             report.sources[v].gain = gain.gain;
             report.sources[v].offset = gain.offset;
-            map_view(&mut warps, &mut plane_warps, v, |p| gain.apply(p));
+            match tone {
+                Some(curve) => map_view(&mut warps, &mut plane_warps, v, |p| gain.apply(curve.apply(p))),
+                None => map_view(&mut warps, &mut plane_warps, v, |p| gain.apply(p)),
+            }
             observer.progress(v + 1, nv);
         }
     }
