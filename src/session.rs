@@ -766,6 +766,15 @@ impl Session {
         let mask_region = mask.mask.crop(region);
         let into_region = Homography::translation(region.x as f64, region.y as f64);
         let used: Vec<usize> = (0..self.buffer.len()).filter(|&i| self.buffer[i].crop.is_some()).collect();
+        // What the fills before kept in the views' crops (their matches for the sweep, their
+        // own occluders), taken out for this fill and put back after it, cancelled or not.
+        let (mut memo, mut own_memo): (Vec<ViewMatches>, Vec<OwnMarks>) = used
+            .iter()
+            .map(|&i| {
+                let crop = self.buffer[i].crop.as_mut().expect("filtered");
+                (std::mem::take(&mut crop.sweep), std::mem::take(&mut crop.own))
+            })
+            .unzip();
         // The 8-bit crops as they are: the fill reads them as f32 where it samples them.
         let sources: Vec<Source<'_, [u8; 3]>> = used
             .iter()
@@ -787,8 +796,6 @@ impl Session {
         // Each view's own occluders, where the fill would look for them: kept in the
         // views' crops, so that a view is judged again only when the views it is judged
         // against changed (a new view is one of them).
-        let mut own_memo: Vec<OwnMarks> =
-            used.iter().map(|&i| self.buffer[i].crop.as_ref().expect("filtered").own.clone()).collect();
         let own: Option<Vec<Option<&Mask>>> = match &self.params.fill.own {
             Some(p) if occluders.is_empty() && sources.len() >= p.min_views => {
                 observer.stage(Stage::Own);
@@ -818,8 +825,6 @@ impl Session {
         // views' crops are what both hold of the views), and taken into the part.
         // Each view's matches are kept in its crop: a fill with one more view matches only
         // that one.
-        let mut memo: Vec<ViewMatches> =
-            used.iter().map(|&i| self.buffer[i].crop.as_ref().expect("filtered").sweep.clone()).collect();
         let planes: Vec<SurfacePlane> = match &self.params.sweep {
             Some(sweep) => {
                 let whole: Vec<Source<'_, [u8; 3]>> = used
