@@ -256,6 +256,9 @@ pub struct FillOutcome {
     pub confidence: Option<Confidence>,
     /// Digest of the inputs ([`Session::inputs_digest`]).
     pub digest: u64,
+    /// With [`SessionParams::sweep`]: the surfaces off the wall this fill's sweep found,
+    /// whether the fill was made through them and what each filled (keyframe coordinates).
+    pub surfaces: Option<inpaint::SurfacesReport>,
 }
 
 struct Key {
@@ -760,6 +763,7 @@ impl Session {
                 previous,
                 digest,
                 confidence: None,
+                surfaces: None,
             });
         };
         let key_region = key.rgb.crop(region);
@@ -840,7 +844,7 @@ impl Session {
             }
             None => Vec::new(),
         };
-        let filled = inpaint::fill_swept(
+        let swept = inpaint::fill_swept(
             &key_region,
             &mask_region,
             &sources,
@@ -849,8 +853,9 @@ impl Session {
             planes,
             self.params.seed,
             observer,
-        )
-        .filled;
+        );
+        let surfaces = self.params.sweep.is_some().then(|| swept.report(&mask_region, (region.x, region.y)));
+        let filled = swept.filled;
         drop((sources, own));
         for ((&i, m), o) in used.iter().zip(memo).zip(own_memo) {
             if let Some(c) = self.buffer[i].crop.as_mut() {
@@ -921,6 +926,7 @@ impl Session {
             previous,
             digest,
             confidence: Some(confidence),
+            surfaces,
         })
     }
 

@@ -154,7 +154,7 @@ fn a_session_fills_through_the_surfaces_view_by_view_as_the_command_does() {
         s.set_key("key".into(), c.key.clone());
         s.set_mask("mask".into(), c.mask.clone()).unwrap();
         let mut views = c.views.iter().enumerate();
-        let mut last = None;
+        let (mut last, mut surfaces) = (None, None);
         for &n in batches {
             for (i, v) in views.by_ref().take(n) {
                 let record = s.align(luminance(v)).unwrap();
@@ -163,14 +163,26 @@ fn a_session_fills_through_the_surfaces_view_by_view_as_the_command_does() {
                 s.admit(format!("view{i}"), record, Some(&pixels)).unwrap();
             }
             s.request_fill();
-            if let Some(image) = s.fill(&mut ()).expect("a fill").image {
-                last = Some(masked_psnr(&image, &c.truth, &c.mask));
+            let outcome = s.fill(&mut ()).expect("a fill");
+            assert_eq!(outcome.surfaces.is_some(), sweep, "surfaces reported only when swept");
+            if let Some(image) = &outcome.image {
+                last = Some(masked_psnr(image, &c.truth, &c.mask));
+                surfaces = outcome.surfaces;
             }
         }
-        last.expect("a published result")
+        (last.expect("a published result"), surfaces)
     };
-    let walls = run(false, &[3]);
-    let (all, one_by_one) = (run(true, &[3]), run(true, &[1, 1, 1]));
+    let (walls, _) = run(false, &[3]);
+    let ((all, report), (one_by_one, _)) = (run(true, &[3]), run(true, &[1, 1, 1]));
+    // The outcome says what the sweep did, in the keyframe's coordinates.
+    let report = report.expect("surfaces reported");
+    assert!(report.used, "{report:?}");
+    let filled: usize = report.surfaces.iter().map(|p| p.filled_pixels).sum();
+    assert!(filled > 0 && filled < c.mask.hole_count(), "{report:?}");
+    for p in &report.surfaces {
+        let [x, y, w, h] = p.region;
+        assert!(x + w <= c.key.width() && y + h <= c.key.height() && p.views >= 2, "{p:?}");
+    }
     eprintln!("walls only {walls:.2} dB; swept, all at once {all:.2} dB, one by one {one_by_one:.2} dB");
     assert!(all > walls + 1.5, "swept {all:.2} dB against the walls' {walls:.2} dB");
     assert!(one_by_one >= all - 0.5, "one by one {one_by_one:.2} dB against all at once {all:.2} dB");

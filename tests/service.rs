@@ -418,3 +418,38 @@ fn idle_sessions_sleep_beyond_the_memory_budget_and_wake_without_realigning() {
     assert!(numbers.windows(2).all(|w| w[1] == w[0] + 1), "a's numbering restarted: {numbers:?}");
     assert_eq!(service.terminate(), 0);
 }
+
+/// The service says what its sweep for surfaces off the wall did, as `clearview fill
+/// --report` does: on a facade with slabs standing off it (three views), `result.json` lists
+/// the surfaces found, in the keyframe's coordinates, that the result was filled through
+/// them, and the masked pixels each filled.
+#[test]
+fn result_json_lists_the_surfaces_off_the_wall_it_filled_through() {
+    let f = folders("");
+    let c = synth::facade::parallax_case(640, 480, 3, 13, false);
+    let session = f.inbox.join("slabs");
+    put(&session.join("key.mask.png"), &mask_png(&c.mask));
+    put(&session.join("key.png"), &png(&c.key));
+    let service = Service::start(&f);
+    wait_for(&f, "the session to start", 30, |e| !of_kind(e, "mask_set").is_empty());
+    for (i, v) in c.views.iter().enumerate() {
+        put(&session.join(format!("v{i}.png")), &png(v));
+    }
+    let read = || -> Option<Value> {
+        serde_json::from_slice(&std::fs::read(f.outbox.join("slabs/result.json")).ok()?).ok()
+    };
+    wait_for(&f, "a result filled through the surfaces", 90, |_| {
+        read().is_some_and(|j| j["planes"]["used"] == true)
+    });
+    let report = read().unwrap();
+    let surfaces = report["planes"]["surfaces"].as_array().expect("surfaces listed");
+    let filled: u64 = surfaces.iter().map(|p| p["filled_pixels"].as_u64().unwrap()).sum();
+    let masked = report["masked"].as_u64().unwrap();
+    assert!(filled > 0 && filled < masked, "{filled} of {masked} masked pixels through surfaces: {report}");
+    for p in surfaces {
+        let r: Vec<u64> = p["region"].as_array().unwrap().iter().map(|v| v.as_u64().unwrap()).collect();
+        assert!(r.len() == 4 && r[0] + r[2] <= 640 && r[1] + r[3] <= 480, "{p}");
+        assert!(p["views"].as_u64().unwrap() >= 2, "a surface seen by one view: {p}");
+    }
+    assert_eq!(service.terminate(), 0);
+}

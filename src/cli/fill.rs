@@ -22,11 +22,11 @@ use crate::imaging::decode::DecodeLimits;
 use crate::imaging::encode::{EncodeOptions, OutputSpace};
 use crate::imaging::meta::{Metadata, Provenance};
 use crate::imaging::{Mask, Rect, Rgb8, RgbF32};
-use crate::inpaint::parallax::{SurfacePlane, SweepParams, ViewMatches};
+use crate::inpaint::parallax::{SweepParams, ViewMatches};
 use crate::inpaint::region::{footprint, into_crop};
 use crate::inpaint::{
-    AutoMaskParams, FillExtras, FillParams, Observer, Source, Stage, Swept, auto_mask_report, fill_swept,
-    sweep_surfaces,
+    AutoMaskParams, FillExtras, FillParams, Observer, Source, Stage, SurfacesReport, auto_mask_report,
+    fill_swept, sweep_surfaces,
 };
 
 /// Views decoded and aligned at the same time. JPEG decoding is sequential, so with two in
@@ -160,7 +160,7 @@ struct Report<'a> {
     /// Unless `--no-planes`: the surfaces off the wall the sweep found, whether the result
     /// was filled through them, and what each filled.
     #[serde(skip_serializing_if = "Option::is_none")]
-    planes: Option<PlanesReport>,
+    planes: Option<SurfacesReport>,
     views: Vec<ViewReport>,
     /// Wall time per stage, in order.
     timings_ms: Vec<(&'static str, f64)>,
@@ -177,49 +177,6 @@ struct AutoMaskSummary {
     /// Share of the keyframe that enough agreeing views saw to judge: an occluder elsewhere
     /// cannot be found.
     share_judged: f64,
-}
-
-/// What the sweep for surfaces off the wall found and did.
-#[derive(Debug, Serialize)]
-struct PlanesReport {
-    /// The surfaces off the wall the sweep found (empty: none).
-    surfaces: Vec<SurfaceReport>,
-    /// Whether the result was filled through them: the views back that fill better than
-    /// the wall's alone ([`planes_or_wall`]). When not, the result is the wall's fill.
-    used: bool,
-}
-
-/// A surface off the wall that the sweep found.
-#[derive(Debug, Serialize)]
-struct SurfaceReport {
-    /// The keyframe rectangle it may be chosen in: x, y, width, height.
-    region: [usize; 4],
-    /// Views that see it (have a homography for it).
-    views: usize,
-    /// Masked pixels filled through it.
-    filled_pixels: usize,
-}
-
-impl SurfaceReport {
-    /// Per surface, its region, its views and the masked pixels `surface` (the fill's map: 0
-    /// the wall, `1 + p` surface `p`) says it filled.
-    fn of(planes: &[SurfacePlane], surface: &[u16], mask: &Mask) -> Vec<Self> {
-        let mut filled = vec![0usize; planes.len()];
-        for (&s, &m) in surface.iter().zip(mask.as_slice()) {
-            if m > 127 && s > 0 {
-                filled[usize::from(s) - 1] += 1;
-            }
-        }
-        planes
-            .iter()
-            .zip(filled)
-            .map(|(p, filled_pixels)| Self {
-                region: [p.region.x, p.region.y, p.region.width, p.region.height],
-                views: p.views.iter().flatten().count(),
-                filled_pixels,
-            })
-            .collect()
-    }
 }
 
 /// Times the stages and drives the progress bar.
@@ -411,7 +368,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     } else {
         Vec::new()
     };
-    let Swept { filled, planes, used: planes_used } = fill_swept(
+    let swept = fill_swept(
         &key_rgb,
         &mask,
         &sources,
@@ -421,6 +378,8 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         args.seed,
         &mut progress,
     );
+    let planes = swept.report(&mask, (0, 0));
+    let filled = swept.filled;
     for (a, s) in aligned.iter().zip(&filled.report.sources) {
         let r = &mut reports[a.report];
         r.covered_pixels = s.covered;
@@ -468,10 +427,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         share_doubtful: fr.doubtful_share(),
         expected_quality: fr.expected_quality(),
         auto_mask: auto,
-        planes: sweep.then(|| PlanesReport {
-            surfaces: SurfaceReport::of(&planes, filled.surface.as_slice(), &mask),
-            used: planes_used,
-        }),
+        planes: sweep.then_some(planes),
         views: reports,
         timings_ms: timings,
     };

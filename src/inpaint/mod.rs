@@ -37,7 +37,7 @@ pub use automask::{
     own_occluders_memo,
 };
 pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_guided, exemplar_fill_until};
-pub use swept::{Swept, fill_swept, sweep_surfaces};
+pub use swept::{SurfaceReport, SurfacesReport, Swept, fill_swept, sweep_surfaces};
 
 /// Where each pixel of a result came from: [`KEYFRAME`] outside the mask, [`FALLBACK`]
 /// for the single-image fallback, otherwise `1 + i` for `sources[i]`.

@@ -7,6 +7,8 @@
 //! The sweep itself does not hear a stop: a session asked to stop during it stops at the
 //! fill that follows (seconds at most, inside the service's grace period).
 
+use serde::Serialize;
+
 use super::parallax::{SurfacePlane, SweepParams, ViewMatches, swept_planes_memo};
 use super::{FillExtras, FillParams, Filled, Observer, Quiet, Source, Stage, fill_with};
 use crate::imaging::convert::{luma, luminance};
@@ -20,6 +22,52 @@ pub struct Swept {
     pub planes: Vec<SurfacePlane>,
     /// Whether `filled` was made through `planes` ([`Filled::surface`] says where).
     pub used: bool,
+}
+
+impl Swept {
+    /// What the sweep found and did, for a report: per surface, its region (moved by
+    /// `origin`, the keyframe position of the part `mask` covers), its views and the masked
+    /// pixels filled through it, and whether the fill was made through the surfaces.
+    pub fn report(&self, mask: &Mask, origin: (usize, usize)) -> SurfacesReport {
+        let mut filled = vec![0usize; self.planes.len()];
+        for (&s, &m) in self.filled.surface.as_slice().iter().zip(mask.as_slice()) {
+            if m > 127 && s > 0 {
+                filled[usize::from(s) - 1] += 1;
+            }
+        }
+        let surfaces = self
+            .planes
+            .iter()
+            .zip(filled)
+            .map(|(p, filled_pixels)| SurfaceReport {
+                region: [p.region.x + origin.0, p.region.y + origin.1, p.region.width, p.region.height],
+                views: p.views.iter().flatten().count(),
+                filled_pixels,
+            })
+            .collect();
+        SurfacesReport { surfaces, used: self.used }
+    }
+}
+
+/// What the sweep for surfaces off the wall found and did ([`Swept::report`]).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SurfacesReport {
+    /// The surfaces off the wall the sweep found (empty: none).
+    pub surfaces: Vec<SurfaceReport>,
+    /// Whether the result was filled through them: the views back that fill better than
+    /// the walls' alone ([`fill_swept`]). When not, the result is the walls' fill.
+    pub used: bool,
+}
+
+/// A surface off the wall that the sweep found.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SurfaceReport {
+    /// The keyframe rectangle it may be chosen in: x, y, width, height.
+    pub region: [usize; 4],
+    /// Views that see it (have a homography for it).
+    pub views: usize,
+    /// Masked pixels filled through it (none when the walls' fill was kept).
+    pub filled_pixels: usize,
 }
 
 /// The surfaces off the wall around the mask, swept from the views ([`swept_planes_memo`]),

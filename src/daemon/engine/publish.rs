@@ -285,7 +285,7 @@ fn result_json(
         .collect();
     let key_name =
         slot.key_path.as_ref().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned());
-    json!({
+    let mut report = json!({
         "version": 1,
         "session": slot.name,
         "number": number,
@@ -304,7 +304,13 @@ fn result_json(
         "score": outcome.score,
         "score_rule": "expected quality: the mean over the mask of the confidence that each pixel shows the building (confidence.png); a result is replaced by a new fill only when, with every view so far as witnesses, the new fill agrees with the views at least as well as the result does",
         "views": views,
-    })
+    });
+    // As `clearview fill --report` has it: the surfaces off the wall the sweep found,
+    // whether the result was filled through them, and the masked pixels each filled.
+    if let Some(surfaces) = &outcome.surfaces {
+        report["planes"] = json!(surfaces);
+    }
+    report
 }
 
 /// The numbers of the results in a session's `history/` folder, oldest first.
