@@ -4,12 +4,13 @@
 //! published result may not fall more than the issues' 0.5 dB (masked PSNR against the
 //! truth) below the fill of all the views at once, whatever the batches were.
 
+mod common;
 mod daemon_common;
 
 use clearview::imaging::RgbF32;
-use clearview::imaging::convert::luminance;
 use clearview::imaging::metrics::masked_psnr;
 use clearview::session::{Session, SessionParams};
+use common::fill_in_batches;
 use daemon_common::Scene;
 
 /// Feeds `views` to a fresh session, filling after each batch (`batches` are the batch
@@ -18,22 +19,8 @@ fn run(scene: &Scene, views: &[RgbF32], batches: &[usize]) -> f64 {
     let mut s = Session::new(SessionParams::default());
     s.set_key("key".into(), scene.key.clone());
     s.set_mask("mask".into(), scene.mask.clone()).unwrap();
-    let mut published = None;
-    let mut next = views.iter().enumerate();
-    for &n in batches {
-        for (i, v) in next.by_ref().take(n) {
-            let record = s.align(luminance(v)).unwrap();
-            assert!(record.accepted, "view {i} refused: {:?}", record.reason);
-            let pixels = v.map(|p| p.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8));
-            s.admit(format!("view{i}"), record, Some(&pixels)).unwrap();
-        }
-        s.request_fill();
-        let outcome = s.fill(&mut ()).expect("a fill");
-        if let Some(image) = outcome.image {
-            published = Some(masked_psnr(&image, &scene.truth, &scene.mask));
-        }
-    }
-    published.expect("a published result")
+    let published = fill_in_batches(&mut s, views, batches).into_iter().filter_map(|o| o.image).next_back();
+    masked_psnr(&published.expect("a published result"), &scene.truth, &scene.mask)
 }
 
 #[test]

@@ -3,9 +3,12 @@
 //! which the views agree — must beat the single-plane fill through the wall's homography;
 //! and on a flat wall the plane step must change nothing when it is given no planes.
 
+mod common;
+
 use clearview::imaging::metrics::masked_psnr;
 use clearview::inpaint::{FillExtras, FillParams, Source, fill, fill_with};
 use clearview::synth::facade::parallax_case;
+use common::fill_in_batches;
 
 #[test]
 fn choosing_the_plane_per_pixel_beats_the_wall_alone_on_a_facade_with_slabs() {
@@ -144,7 +147,6 @@ fn the_sweep_finds_slabs_where_there_are_some_and_nothing_on_a_flat_wall() {
 /// same scene.
 #[test]
 fn a_session_fills_through_the_surfaces_view_by_view_as_the_command_does() {
-    use clearview::imaging::convert::luminance;
     use clearview::session::{Session, SessionParams};
 
     let c = parallax_case(640, 480, 3, 13, false);
@@ -153,24 +155,12 @@ fn a_session_fills_through_the_surfaces_view_by_view_as_the_command_does() {
         let mut s = Session::new(params);
         s.set_key("key".into(), c.key.clone());
         s.set_mask("mask".into(), c.mask.clone()).unwrap();
-        let mut views = c.views.iter().enumerate();
-        let (mut last, mut surfaces) = (None, None);
-        for &n in batches {
-            for (i, v) in views.by_ref().take(n) {
-                let record = s.align(luminance(v)).unwrap();
-                assert!(record.accepted, "view {i} refused: {:?}", record.reason);
-                let pixels = v.map(|p| p.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8));
-                s.admit(format!("view{i}"), record, Some(&pixels)).unwrap();
-            }
-            s.request_fill();
-            let outcome = s.fill(&mut ()).expect("a fill");
-            assert_eq!(outcome.surfaces.is_some(), sweep, "surfaces reported only when swept");
-            if let Some(image) = &outcome.image {
-                last = Some(masked_psnr(image, &c.truth, &c.mask));
-                surfaces = outcome.surfaces;
-            }
+        let outcomes = fill_in_batches(&mut s, &c.views, batches);
+        for o in &outcomes {
+            assert_eq!(o.surfaces.is_some(), sweep, "surfaces reported only when swept");
         }
-        (last.expect("a published result"), surfaces)
+        let last = outcomes.into_iter().rfind(|o| o.image.is_some()).expect("a published result");
+        (masked_psnr(last.image.as_ref().unwrap(), &c.truth, &c.mask), last.surfaces)
     };
     let (walls, _) = run(false, &[3]);
     let ((all, report), (one_by_one, _)) = (run(true, &[3]), run(true, &[1, 1, 1]));

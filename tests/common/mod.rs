@@ -5,6 +5,9 @@
 use std::path::{Path, PathBuf};
 
 use clearview::geometry::Homography;
+use clearview::imaging::RgbF32;
+use clearview::imaging::convert::luminance;
+use clearview::session::{FillOutcome, Session};
 
 /// `../shared/data` relative to the project root, or `None` (with the reason printed) when
 /// it is absent: tests on real images skip only then.
@@ -44,4 +47,23 @@ pub fn sequence_image(seq: &Path, n: usize) -> PathBuf {
         }
     }
     panic!("{}: no img{n}", seq.display());
+}
+
+/// Feeds `views` to session `s` (its keyframe and mask set), each aligned by the session
+/// and admitted as `view<i>`, filling after each batch (`batches`: the batch sizes, in
+/// order): the outcome of each fill.
+pub fn fill_in_batches(s: &mut Session, views: &[RgbF32], batches: &[usize]) -> Vec<FillOutcome> {
+    let mut next = views.iter().enumerate();
+    let mut outcomes = Vec::new();
+    for &n in batches {
+        for (i, v) in next.by_ref().take(n) {
+            let record = s.align(luminance(v)).unwrap();
+            assert!(record.accepted, "view {i} refused: {:?}", record.reason);
+            let pixels = v.map(|p| p.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8));
+            s.admit(format!("view{i}"), record, Some(&pixels)).unwrap();
+        }
+        s.request_fill();
+        outcomes.push(s.fill(&mut ()).expect("a fill"));
+    }
+    outcomes
 }
