@@ -2,11 +2,12 @@
 //! per case a keyframe with occluders, the mask a person paints over them, the
 //! occluder-free truth and the other views, in the order they arrive.
 //!
-//! `cargo run --release --example service_cases -- OUT_DIR [--seed N] [--data DIR]`
+//! `cargo run --release --example service_cases -- OUT_DIR [--seed N] [--data DIR] [--views N]`
 //!
 //! Families (the seed moves every occluder and every generated viewpoint, so a new seed
 //! is a case never seen):
-//! - `planar`, `shared`, `nonplanar`: `synth::occlusion_case` (640×480, 4 views);
+//! - `planar`, `shared`, `nonplanar`: `synth::occlusion_case` (640×480, 4 views, or N: a
+//!   session whose views outnumber those a view's own occluders are judged against);
 //! - `oxford-*` (graf, wall, leuven), `hpatches-*` (v_churchill, v_wormhole) and
 //!   `photo-*` (multiview/parapano_building, parapano_ece, parapano_hunt, vlfeat_roofs):
 //!   a real photograph with generated occluders pasted on it (the clean photograph is the
@@ -53,19 +54,21 @@ fn photo(out: &Path, name: &str, set: &Path, key: &str, views: &[&str], seed: u6
 fn main() {
     let mut args = std::env::args().skip(1);
     let (mut out, mut seed, mut data) = (None, 1u64, PathBuf::from("../shared/data"));
+    let mut views = 4;
     while let Some(a) = args.next() {
         match a.as_str() {
             "--seed" => seed = args.next().and_then(|s| s.parse().ok()).expect("--seed N"),
             "--data" => data = PathBuf::from(args.next().expect("--data DIR")),
+            "--views" => views = args.next().and_then(|s| s.parse().ok()).expect("--views N"),
             _ => out = Some(PathBuf::from(a)),
         }
     }
     let Some(out) = out else {
-        eprintln!("usage: service_cases OUT_DIR [--seed N] [--data DIR]");
+        eprintln!("usage: service_cases OUT_DIR [--seed N] [--data DIR] [--views N]");
         std::process::exit(64);
     };
     for family in CaseFamily::ALL {
-        let c = synth::occlusion_case(family, 640, 480, 4, seed);
+        let c = synth::occlusion_case(family, 640, 480, views, seed);
         save_case(&out.join(format!("{}-{seed}", family.name())), &c.key, &c.mask, &c.truth, &c.views);
     }
     let sets: [(&str, &str, &str, &[&str]); 9] = [
