@@ -72,12 +72,16 @@ pub fn luminance(rgb: &RgbF32) -> GrayF32 {
     out
 }
 
-/// [`luminance`] into a reused buffer.
+/// [`luminance`] into a reused buffer (rows in parallel: 35 ms of one core at 12 MP, in
+/// every fill of the service's plane sweep).
 pub fn luminance_into(rgb: &RgbF32, out: &mut GrayF32) {
     out.reset(rgb.width(), rgb.height(), 0.0);
-    for (o, p) in out.as_mut_slice().iter_mut().zip(rgb.as_slice()) {
-        *o = luma(*p);
-    }
+    let w = rgb.width().max(1);
+    out.as_mut_slice().par_chunks_mut(w).zip(rgb.as_slice().par_chunks(w)).for_each(|(o, p)| {
+        for (o, p) in o.iter_mut().zip(p) {
+            *o = luma(*p);
+        }
+    });
 }
 
 /// Luminance straight from a decoded image, without an intermediate RGB plane. The 8-bit
