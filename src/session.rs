@@ -1009,6 +1009,7 @@ impl Fnv {
 mod tests {
     use super::*;
     use crate::imaging::bilinear_rgb;
+    use crate::inpaint::OwnParams;
     use crate::synth;
 
     const W: usize = 96;
@@ -1098,12 +1099,17 @@ mod tests {
     }
 
     /// Views arriving one by one: each fill, made with the views' own occluders kept from
-    /// the fills before, is the fill of the same session judging every view afresh.
+    /// the fills before, is the fill of the same session judging every view afresh, when a
+    /// view is judged again whenever the fresh choice of its references changes
+    /// (`keep_spread` 0; with the default a view's marks also stand while they were judged
+    /// against as many views, nearly as far apart: `automask`'s tests).
     #[test]
     fn own_occluders_kept_between_fills_make_the_fill_judged_afresh() {
         let c = synth::occlusion_case(synth::CaseFamily::Planar, 320, 240, 8, 21);
         let session = || {
-            let mut s = Session::new(SessionParams { min_new_pixels: 1, ..SessionParams::default() });
+            let mut params = SessionParams { min_new_pixels: 1, ..SessionParams::default() };
+            params.fill.own = Some(OwnParams { keep_spread: 0.0, ..OwnParams::default() });
+            let mut s = Session::new(params);
             s.set_key("key".into(), c.key.clone());
             s.set_mask("mask".into(), c.mask.clone()).unwrap();
             s

@@ -779,8 +779,16 @@ pub struct OwnParams {
     /// verdict, so that a pixel every view is marked on is still copied.
     pub mark: u8,
     /// A view is judged against the keyframe and at most this many other views
-    /// ([`references`]). Against every other view, 16 frames of a walk took 14 s.
+    /// ([`Viewpoints::farthest`]). Against every other view, 16 frames of a walk took 14 s.
     pub references: usize,
+    /// A caller that keeps each view's marks from one call to the next
+    /// ([`own_occluders_memo`]) keeps them while they were judged against as many views as
+    /// a fresh choice of references would take, spread at least `1 / keep_spread` as far
+    /// apart ([`Viewpoints::spread`]); 0 keeps them only for the same choice. Choosing
+    /// afresh at each call, a session's buffer of 9 judged 5 to 9 of its views again at each
+    /// landing (the new view changes the choice of half the others, and the view it evicts
+    /// is among the references of up to all of them; BENCHMARKS.md, "Capture service").
+    pub keep_spread: f64,
     /// Views are judged over the mask's bounds grown by this many keyframe pixels (and
     /// what the views show of them), whatever the caller cropped the images to: the
     /// command and the service crop differently and must find the same occluders (judged
@@ -802,6 +810,7 @@ impl Default for OwnParams {
             parallax_radius: 8,
             mark: 160,
             references: 4,
+            keep_spread: 1.5,
             margin: 48,
             foreign_witnesses: false,
         }
@@ -831,22 +840,32 @@ pub fn own_occluders<P: RgbPixel>(
     if !judged {
         return Vec::new();
     }
-    memo.into_iter().map(|m| m.judged.and_then(|(_, marks)| marks)).collect()
+    memo.into_iter().map(|m| m.judged.and_then(|j| j.marks)).collect()
 }
 
 /// One view's marks from an earlier [`own_occluders_memo`], with the references they were
 /// judged against. A view's marks depend on the keyframe, the mask, the parameters, the
-/// view itself and its references only: they stand while the view would be judged against
-/// the same references.
+/// view itself and its references only.
 #[derive(Debug, Clone, Default)]
 pub struct OwnMarks {
-    /// The view's identity and its references' (in the order taken), and the marks.
-    judged: Option<(Vec<u64>, Option<Mask>)>,
+    judged: Option<Judged>,
+}
+
+#[derive(Debug, Clone)]
+struct Judged {
+    /// The view's identity and its references' (in the order taken).
+    ids: Vec<u64>,
+    /// How far apart the references were ([`Viewpoints::spread`]).
+    spread: f64,
+    marks: Option<Mask>,
 }
 
 /// [`own_occluders`] for a caller that keeps each view's marks from one call to the next
-/// (a session's fills, one more view each time): a view is judged again only when its
-/// references changed (a new view joined them, or one of them left). `ids` names each
+/// (a session's fills, one more view each time): a view is judged again only when a fresh
+/// choice of references would take more views than its marks were judged against, or views
+/// spread much farther apart ([`OwnParams::keep_spread`]). Its marks stand when views it
+/// was judged against have left since: what they showed was evidence then, and is still.
+/// With `keep_spread` 0, a view is judged again whenever the fresh choice changed. `ids` names each
 /// source (a source's pixels and map never change under its identity); `memo`, one entry
 /// per source, holds what the last call found for it (`OwnMarks::default()` for a source
 /// not judged before), and is only valid for the same keyframe, mask and parameters. The
@@ -907,31 +926,42 @@ pub fn own_occluders_memo<'m, P: RgbPixel>(
             }
         })
         .collect();
-    // Per kept view: its map back to the keyframe and its references; judged again only
-    // when these are not those its marks were judged against.
-    let plans: Vec<Option<(Homography, Vec<usize>)>> = reduced
+    // Per kept view: its map back to the keyframe, the references a fresh choice takes,
+    // and how far apart they are.
+    let plans: Vec<Option<(Homography, Vec<usize>, f64)>> = reduced
         .iter()
         .enumerate()
         .map(|(k, red)| {
             let back = red.map.inverse()?;
-            let refs = references(red.size, &back, &reduced, k, params.references);
-            Some((back, refs))
+            let views = Viewpoints::of(red.size, &back, &reduced, k);
+            let refs = views.farthest(params.references);
+            let spread = views.spread(&refs).expect("chosen among those that see it");
+            Some((back, refs, spread))
         })
         .collect();
     // What a view's marks are judged from: the view itself, then its references.
     let wanted = |k: usize| -> Vec<u64> {
-        let refs = plans[k].as_ref().map_or(&[][..], |(_, refs)| &refs[..]);
+        let refs = plans[k].as_ref().map_or(&[][..], |(_, refs, _)| &refs[..]);
         std::iter::once(ids[kept[k]]).chain(refs.iter().map(|&j| ids[kept[j]])).collect()
     };
+    // A view is judged again only when its marks were judged against fewer views than a
+    // fresh choice would take, or against views much closer together
+    // ([`OwnParams::keep_spread`]), and not against the fresh choice itself. Its references
+    // may have left since: what they showed was evidence then and is still.
     let stale: Vec<usize> = (0..kept.len())
-        .filter(|&k| memo[kept[k]].judged.as_ref().is_none_or(|(refs, _)| *refs != wanted(k)))
+        .filter(|&k| {
+            let Some(before) = &memo[kept[k]].judged else { return true };
+            let Some((_, refs, spread)) = &plans[k] else { return before.ids != wanted(k) };
+            let kept_up = before.ids.len() > refs.len() && before.spread * params.keep_spread >= *spread;
+            !kept_up && before.ids != wanted(k)
+        })
         .collect();
     tracing::debug!(judged = stale.len(), kept = kept.len(), "views' own occluders");
     if !stale.is_empty() {
         let mut needed = vec![false; kept.len()];
         for &k in &stale {
             needed[k] = true;
-            if let Some((_, refs)) = &plans[k] {
+            if let Some((_, refs, _)) = &plans[k] {
                 for &j in refs {
                     needed[j] = true;
                 }
@@ -979,7 +1009,7 @@ pub fn own_occluders_memo<'m, P: RgbPixel>(
         let found: Vec<Option<Mask>> = stale
             .par_iter()
             .map(|&k| {
-                let (back, refs) = plans[k].as_ref()?;
+                let (back, refs, _) = plans[k].as_ref()?;
                 let img = images[k].as_ref().expect("needed");
                 let mut witnesses: Vec<Source<'_, [f32; 3]>> =
                     vec![Source { image: &key_r, homography: *back }];
@@ -1005,13 +1035,14 @@ pub fn own_occluders_memo<'m, P: RgbPixel>(
             })
             .collect();
         for (&k, marks) in stale.iter().zip(found) {
-            memo[kept[k]].judged = Some((wanted(k), marks));
+            let spread = plans[k].as_ref().map_or(0.0, |p| p.2);
+            memo[kept[k]].judged = Some(Judged { ids: wanted(k), spread, marks });
         }
     }
     let mut out: Vec<Option<&Mask>> = vec![None; sources.len()];
     let memo: &'m [OwnMarks] = memo;
     for &v in &kept {
-        out[v] = memo[v].judged.as_ref().and_then(|(_, marks)| marks.as_ref());
+        out[v] = memo[v].judged.as_ref().and_then(|j| j.marks.as_ref());
     }
     out
 }
@@ -1024,63 +1055,89 @@ struct Reduced {
     map: Homography,
 }
 
-/// The views (but `i`) that view `i`'s own occluders are judged against, at most `k` of
-/// them (`size`: view `i`'s reduced size; `back`: its pixels to the keyframe's; `views`' maps:
-/// keyframe to view). Among the views that see at least half as much of it as the one
-/// that sees most, those farthest apart in viewpoint: each next one the farthest from view
-/// `i` and from those already taken, the distance being how far the map from view `i` to
-/// it is from a translation (its Jacobian at view `i`'s centre, less the identity; a
-/// translation says nothing, as the images may be crops). Frames taken next to view `i`
-/// on a walk show its own tree nearly where it stands and agree with it there; the frames
-/// farther along show the tree moved off the wall behind. Overlap is counted on a grid of
-/// about 32 × 32 points.
-fn references(size: (usize, usize), back: &Homography, views: &[Reduced], i: usize, k: usize) -> Vec<usize> {
-    use nalgebra::Point2;
-    let (w, h) = size;
-    let step = (w.max(h) / 32).max(1);
-    let points: Vec<Point2<f64>> = (0..h)
-        .step_by(step)
-        .flat_map(|y| (0..w).step_by(step).map(move |x| Point2::new(x as f64, y as f64)))
-        .filter_map(|p| back.apply(p))
-        .collect();
-    let centre = Point2::new((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
-    // Per other view: the points of view `i` it sees, and its Jacobian less the identity.
-    let seen: Vec<(usize, usize, [f64; 4])> = views
-        .iter()
-        .enumerate()
-        .filter(|&(j, _)| j != i)
-        .filter_map(|(j, other)| {
-            let (ow, oh) = (other.size.0 as f64, other.size.1 as f64);
-            let hj = &other.map;
-            let inside = |r: &Point2<f64>| r.x >= 0.0 && r.y >= 0.0 && r.x <= ow - 1.0 && r.y <= oh - 1.0;
-            let n = points.iter().filter_map(|q| hj.apply(*q)).filter(inside).count();
-            let to_j = hj.after(back);
-            let at = |dx: f64, dy: f64| to_j.apply(Point2::new(centre.x + dx, centre.y + dy));
-            let (c, x, y) = (at(0.0, 0.0)?, at(1.0, 0.0)?, at(0.0, 1.0)?);
-            let jac = [x.x - c.x - 1.0, y.x - c.x, x.y - c.y, y.y - c.y - 1.0];
-            (n > 0).then_some((j, n, jac))
-        })
-        .collect();
-    let most = seen.iter().map(|s| s.1).max().unwrap_or(0);
-    let mut left: Vec<(usize, [f64; 4])> =
-        seen.iter().filter(|s| s.1 * 2 >= most).map(|s| (s.0, s.2)).collect();
-    let mut taken: Vec<[f64; 4]> = vec![[0.0; 4]];
-    let mut chosen = Vec::new();
-    while chosen.len() < k && !left.is_empty() {
-        let distance = |m: &[f64; 4]| {
-            let d = |t: &[f64; 4]| (0..4).map(|c| (m[c] - t[c]).powi(2)).sum::<f64>();
-            taken.iter().map(d).fold(f64::INFINITY, f64::min)
-        };
-        let best = (0..left.len())
-            .max_by(|&a, &b| {
-                distance(&left[a].1).total_cmp(&distance(&left[b].1)).then(left[b].0.cmp(&left[a].0))
+/// How view `i` sees the other views, for the choice of the views its own occluders are
+/// judged against ([`Viewpoints::farthest`]).
+struct Viewpoints {
+    /// Per other view that sees some of view `i`: its index, how many points of view `i`
+    /// it sees, and how far the map from view `i` to it is from a translation (its Jacobian
+    /// at view `i`'s centre, less the identity; a translation says nothing, as the images
+    /// may be crops).
+    seen: Vec<(usize, usize, [f64; 4])>,
+}
+
+impl Viewpoints {
+    /// `size`: view `i`'s reduced size; `back`: its pixels to the keyframe's; `views`' maps:
+    /// keyframe to view. Overlap is counted on a grid of about 32 × 32 points.
+    fn of(size: (usize, usize), back: &Homography, views: &[Reduced], i: usize) -> Self {
+        use nalgebra::Point2;
+        let (w, h) = size;
+        let step = (w.max(h) / 32).max(1);
+        let points: Vec<Point2<f64>> = (0..h)
+            .step_by(step)
+            .flat_map(|y| (0..w).step_by(step).map(move |x| Point2::new(x as f64, y as f64)))
+            .filter_map(|p| back.apply(p))
+            .collect();
+        let centre = Point2::new((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+        let seen = views
+            .iter()
+            .enumerate()
+            .filter(|&(j, _)| j != i)
+            .filter_map(|(j, other)| {
+                let (ow, oh) = (other.size.0 as f64, other.size.1 as f64);
+                let hj = &other.map;
+                let inside = |r: &Point2<f64>| r.x >= 0.0 && r.y >= 0.0 && r.x <= ow - 1.0 && r.y <= oh - 1.0;
+                let n = points.iter().filter_map(|q| hj.apply(*q)).filter(inside).count();
+                let to_j = hj.after(back);
+                let at = |dx: f64, dy: f64| to_j.apply(Point2::new(centre.x + dx, centre.y + dy));
+                let (c, x, y) = (at(0.0, 0.0)?, at(1.0, 0.0)?, at(0.0, 1.0)?);
+                let jac = [x.x - c.x - 1.0, y.x - c.x, x.y - c.y, y.y - c.y - 1.0];
+                (n > 0).then_some((j, n, jac))
             })
-            .expect("some left");
-        let (j, m) = left.swap_remove(best);
-        taken.push(m);
-        chosen.push(j);
+            .collect();
+        Self { seen }
     }
-    chosen
+
+    /// At most `k` views to judge view `i` against: among the views that see at least half
+    /// as much of it as the one that sees most, those farthest apart in viewpoint, each next
+    /// one the farthest from view `i` and from those already taken. Frames taken next to
+    /// view `i` on a walk show its own tree nearly where it stands and agree with it there;
+    /// the frames farther along show the tree moved off the wall behind.
+    fn farthest(&self, k: usize) -> Vec<usize> {
+        let most = self.seen.iter().map(|s| s.1).max().unwrap_or(0);
+        let mut left: Vec<(usize, [f64; 4])> =
+            self.seen.iter().filter(|s| s.1 * 2 >= most).map(|s| (s.0, s.2)).collect();
+        let mut taken: Vec<[f64; 4]> = vec![[0.0; 4]];
+        let mut chosen = Vec::new();
+        while chosen.len() < k && !left.is_empty() {
+            let distance = |m: &[f64; 4]| taken.iter().map(|t| squared(m, t)).fold(f64::INFINITY, f64::min);
+            let best = (0..left.len())
+                .max_by(|&a, &b| {
+                    distance(&left[a].1).total_cmp(&distance(&left[b].1)).then(left[b].0.cmp(&left[a].0))
+                })
+                .expect("some left");
+            let (j, m) = left.swap_remove(best);
+            taken.push(m);
+            chosen.push(j);
+        }
+        chosen
+    }
+
+    /// How far apart in viewpoint the views `refs` are, from view `i` and from each other:
+    /// the sum over them of the distance to the nearest of view `i` and the others. `None`
+    /// when one of them does not see view `i`.
+    fn spread(&self, refs: &[usize]) -> Option<f64> {
+        let jacs: Vec<[f64; 4]> =
+            refs.iter().map(|&j| self.seen.iter().find(|s| s.0 == j).map(|s| s.2)).collect::<Option<_>>()?;
+        let nearest = |a: usize| {
+            let others = jacs.iter().enumerate().filter(|&(b, _)| b != a).map(|(_, m)| squared(&jacs[a], m));
+            others.fold(squared(&jacs[a], &[0.0; 4]), f64::min).sqrt()
+        };
+        Some((0..jacs.len()).map(nearest).sum())
+    }
+}
+
+fn squared(a: &[f64; 4], b: &[f64; 4]) -> f64 {
+    (0..4).map(|c| (a[c] - b[c]).powi(2)).sum()
 }
 
 /// The factor [`reduce`] brings a `w × h` image down by to at most `work_pixels` pixels.
@@ -1204,17 +1261,21 @@ mod tests {
         assert!(erode(&d, 3).as_slice().iter().all(|&v| !v));
     }
 
-    /// Views arriving one by one, and one leaving, as in a session: the marks kept from call
-    /// to call are at each step those found afresh, views whose references stayed are not
-    /// judged again, and a view whose references changed is.
-    #[test]
-    fn marks_kept_between_calls_are_those_found_afresh() {
+    /// One view at one step of [`arrivals`]: the identities of the views it was judged
+    /// against (itself first; `None`: not judged), its marks, and those found afresh.
+    type Step = (Option<Vec<u64>>, Option<Mask>, Option<Mask>);
+
+    /// Views arriving one by one, and one leaving, as in a session, each call given the
+    /// marks of the last (`keep_spread`): per step, per view, its marks and the identities
+    /// of the views it was judged against (`None`: not judged), and the marks found afresh.
+    fn arrivals(keep_spread: f64) -> Vec<Vec<Step>> {
         let c = crate::synth::occlusion_case(crate::synth::CaseFamily::Planar, 320, 240, 10, 11);
+        assert!(fresh_marks_exist(&c, &OwnParams::default(), &AutoMaskParams::default()), "nothing to mark");
         let all = c.sources();
-        let (params, auto) = (OwnParams::default(), AutoMaskParams::default());
+        let (params, auto) = (OwnParams { keep_spread, ..OwnParams::default() }, AutoMaskParams::default());
         // (id, memo) of the views present, in arrival order; view 2 leaves after view 5.
         let mut present: Vec<(u64, OwnMarks)> = Vec::new();
-        let (mut judged_again, mut kept) = (0, 0);
+        let mut steps = Vec::new();
         for step in 0..all.len() {
             present.push((step as u64, OwnMarks::default()));
             if step == 5 {
@@ -1222,31 +1283,98 @@ mod tests {
             }
             let ids: Vec<u64> = present.iter().map(|(id, _)| *id).collect();
             let sources: Vec<Source<'_, [f32; 3]>> = ids.iter().map(|&id| all[id as usize]).collect();
-            let before: Vec<Option<Vec<u64>>> =
-                present.iter().map(|(_, m)| m.judged.as_ref().map(|(refs, _)| refs.clone())).collect();
             let mut memo: Vec<OwnMarks> = present.iter().map(|(_, m)| m.clone()).collect();
             let fresh = own_occluders(&c.key, &c.mask, &sources, &params, &auto);
-            let kept_marks: Vec<Option<Mask>> =
+            let kept: Vec<Option<Mask>> =
                 own_occluders_memo(&c.key, &c.mask, &sources, &ids, &params, &auto, &mut memo)
                     .into_iter()
                     .map(|m| m.cloned())
                     .collect();
-            assert_eq!(kept_marks.len(), fresh.len(), "step {step}");
-            for (k, (a, b)) in kept_marks.iter().zip(&fresh).enumerate() {
-                assert!(a == b, "step {step}, view {}: the kept marks are not those found afresh", ids[k]);
-            }
-            for (k, (entry, m)) in present.iter_mut().zip(memo).enumerate() {
-                let now = m.judged.as_ref().map(|(refs, _)| refs.clone());
-                match &before[k] {
-                    Some(refs) if Some(refs) == now.as_ref() => kept += 1,
-                    Some(_) => judged_again += 1,
-                    None => {}
-                }
+            assert_eq!(kept.len(), fresh.len(), "step {step}");
+            steps.push(
+                memo.iter()
+                    .zip(kept)
+                    .zip(fresh)
+                    .map(|((m, k), f)| (m.judged.as_ref().map(|j| j.ids.clone()), k, f))
+                    .collect(),
+            );
+            for (entry, m) in present.iter_mut().zip(memo) {
                 entry.1 = m;
             }
         }
-        assert!(fresh_marks_exist(&c, &params, &auto), "the case marks nothing: the test says nothing");
+        steps
+    }
+
+    /// Judging a view again whenever the fresh choice of its references changed, the marks
+    /// kept from call to call are at each step those found afresh; views whose references
+    /// stayed are not judged again, and a view whose references changed is.
+    #[test]
+    fn marks_kept_between_calls_are_those_found_afresh() {
+        let (mut judged_again, mut kept) = (0, 0);
+        let steps = arrivals(0.0);
+        for (step, views) in steps.iter().enumerate() {
+            for (k, (refs, marks, fresh)) in views.iter().enumerate() {
+                assert!(marks == fresh, "step {step}, view {k}: the kept marks are not those found afresh");
+                let before = step.checked_sub(1).and_then(|s| {
+                    steps[s]
+                        .iter()
+                        .find(|v| v.0.as_ref().is_some_and(|r| refs.as_ref().is_some_and(|n| r[0] == n[0])))
+                });
+                match before {
+                    Some(b) if b.0 == *refs => kept += 1,
+                    Some(_) => judged_again += 1,
+                    None => {}
+                }
+            }
+        }
         assert!(kept > 0 && judged_again > 0, "kept {kept}, judged again {judged_again}");
+    }
+
+    /// Kept with their references (the default): a view judged again has the marks found
+    /// afresh, against the views a fresh choice takes; the others keep theirs, judged against
+    /// as many views, also after one of those left; and fewer views are judged than when
+    /// each fresh choice is followed.
+    #[test]
+    fn marks_stand_while_their_references_are_as_many_and_nearly_as_far_apart() {
+        let judged = |steps: &[Vec<Step>]| {
+            let mut n = 0;
+            for (step, views) in steps.iter().enumerate() {
+                for (refs, _, _) in views {
+                    let id = refs.as_ref().map(|r| r[0]);
+                    let before = step
+                        .checked_sub(1)
+                        .and_then(|s| steps[s].iter().find(|v| v.0.as_ref().map(|r| r[0]) == id));
+                    if refs.is_some() && before.is_none_or(|b| b.0 != *refs) {
+                        n += 1;
+                    }
+                }
+            }
+            n
+        };
+        let (sticky, afresh) = (arrivals(OwnParams::default().keep_spread), arrivals(0.0));
+        let mut outlived = 0;
+        for (step, (views, fresh_views)) in sticky.iter().zip(&afresh).enumerate() {
+            let present: Vec<u64> = views.iter().filter_map(|v| v.0.as_ref().map(|r| r[0])).collect();
+            for ((refs, marks, fresh), (fresh_refs, _, _)) in views.iter().zip(fresh_views) {
+                let (Some(refs), Some(fresh_refs)) = (refs, fresh_refs) else { continue };
+                if refs == fresh_refs {
+                    assert!(
+                        marks == fresh,
+                        "step {step}, view {}: judged against the fresh choice, not its marks",
+                        refs[0]
+                    );
+                } else {
+                    assert!(
+                        refs.len() >= fresh_refs.len(),
+                        "step {step}: {refs:?} kept against fewer than {fresh_refs:?}"
+                    );
+                }
+                outlived += usize::from(refs[1..].iter().any(|id| !present.contains(id)));
+            }
+        }
+        let (s, a) = (judged(&sticky), judged(&afresh));
+        assert!(s < a, "{s} judgements kept with their references, {a} afresh");
+        assert!(outlived > 0, "no view kept marks judged against a view that left");
     }
 
     fn fresh_marks_exist(c: &crate::synth::OcclusionCase, params: &OwnParams, auto: &AutoMaskParams) -> bool {
