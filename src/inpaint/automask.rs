@@ -944,10 +944,10 @@ pub fn own_occluders_memo<'m, P: RgbPixel>(
         let refs = plans[k].as_ref().map_or(&[][..], |(_, refs, _)| &refs[..]);
         std::iter::once(ids[kept[k]]).chain(refs.iter().map(|&j| ids[kept[j]])).collect()
     };
-    // A view is judged again only when its marks were judged against fewer views than a
-    // fresh choice would take, or against views much closer together
-    // ([`OwnParams::keep_spread`]), and not against the fresh choice itself. Its references
-    // may have left since: what they showed was evidence then and is still.
+    // A view keeps its marks when they were judged against the fresh choice, or against as
+    // many views spread at least `1 / keep_spread` as far apart ([`OwnParams::keep_spread`]),
+    // whether or not those views are still here: what they showed was evidence then and is
+    // still. Otherwise it is judged again.
     let stale: Vec<usize> = (0..kept.len())
         .filter(|&k| {
             let Some(before) = &memo[kept[k]].judged else { return true };
