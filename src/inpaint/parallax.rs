@@ -501,7 +501,10 @@ pub fn swept_planes(
 /// the same matches, so a session that fills again with one more view matches only that
 /// one. `view(v)` gives view `v`'s luminance, asked for only where its matches are not in
 /// `memo` and, for every view, once the views show parallax (the sweep itself). The
-/// caller clears an entry whose keyframe, mask or view changed.
+/// caller clears an entry whose keyframe, mask or view changed. `stop` is asked between
+/// the steps (the keyframe's corners matched in the views, the grid beside the mask
+/// matched in the views that need it, the sweep): when it says so, no surfaces are
+/// returned and `memo` keeps the matches made so far.
 #[allow(clippy::too_many_arguments)]
 pub fn swept_planes_memo(
     key: &GrayF32,
@@ -511,12 +514,18 @@ pub fn swept_planes_memo(
     params: &SweepParams,
     seed: u64,
     memo: &mut [ViewMatches],
+    stop: &dyn Fn() -> bool,
 ) -> Vec<SurfacePlane> {
     assert_eq!(memo.len(), walls.len(), "one memo entry per view");
-    if mask.hole_count() == 0 || walls.is_empty() {
+    if mask.hole_count() == 0 || walls.is_empty() || stop() {
         return Vec::new();
     }
-    let Some((own, g)) = family_memo(key, view, walls, mask, params, seed, memo) else { return Vec::new() };
+    let Some((own, g)) = family_memo(key, view, walls, mask, params, seed, memo, stop) else {
+        return Vec::new();
+    };
+    if stop() {
+        return Vec::new();
+    }
     let grays: Vec<GrayF32> = (0..walls.len()).into_par_iter().map(view).collect();
     let views: Vec<&GrayF32> = grays.iter().collect();
     sweep_family(key, &views, mask, params, &own, &g.matches, &g.t, false)
@@ -1180,7 +1189,7 @@ pub fn parallax_family(
     seed: u64,
 ) -> Option<(ParallaxFamily, Guided)> {
     let mut memo = vec![ViewMatches::default(); views.len()];
-    family_memo(key, &|v| views[v].clone(), walls, mask, params, seed, &mut memo)
+    family_memo(key, &|v| views[v].clone(), walls, mask, params, seed, &mut memo, &|| false)
 }
 
 /// [`parallax_family`] with the views' matches taken from and kept in `memo`
@@ -1194,6 +1203,7 @@ fn family_memo(
     params: &SweepParams,
     seed: u64,
     memo: &mut [ViewMatches],
+    stop: &dyn Fn() -> bool,
 ) -> Option<(ParallaxFamily, Guided)> {
     let m = Matcher::new(key, &params.matching);
     let corners = m.corners(mask);
@@ -1211,6 +1221,9 @@ fn family_memo(
     for (v, l, found) in made {
         levels[v] = Some(l);
         memo[v].corners = Some(found);
+    }
+    if stop() {
+        return None;
     }
     let mut matches: Vec<Vec<Correspondence>> =
         memo.iter().map(|e| e.corners.clone().expect("matched above")).collect();
@@ -2651,17 +2664,54 @@ mod tests {
             let plain = swept_planes(&key, &refs, &walls, &c.mask, &params, 1);
             assert_eq!(plain.is_empty(), flat, "flat {flat}: {} surfaces", plain.len());
             let mut memo = vec![ViewMatches::default(); grays.len()];
-            let first = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo);
+            let first = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo, &|| false);
             assert_eq!(first, plain, "flat {flat}: the memo changed the surfaces");
             let sweep = if flat { 0 } else { 1 };
             assert_eq!(count(), vec![1 + sweep; 3], "flat {flat}: each view once, and once to sweep");
-            let again = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo);
+            let again = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo, &|| false);
             assert_eq!(again, plain, "flat {flat}: the kept matches changed the surfaces");
             assert_eq!(count(), vec![sweep; 3], "flat {flat}: matched again");
             memo[1] = ViewMatches::default();
-            let new_view = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo);
+            let new_view = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo, &|| false);
             assert_eq!(new_view, plain, "flat {flat}");
             assert_eq!(count(), vec![sweep, 1 + sweep, sweep], "flat {flat}: only the new view is matched");
+        }
+    }
+
+    /// A sweep asks whether to stop before it starts, once the keyframe's corners are
+    /// matched, and before the sweep itself; stopped after the matching, it returns no
+    /// surfaces and keeps the matches, and the next sweep finds the surfaces it would have.
+    #[test]
+    fn a_stopped_sweep_finds_nothing_and_keeps_its_matches() {
+        use std::cell::Cell;
+        let params = SweepParams::default();
+        let c = crate::synth::facade::parallax_case(640, 480, 3, 3, false);
+        let key = crate::imaging::convert::luminance(&c.key);
+        let grays: Vec<GrayF32> = c.views.iter().map(crate::imaging::convert::luminance).collect();
+        let walls = c.wall();
+        let view = |v: usize| grays[v].clone();
+        let asked = Cell::new(0);
+        // Stops when asked for the `n`-th time (never with 0).
+        let stop_at = |n: usize| {
+            let asked = &asked;
+            move || {
+                asked.set(asked.get() + 1);
+                asked.get() == n
+            }
+        };
+        let mut memo = vec![ViewMatches::default(); grays.len()];
+        let whole = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo, &stop_at(0));
+        assert!(!whole.is_empty(), "the case has surfaces");
+        assert_eq!(asked.replace(0), 3, "asked before, after the corners and before the sweep");
+        for n in [1, 2, 3] {
+            let mut memo = vec![ViewMatches::default(); grays.len()];
+            let stopped = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo, &stop_at(n));
+            assert!(stopped.is_empty(), "stopped at the {n}th question: {} surfaces", stopped.len());
+            assert_eq!(asked.replace(0), n, "asked again after it stopped");
+            assert_eq!(memo.iter().all(|m| m.corners.is_some()), n > 1, "stopped at {n}: the matches made");
+            let next = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo, &stop_at(0));
+            assert_eq!(next, whole, "the sweep after one stopped at {n}");
+            asked.set(0);
         }
     }
 

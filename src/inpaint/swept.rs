@@ -74,7 +74,9 @@ pub struct SurfaceReport {
 /// in the keyframe's coordinates (see [`SurfacePlane::in_part`] for a part of it). `memo`
 /// holds one entry per source: each view's guided matches, kept for the next sweep of the
 /// same keyframe and mask (a session's next fill matches only its new views); give fresh
-/// entries (`ViewMatches::default()`) for a view not swept before.
+/// entries (`ViewMatches::default()`) for a view not swept before. `observer` is asked
+/// between the sweep's steps whether it is cancelled; a cancelled sweep finds no surfaces
+/// (the fill after it, asked too, is then unfinished).
 pub fn sweep_surfaces<P: RgbPixel>(
     key: &RgbF32,
     mask: &Mask,
@@ -94,7 +96,8 @@ pub fn sweep_surfaces<P: RgbPixel>(
         GrayF32::from_fn(image.width(), image.height(), |x, y| luma(image.get(x, y).to_f32()))
     };
     let walls: Vec<_> = sources.iter().map(|s| s.homography).collect();
-    swept_planes_memo(&key_gray, &view, &walls, mask, params, seed, memo)
+    let observer: &dyn Observer = observer;
+    swept_planes_memo(&key_gray, &view, &walls, mask, params, seed, memo, &|| observer.cancelled())
 }
 
 /// [`fill_with`] through the surfaces off the wall `planes` ([`sweep_surfaces`]) where the
