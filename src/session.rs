@@ -839,7 +839,15 @@ impl Session {
                     })
                     .collect();
                 let (seed, mask) = (self.params.seed, &mask.mask);
-                let found = inpaint::sweep_surfaces(&key.rgb, mask, &whole, sweep, seed, &mut memo, observer);
+                let found = inpaint::sweep_surfaces(
+                    key.frame.image(),
+                    mask,
+                    &whole,
+                    sweep,
+                    seed,
+                    &mut memo,
+                    observer,
+                );
                 found.iter().map(|p| p.in_part(region)).collect()
             }
             None => Vec::new(),

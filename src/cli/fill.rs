@@ -17,7 +17,7 @@ use super::load::{LoadError, load_image, load_photo};
 use super::save::{output_format, result_format, save_image, save_result};
 use crate::align::{AlignParams, Frame, align};
 use crate::geometry::{Homography, Rows};
-use crate::imaging::convert::{crop_rgb8, mask_to_luma8, to_luminance, to_mask, to_rgb};
+use crate::imaging::convert::{crop_rgb8, luminance, mask_to_luma8, to_luminance, to_mask, to_rgb};
 use crate::imaging::decode::DecodeLimits;
 use crate::imaging::encode::{EncodeOptions, OutputSpace};
 use crate::imaging::meta::{Metadata, Provenance};
@@ -357,7 +357,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     let planes = if sweep {
         let mut memo = vec![ViewMatches::default(); sources.len()];
         sweep_surfaces(
-            &key_rgb,
+            &luminance(&key_rgb),
             &mask,
             &sources,
             &SweepParams::default(),

@@ -11,7 +11,7 @@ use serde::Serialize;
 
 use super::parallax::{SurfacePlane, SweepParams, ViewMatches, swept_planes_memo};
 use super::{FillExtras, FillParams, Filled, Observer, Quiet, Source, Stage, fill_with};
-use crate::imaging::convert::{luma, luminance};
+use crate::imaging::convert::luma;
 use crate::imaging::{GrayF32, Mask, RgbF32, RgbPixel};
 
 /// A fill made by [`fill_swept`].
@@ -76,9 +76,10 @@ pub struct SurfaceReport {
 /// same keyframe and mask (a session's next fill matches only its new views); give fresh
 /// entries (`ViewMatches::default()`) for a view not swept before. `observer` is asked
 /// between the sweep's steps whether it is cancelled; a cancelled sweep finds no surfaces
-/// (the fill after it, asked too, is then unfinished).
+/// (the fill after it, asked too, is then unfinished). `key` is the keyframe's luminance
+/// ([`crate::imaging::convert::luminance`]): a session holds it already, for alignment.
 pub fn sweep_surfaces<P: RgbPixel>(
-    key: &RgbF32,
+    key: &GrayF32,
     mask: &Mask,
     sources: &[Source<'_, P>],
     params: &SweepParams,
@@ -90,14 +91,13 @@ pub fn sweep_surfaces<P: RgbPixel>(
         return Vec::new();
     }
     observer.stage(Stage::Sweep);
-    let key_gray = luminance(key);
     let view = |v: usize| {
         let image = sources[v].image;
         GrayF32::from_fn(image.width(), image.height(), |x, y| luma(image.get(x, y).to_f32()))
     };
     let walls: Vec<_> = sources.iter().map(|s| s.homography).collect();
     let observer: &dyn Observer = observer;
-    swept_planes_memo(&key_gray, &view, &walls, mask, params, seed, memo, &|| observer.cancelled())
+    swept_planes_memo(key, &view, &walls, mask, params, seed, memo, &|| observer.cancelled())
 }
 
 /// [`fill_with`] through the surfaces off the wall `planes` ([`sweep_surfaces`]) where the
