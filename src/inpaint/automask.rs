@@ -1310,24 +1310,34 @@ mod tests {
     /// stayed are not judged again, and a view whose references changed is.
     #[test]
     fn marks_kept_between_calls_are_those_found_afresh() {
-        let (mut judged_again, mut kept) = (0, 0);
         let steps = arrivals(0.0);
         for (step, views) in steps.iter().enumerate() {
-            for (k, (refs, marks, fresh)) in views.iter().enumerate() {
+            for (k, (_, marks, fresh)) in views.iter().enumerate() {
                 assert!(marks == fresh, "step {step}, view {k}: the kept marks are not those found afresh");
-                let before = step.checked_sub(1).and_then(|s| {
-                    steps[s]
-                        .iter()
-                        .find(|v| v.0.as_ref().is_some_and(|r| refs.as_ref().is_some_and(|n| r[0] == n[0])))
-                });
+            }
+        }
+        let (kept, judged_again, _) = tally(&steps);
+        assert!(kept > 0 && judged_again > 0, "kept {kept}, judged again {judged_again}");
+    }
+
+    /// Over the views judged at each step of `steps`, those judged at the step before too:
+    /// with the same references (marks kept) and with others (judged again); and those
+    /// judged for the first time.
+    fn tally(steps: &[Vec<Step>]) -> (usize, usize, usize) {
+        let (mut kept, mut again, mut first) = (0, 0, 0);
+        for (step, views) in steps.iter().enumerate() {
+            for refs in views.iter().filter_map(|v| v.0.as_ref()) {
+                let before = step
+                    .checked_sub(1)
+                    .and_then(|s| steps[s].iter().filter_map(|v| v.0.as_ref()).find(|r| r[0] == refs[0]));
                 match before {
-                    Some(b) if b.0 == *refs => kept += 1,
-                    Some(_) => judged_again += 1,
-                    None => {}
+                    Some(b) if b == refs => kept += 1,
+                    Some(_) => again += 1,
+                    None => first += 1,
                 }
             }
         }
-        assert!(kept > 0 && judged_again > 0, "kept {kept}, judged again {judged_again}");
+        (kept, again, first)
     }
 
     /// Kept with their references (the default): a view judged again has the marks found
@@ -1337,19 +1347,8 @@ mod tests {
     #[test]
     fn marks_stand_while_their_references_are_as_many_and_nearly_as_far_apart() {
         let judged = |steps: &[Vec<Step>]| {
-            let mut n = 0;
-            for (step, views) in steps.iter().enumerate() {
-                for (refs, _, _) in views {
-                    let id = refs.as_ref().map(|r| r[0]);
-                    let before = step
-                        .checked_sub(1)
-                        .and_then(|s| steps[s].iter().find(|v| v.0.as_ref().map(|r| r[0]) == id));
-                    if refs.is_some() && before.is_none_or(|b| b.0 != *refs) {
-                        n += 1;
-                    }
-                }
-            }
-            n
+            let (_, again, first) = tally(steps);
+            again + first
         };
         let (sticky, afresh) = (arrivals(OwnParams::default().keep_spread), arrivals(0.0));
         let mut outlived = 0;

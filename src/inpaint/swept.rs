@@ -4,8 +4,8 @@
 //! the walls alone, each judged by the views both ways, and the one the views back better
 //! (pure layer).
 //!
-//! The sweep itself does not hear a stop: a session asked to stop during it stops at the
-//! fill that follows (seconds at most, inside the service's grace period).
+//! The sweep asks the fill's observer whether it is cancelled between its steps (the
+//! matching of the keyframe's corners, of the grid beside the mask, the sweep itself).
 
 use serde::Serialize;
 
