@@ -15,7 +15,7 @@ result within 0.5 dB of `clearview fill` with all views; the last result >= 1 dB
 OpenCV median.
 
 Usage: bench/.venv/bin/python bench/service_eval.py DIR [--clearview target/release/clearview]
-           [--keep WORK_DIR] [--only SUBSTRING]
+           [--keep WORK_DIR] [--only SUBSTRING] [--buffer N]
 """
 import argparse
 import json
@@ -87,8 +87,9 @@ def settle(outbox, start, log, secs):
     raise SystemExit(f"the service did not settle; log:\n{log.read_text()[-4000:]}")
 
 
-def start_service(binary, work):
-    """`clearview run` on a fresh inbox, outbox and state under `work`: the process, the
+def start_service(binary, work, buffer=None):
+    """`clearview run` on a fresh inbox, outbox and state under `work` (with `buffer`, the
+    session's buffer of views: smaller than the views, it evicts): the process, the
     session folder, the outbox and the log."""
     inbox, outbox, state = work / "inbox", work / "outbox", work / "state"
     session = inbox / "s"
@@ -98,6 +99,7 @@ def start_service(binary, work):
     cfg.write_text(
         f'[watch]\ndir = "{inbox}"\nquiet_period_ms = 300\n[output]\ndir = "{outbox}"\nhistory = 50\n'
         f'[state]\ndir = "{state}"\n[compute]\ngrace_period_ms = 15000\n'
+        + (f"[session]\nbuffer = {buffer}\n" if buffer else "")
     )
     log = work / "service.log"
     env = dict(os.environ, CLEARVIEW_LOG="clearview=info")
@@ -113,10 +115,10 @@ def stop_service(proc):
         proc.kill()
 
 
-def run_service(binary, case, work, timeout):
+def run_service(binary, case, work, timeout, buffer=None):
     """Returns per step (the keyframe alone, then each view): what happened and the PSNR of
     the published result."""
-    proc, session, outbox, log = start_service(binary, work)
+    proc, session, outbox, log = start_service(binary, work, buffer)
     truth, mask = load(case / "truth.png"), load(case / "mask.png", cv2.IMREAD_GRAYSCALE) > 127
     steps = []
     try:
@@ -208,6 +210,7 @@ def main():
     ap.add_argument("--keep", type=pathlib.Path, help="keep the service folders here")
     ap.add_argument("--only", default="", help="only cases whose name contains this")
     ap.add_argument("--timeout", type=float, default=180)
+    ap.add_argument("--buffer", type=int, help="the session's buffer of views (default: the service's)")
     ap.add_argument("--mask-last", action="store_true", help="also drop the mask after the views, and compare")
     ap.add_argument("--from-log", type=pathlib.Path, help="print the table of an earlier run's stderr (one JSON row a line)")
     args = ap.parse_args()
@@ -226,7 +229,7 @@ def main():
             shutil.rmtree(work)
         work.mkdir(parents=True, exist_ok=True)
         t0 = time.time()
-        steps = run_service(binary, case, work, args.timeout)
+        steps = run_service(binary, case, work, args.timeout, args.buffer)
         all_img = fill_all(binary, case, work / "fill-all.png")
         views = [load(p) for p in sorted(case.glob("view-*.png"), key=lambda p: int(p.stem.split("-")[1]))]
         peer = multiview(key, mask8, views)
