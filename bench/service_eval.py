@@ -15,7 +15,7 @@ result within 0.5 dB of `clearview fill` with all views; the last result >= 1 dB
 OpenCV median.
 
 Usage: bench/.venv/bin/python bench/service_eval.py DIR [--clearview target/release/clearview]
-           [--keep WORK_DIR] [--only SUBSTRING] [--buffer N]
+           [--keep WORK_DIR] [--only NAME_OR_SUBSTRING] [--buffer N]
 """
 import argparse
 import json
@@ -208,7 +208,7 @@ def main():
     ap.add_argument("cases", type=pathlib.Path)
     ap.add_argument("--clearview", default="target/release/clearview")
     ap.add_argument("--keep", type=pathlib.Path, help="keep the service folders here")
-    ap.add_argument("--only", default="", help="only cases whose name contains this")
+    ap.add_argument("--only", default="", help="only the case of this name, else the cases whose name contains this")
     ap.add_argument("--timeout", type=float, default=180)
     ap.add_argument("--buffer", type=int, help="the session's buffer of views (default: the service's)")
     ap.add_argument("--mask-last", action="store_true", help="also drop the mask after the views, and compare")
@@ -219,7 +219,10 @@ def main():
         return
     binary = str(pathlib.Path(args.clearview).resolve())
     rows = []
-    cases = sorted(p for p in args.cases.iterdir() if (p / "key.png").exists() and args.only in p.name)
+    cases = sorted(p for p in args.cases.iterdir() if (p / "key.png").exists())
+    # "planar-1" names that case, not also nonplanar-1.
+    exact = [p for p in cases if p.name == args.only]
+    cases = exact or [p for p in cases if args.only in p.name]
     for case in cases:
         truth, key = load(case / "truth.png"), load(case / "key.png")
         mask8 = load(case / "mask.png", cv2.IMREAD_GRAYSCALE)
