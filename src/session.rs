@@ -252,6 +252,10 @@ pub struct FillOutcome {
     pub score: f64,
     /// The best score before this fill.
     pub previous: Option<f64>,
+    /// With a current result, the share of the mask where this fill's views back it: the
+    /// publish rule compares it with this fill's own ([`FillReport::witnessed_quality`]; see
+    /// the module docs).
+    pub current_backed: Option<f64>,
     /// Keyframe-sized confidence of this fill (see [`crate::inpaint::Filled::confidence`]).
     pub confidence: Option<Confidence>,
     /// Digest of the inputs ([`Session::inputs_digest`]).
@@ -761,6 +765,7 @@ impl Session {
                 views: Vec::new(),
                 score: 1.0,
                 previous,
+                current_backed: None,
                 digest,
                 confidence: None,
                 surfaces: None,
@@ -932,6 +937,7 @@ impl Session {
             views,
             score,
             previous,
+            current_backed: filled.rival_quality,
             digest,
             confidence: Some(confidence),
             surfaces,

@@ -91,6 +91,20 @@ fn a_session_improves_as_views_arrive_and_bad_files_are_skipped() {
             })
             && !of_kind(e, "result_updated").is_empty()
     });
+    // Each fill says what the publish rule compared: how much of the mask the views back in
+    // the new fill and in the current result. The new fill was published exactly when it was
+    // not clearly less backed.
+    let judged: Vec<&Value> =
+        ev.iter().filter(|e| e["event"] == "result_updated" || e["event"] == "result_not_better").collect();
+    assert!(judged.iter().any(|e| e["current_backed"].is_f64()), "never judged against a result: {judged:?}");
+    for e in judged {
+        let backed = e["backed"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&backed), "{e}");
+        if let Some(current) = e["current_backed"].as_f64() {
+            let published = e["event"] == "result_updated";
+            assert_eq!(published, backed >= current - clearview::session::KEEP_MARGIN, "{e}");
+        }
+    }
     let report: Value =
         serde_json::from_slice(&std::fs::read(f.outbox.join("facade/result.json")).unwrap()).unwrap();
     assert_eq!(report["version"], 1);

@@ -75,6 +75,10 @@ pub enum Event {
     ResultNotBetter {
         score: f64,
         best: Option<f64>,
+        /// The share of the mask the views back in the new fill, and in the current
+        /// result (`None` after a restart: the saved score decided).
+        backed: f64,
+        current_backed: Option<f64>,
         fill_ms: f64,
     },
     ResultUpdated(ResultUpdated),
@@ -214,6 +218,11 @@ pub struct ResultUpdated {
     pub doubtful: f64,
     pub score: f64,
     pub previous_score: Option<f64>,
+    /// The share of the mask the views back in this result, and in the one it replaced,
+    /// judged on the same views (the publish rule's two figures; `None` for the first
+    /// result, or after a restart, when the saved score decided).
+    pub backed: f64,
+    pub current_backed: Option<f64>,
     pub fill_ms: f64,
     pub write_ms: f64,
     pub stages_ms: serde_json::Map<String, serde_json::Value>,

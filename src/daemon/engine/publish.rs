@@ -138,8 +138,13 @@ fn fill(ctx: &Ctx, slot: &mut Slot) -> FillStep {
     let fallback_share = if r.masked == 0 { 0.0 } else { r.fallback as f64 / r.masked as f64 };
     if outcome.image.is_none() {
         tracing::info!(score = outcome.score, best = outcome.previous, "new fill scores lower: result kept");
-        let e =
-            Event::ResultNotBetter { score: outcome.score, best: outcome.previous, fill_ms: fill_ms.round() };
+        let e = Event::ResultNotBetter {
+            score: outcome.score,
+            best: outcome.previous,
+            backed: outcome.report.witnessed_quality,
+            current_backed: outcome.current_backed,
+            fill_ms: fill_ms.round(),
+        };
         ctx.emitter.emit(Some(&slot.name), &e);
         ctx.registry.metrics.results_not_better.fetch_add(1, Ordering::Relaxed);
         slot.pending_since = None;
@@ -216,6 +221,8 @@ fn write_result(ctx: &Ctx, slot: &mut Slot, mut p: Pending) -> FillStep {
                 doubtful: r.doubtful_share(),
                 score,
                 previous_score: previous,
+                backed: outcome.report.witnessed_quality,
+                current_backed: outcome.current_backed,
                 fill_ms: fill_ms.round(),
                 write_ms: write_ms.round(),
                 stages_ms: stages,
