@@ -755,9 +755,8 @@ impl Session {
         self.dirty = false;
         self.admitted_since_fill = 0;
         let Some(region) = mask.region else {
-            // Nothing to fill: the keyframe is the result (backed everywhere, as the fill
-            // reports an empty mask).
-            let report = FillReport { witnessed_quality: 1.0, ..FillReport::default() };
+            // Nothing to fill: the keyframe is the result.
+            let report = FillReport::default();
             self.best = Some(1.0);
             let image = previous.is_none().then(|| key.rgb.clone());
             return Some(FillOutcome {

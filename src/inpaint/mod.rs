@@ -167,8 +167,9 @@ pub struct SourceReport {
     pub shift_px: f64,
 }
 
-/// What a result is made of.
-#[derive(Debug, Clone, Default, PartialEq)]
+/// What a result is made of. The default is an empty mask's: nothing to fill, and what
+/// there is backed everywhere.
+#[derive(Debug, Clone, PartialEq)]
 pub struct FillReport {
     /// Pixels the mask asked to fill.
     pub masked: usize,
@@ -187,6 +188,20 @@ pub struct FillReport {
     pub witnessed_quality: f64,
     /// Masked pixels whose copy took in other views' colours ([`FillParams::fuse`]).
     pub fused: usize,
+}
+
+impl Default for FillReport {
+    fn default() -> Self {
+        Self {
+            masked: 0,
+            sources: Vec::new(),
+            fallback: 0,
+            confident: 0,
+            confidence_sum: 0.0,
+            witnessed_quality: 1.0,
+            fused: 0,
+        }
+    }
 }
 
 impl FillReport {
@@ -471,7 +486,6 @@ pub fn fill_with<P: RgbPixel>(
     let mut report = FillReport {
         masked,
         sources: vec![SourceReport { gain: [1.0; 3], ..SourceReport::default() }; nv],
-        witnessed_quality: 1.0,
         ..FillReport::default()
     };
     // What is returned before the fill is made (an empty mask, or a cancelled fill): the
