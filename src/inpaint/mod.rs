@@ -14,6 +14,7 @@ pub mod multiview;
 pub mod occlusion;
 pub mod parallax;
 pub mod priority;
+pub mod reduced;
 pub mod region;
 pub mod shift;
 pub mod swept;
@@ -304,6 +305,11 @@ pub struct FillParams {
     /// masked pixels × those views stay within this budget (beyond it every view is used):
     /// a 12 MP photograph with 15 % masked and 6 views (9 M) took 2.8× as long and 1.65 GB.
     pub select_budget: usize,
+    /// The fill through the surfaces off the wall is judged against the walls' alone
+    /// ([`swept::fill_swept`]) on the inputs halved until the keyframe has at most this many
+    /// pixels (then only the fill chosen is made at full resolution): the judge needs
+    /// shares of the mask, and four fills of a 12 MP keyframe cost seconds.
+    pub judge_max_pixels: usize,
     /// Around each hole, each view moved by the shift that best brings it onto the
     /// keyframe's own pixels there, when that shift makes them clearly more alike
     /// ([`shift::local_shift`]): one homography cannot hold a curved or stepped facade.
@@ -346,6 +352,7 @@ impl Default for FillParams {
             select_views: true,
             select_margin: KEEP_MARGIN,
             select_budget: 4_000_000,
+            judge_max_pixels: 1_300_000,
             local_shift: Some(ShiftParams::default()),
             fuse: Some(FuseParams::default()),
             own: Some(OwnParams::default()),

@@ -10,6 +10,7 @@
 use serde::Serialize;
 
 use super::parallax::{SurfacePlane, SweepParams, ViewMatches, swept_planes_memo};
+use super::reduced::{Reduced, levels_for};
 use super::{FillExtras, FillParams, Filled, Observer, Quiet, Source, Stage, fill_with};
 use crate::imaging::convert::luma;
 use crate::imaging::{GrayF32, Mask, RgbF32, RgbPixel};
@@ -131,6 +132,24 @@ pub fn fill_swept<P: RgbPixel>(
         let filled = fill_with(key, mask, sources, extras, params, seed, observer);
         return Swept { filled, planes, used: false };
     }
+    let levels = levels_for(key.width(), key.height(), params.judge_max_pixels);
+    if levels > 0 {
+        // Judged on the inputs reduced; then the fill the judge chose, at full resolution.
+        observer.stage(Stage::Judge);
+        let r = Reduced::new(key, mask, sources, extras, levels);
+        let (small, small_planes) = (r.sources(), r.planes(&planes));
+        let (occluders, own) = r.marks();
+        let quiet = &mut Quiet(&*observer);
+        let with = |planes| r.extras(planes, &occluders, own.as_deref(), extras.choice);
+        let through = fill_with(&r.key, &r.mask, &small, &with(&small_planes), params, seed, quiet);
+        let wall = fill_with(&r.key, &r.mask, &small, &with(&[]), params, seed, quiet);
+        let gain =
+            judge(&r.key, &r.mask, &small, &with(&[]), params, seed, quiet, &through, &wall, &small_planes);
+        let used = gain > params.select_margin && !observer.cancelled();
+        let chosen = FillExtras { planes: if used { &planes } else { &[] }, ..*extras };
+        let filled = fill_with(key, mask, sources, &chosen, params, seed, observer);
+        return Swept { filled, planes, used };
+    }
     let through =
         fill_with(key, mask, sources, &FillExtras { planes: &planes, ..*extras }, params, seed, observer);
     if observer.cancelled() {
@@ -140,6 +159,29 @@ pub fn fill_swept<P: RgbPixel>(
     let quiet = &mut Quiet(&*observer);
     // The walls' fill is the one made without the surfaces, the views' own occluders marked.
     let wall = fill_with(key, mask, sources, extras, params, seed, quiet);
+    let gain = judge(key, mask, sources, extras, params, seed, quiet, &through, &wall, &planes);
+    if gain > params.select_margin {
+        Swept { filled: through, planes, used: true }
+    } else {
+        Swept { filled: wall, planes, used: false }
+    }
+}
+
+/// How much better the views back the fill through the surfaces (`through`) than the walls'
+/// (`wall`), each judged under its own evidence and the other's ([`fill_swept`]).
+#[allow(clippy::too_many_arguments)]
+fn judge<P: RgbPixel>(
+    key: &RgbF32,
+    mask: &Mask,
+    sources: &[Source<'_, P>],
+    extras: &FillExtras<'_>,
+    params: &FillParams,
+    seed: u64,
+    quiet: &mut Quiet<'_>,
+    through: &Filled,
+    wall: &Filled,
+    planes: &[SurfacePlane],
+) -> f64 {
     // Only the rival's judgement is wanted of these: one composition over every view, no
     // averaging, and, as through the surfaces (`fill_with` marks no view's occluders
     // there), no marks.
@@ -149,8 +191,8 @@ pub fn fill_swept<P: RgbPixel>(
         let by = FillExtras { planes, rival: Some(&image), choice: &[], ..*extras };
         fill_with(key, mask, sources, &by, &judging, seed, &mut *quiet).rival_quality.unwrap_or(0.0)
     };
-    let through_by_walls = judged(&through, &[]);
-    let wall_by_planes = judged(&wall, &planes);
+    let through_by_walls = judged(through, &[]);
+    let wall_by_planes = judged(wall, planes);
     let gain = (through.report.witnessed_quality - wall_by_planes)
         + (through_by_walls - wall.report.witnessed_quality);
     tracing::debug!(
@@ -162,13 +204,5 @@ pub fn fill_swept<P: RgbPixel>(
         regions = ?planes.iter().map(|p| p.region).collect::<Vec<_>>(),
         "surfaces judged against the walls"
     );
-    // A near tie goes to the walls' fill, the one that assumes less: within the judge's
-    // resolution (the publish rule's margin) two fills are not told apart, and a "surface"
-    // the sweep made of a real photograph's clouds and trees gains about that much
-    // (photo-hunt-8 in the service: 0.004 of the mask, and 5.4 dB lost).
-    if gain > params.select_margin {
-        Swept { filled: through, planes, used: true }
-    } else {
-        Swept { filled: wall, planes, used: false }
-    }
+    gain
 }
