@@ -994,9 +994,11 @@ impl<'a> Sweep<'a> {
                 } else {
                     Vec::new()
                 };
+                let mut c: Vec<f32> = Vec::with_capacity(nv);
                 let outside = (0..band.len())
                     .map(|j| {
-                        let mut c: Vec<f32> = per_view.iter().map(|p| p[j]).filter(|c| !c.is_nan()).collect();
+                        c.clear();
+                        c.extend(per_view.iter().map(|p| p[j]).filter(|c| !c.is_nan()));
                         if c.is_empty() {
                             return f32::NAN;
                         }
@@ -1303,6 +1305,10 @@ struct Band {
     inside: Vec<usize>,
     /// `rect`-sized: where views are sampled for `inside` (the pixels and their windows).
     inside_need: Plane<bool>,
+    /// The bounding box of `inside_need` (`rect` coordinates), and `inside` as indices
+    /// into it: the hole's costs are summed over it alone (nothing outside it is sampled).
+    inside_rect: Rect,
+    inside_sub: Vec<usize>,
 }
 
 impl Band {
@@ -1327,6 +1333,11 @@ impl Band {
         let r = params.window;
         let inside: Vec<usize> = (0..n).filter(|&i| hole.get(rect.x + i % rw, rect.y + i / rw)).collect();
         let inside_need = dilate(&Plane::from_fn(rw, rh, |x, y| hole.get(rect.x + x, rect.y + y)), r);
+        let inside_rect = bool_bounds(&inside_need).unwrap_or(Rect::from_corners(0, 0, 0, 0));
+        let inside_sub: Vec<usize> = inside
+            .iter()
+            .map(|&i| (i / rw - inside_rect.y) * inside_rect.width + (i % rw - inside_rect.x))
+            .collect();
         Some(Self {
             rect,
             pixels,
@@ -1338,6 +1349,8 @@ impl Band {
             window: r,
             inside,
             inside_need,
+            inside_rect,
+            inside_sub,
         })
     }
 
@@ -1365,29 +1378,17 @@ impl Band {
     /// `rect` pixel `i` (`rect` coordinates); `None` where a pair is missing or either side
     /// is flat.
     fn window_cost(&self, i: usize, pair: impl Fn(usize, usize) -> Option<(f32, f32)>) -> Option<f32> {
-        let rw = self.rect.width;
+        ncc_cost(self.window_at(i).map(|(x, y)| pair(x, y)))
+    }
+
+    /// The `rect` pixels of the window around `rect` pixel `i`, row by row (clipped to
+    /// `rect`).
+    fn window_at(&self, i: usize) -> impl Iterator<Item = (usize, usize)> + use<> {
+        let (rw, rh) = (self.rect.width, self.rect.height);
         let (cx, cy) = (i % rw, i / rw);
         let r = self.window;
-        let (mut sv, mut sv2, mut skv, mut sk, mut sk2, mut cnt) =
-            (0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32);
-        for y in cy.saturating_sub(r)..(cy + r + 1).min(self.rect.height) {
-            for x in cx.saturating_sub(r)..(cx + r + 1).min(rw) {
-                let (k, v) = pair(x, y)?;
-                sv += v;
-                sv2 += v * v;
-                skv += k * v;
-                sk += k;
-                sk2 += k * k;
-                cnt += 1.0;
-            }
-        }
-        let vk = (sk2 - sk * sk / cnt).max(0.0);
-        let vv = (sv2 - sv * sv / cnt).max(0.0);
-        let den = (vk * vv).sqrt();
-        if den < 1e-9 {
-            return None;
-        }
-        Some((1.0 - (skv - sk * sv / cnt) / den).clamp(0.0, 1.0))
+        let xs = cx.saturating_sub(r)..(cx + r + 1).min(rw);
+        (cy.saturating_sub(r)..(cy + r + 1).min(rh)).flat_map(move |y| xs.clone().map(move |x| (x, y)))
     }
 
     /// The units of an epipole's pattern search for the view whose wall is `wall` (family
@@ -1511,23 +1512,41 @@ impl Band {
                 })
                 .collect()
         };
-        let cost_one = |i: usize, m: &M3, om: &[(usize, M3)]| -> f32 {
-            let rect = self.rect;
-            let rw = rect.width;
-            if is_hole[i] {
-                om.iter()
-                    .filter_map(|(u, mu)| {
-                        self.window_cost(i, |x, y| {
-                            Some((sample(&views[*u], mu, rect, x, y)?, sample(view, m, rect, x, y)?))
+        let rect = self.rect;
+        // The others' samples over each hole vote's window: they stay where they are while
+        // `v`'s epipole is searched (empty for a band vote).
+        let theirs = |vs: &[(usize, f64)], om: &[Vec<(usize, M3)>]| -> Vec<Vec<Vec<Option<f32>>>> {
+            vs.par_iter()
+                .zip(om)
+                .map(|(&(i, _), o)| {
+                    if !is_hole[i] {
+                        return Vec::new();
+                    }
+                    o.iter()
+                        .map(|(u, mu)| {
+                            self.window_at(i).map(|(x, y)| sample(&views[*u], mu, rect, x, y)).collect()
                         })
-                    })
+                        .collect()
+                })
+                .collect()
+        };
+        let cost_one = |i: usize, m: &M3, theirs: &[Vec<Option<f32>>]| -> f32 {
+            if is_hole[i] {
+                if theirs.is_empty() {
+                    return 1.0;
+                }
+                let mine: Vec<Option<f32>> =
+                    self.window_at(i).map(|(x, y)| sample(view, m, rect, x, y)).collect();
+                theirs
+                    .iter()
+                    .filter_map(|t| ncc_cost(t.iter().zip(&mine).map(|(a, b)| Some(((*a)?, (*b)?)))))
                     .fold(1.0, f32::min)
             } else {
-                self.window_cost(i, |x, y| Some((self.key[y * rw + x], sample(view, m, rect, x, y)?)))
+                self.window_cost(i, |x, y| Some((self.key[y * rect.width + x], sample(view, m, rect, x, y)?)))
                     .unwrap_or(1.0)
             }
         };
-        let mean = |vs: &[(usize, f64)], om: &[Vec<(usize, M3)>], e: &V3, wall: bool| -> f32 {
+        let mean = |vs: &[(usize, f64)], om: &[Vec<Vec<Option<f32>>>], e: &V3, wall: bool| -> f32 {
             let total: f32 = vs
                 .par_iter()
                 .zip(om)
@@ -1535,7 +1554,8 @@ impl Band {
                 .sum();
             total / vs.len().max(1) as f32
         };
-        let (om_fine, om_coarse) = (others_at(&fine, false), others_at(&coarse, false));
+        let (om_fine, om_coarse) =
+            (theirs(&fine, &others_at(&fine, false)), theirs(&coarse, &others_at(&coarse, false)));
         let (unit, g_med, cp, per_px) = self.epipole_units(&fine, &family.walls[v], &s_inv, to_sweep)?;
         // How far the others move at the median depth (sweep pixels).
         let reach = others.iter().map(|&u| family.rate(u, cp) * per_px * g_med).fold(0.0f64, f64::max);
@@ -1590,7 +1610,7 @@ impl Band {
             starts.into_iter().map(|e| (mean(&coarse, &om_coarse, &e, false), e)).collect();
         starts.sort_by(|a, b| a.0.total_cmp(&b.0));
         let (best, e) = starts.into_iter().take(2).map(|s| search(s.1)).min_by(|a, b| a.0.total_cmp(&b.0))?;
-        let wall = mean(&fine, &others_at(&fine, true), &e, true);
+        let wall = mean(&fine, &theirs(&fine, &others_at(&fine, true)), &e, true);
         (best <= params.max_cost && wall - best >= 0.5 * params.margin).then_some(e)
     }
 
@@ -1659,8 +1679,12 @@ impl Band {
     /// 1 − the normalised cross-correlation of their windows; 1 where either window is flat
     /// (below `min_texture`), NaN where either view does not cover it.
     fn inside_costs(&self, views: &[GrayF32], hs: &[Option<Homography>], min_texture: f32) -> Vec<f32> {
-        let (rw, rh) = (self.rect.width, self.rect.height);
-        let n = self.rect.area();
+        // Summed over `inside_rect` alone: every sample outside it is zero, so the running
+        // sums over it are those over `rect` (the same bits), for fewer pixels.
+        let rw = self.rect.width;
+        let sub = self.inside_rect;
+        let (sw, sh) = (sub.width, sub.height);
+        let n = sub.area();
         let r = self.window;
         // Per view: the warped values, window count, sum, sum of squares.
         type Sums = (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>);
@@ -1670,19 +1694,20 @@ impl Band {
             .map(|(view, hm)| {
                 let hm = hm.as_ref()?;
                 let (mut img, mut ok) = (vec![0.0f32; n], vec![0.0f32; n]);
-                for i in 0..n {
-                    if !self.inside_need.as_slice()[i] {
+                for k in 0..n {
+                    let (x, y) = (sub.x + k % sw, sub.y + k / sw);
+                    if !self.inside_need.as_slice()[y * rw + x] {
                         continue;
                     }
-                    let p = Point2::new((self.rect.x + i % rw) as f64, (self.rect.y + i / rw) as f64);
+                    let p = Point2::new((self.rect.x + x) as f64, (self.rect.y + y) as f64);
                     if let Some(val) = hm.apply(p).and_then(|q| bilinear(view, q.x as f32, q.y as f32)) {
-                        img[i] = val;
-                        ok[i] = 1.0;
+                        img[k] = val;
+                        ok[k] = 1.0;
                     }
                 }
-                let cnt = box_sum(&ok, rw, rh, r);
-                let s = box_sum(&img, rw, rh, r);
-                let s2 = box_sum(&img.iter().map(|a| a * a).collect::<Vec<_>>(), rw, rh, r);
+                let cnt = box_sum(&ok, sw, sh, r);
+                let s = box_sum(&img, sw, sh, r);
+                let s2 = box_sum(&img.iter().map(|a| a * a).collect::<Vec<_>>(), sw, sh, r);
                 Some((img, cnt, s, s2))
             })
             .collect();
@@ -1698,24 +1723,47 @@ impl Band {
                 let (Some((ia, ca, sa, qa)), Some((ib, cb, sb, qb))) = (&warped[a], &warped[b]) else {
                     continue;
                 };
-                let ab = box_sum(&ia.iter().zip(ib).map(|(x, y)| x * y).collect::<Vec<_>>(), rw, rh, r);
-                for (o, &i) in slot.iter_mut().zip(&self.inside) {
+                let ab = box_sum(&ia.iter().zip(ib).map(|(x, y)| x * y).collect::<Vec<_>>(), sw, sh, r);
+                for ((o, &i), &j) in slot.iter_mut().zip(&self.inside).zip(&self.inside_sub) {
                     let area = self.area[i];
-                    if ca[i] < area - 0.5 || cb[i] < area - 0.5 {
+                    if ca[j] < area - 0.5 || cb[j] < area - 0.5 {
                         continue;
                     }
-                    let va = (qa[i] - sa[i] * sa[i] / area).max(0.0);
-                    let vb = (qb[i] - sb[i] * sb[i] / area).max(0.0);
+                    let va = (qa[j] - sa[j] * sa[j] / area).max(0.0);
+                    let vb = (qb[j] - sb[j] * sb[j] / area).max(0.0);
                     *o = if va < min_var * area || vb < min_var * area {
                         1.0
                     } else {
-                        (1.0 - (ab[i] - sa[i] * sb[i] / area) / (va * vb).sqrt()).clamp(0.0, 1.0)
+                        (1.0 - (ab[j] - sa[j] * sb[j] / area) / (va * vb).sqrt()).clamp(0.0, 1.0)
                     };
                 }
             }
         }
         out
     }
+}
+
+/// 1 − the normalised cross-correlation of the pairs (keyframe or first view, second view)
+/// of a window; `None` where a pair is missing or either side is flat.
+fn ncc_cost(pairs: impl Iterator<Item = Option<(f32, f32)>>) -> Option<f32> {
+    let (mut sv, mut sv2, mut skv, mut sk, mut sk2, mut cnt) =
+        (0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32);
+    for pair in pairs {
+        let (k, v) = pair?;
+        sv += v;
+        sv2 += v * v;
+        skv += k * v;
+        sk += k;
+        sk2 += k * k;
+        cnt += 1.0;
+    }
+    let vk = (sk2 - sk * sk / cnt).max(0.0);
+    let vv = (sv2 - sv * sv / cnt).max(0.0);
+    let den = (vk * vv).sqrt();
+    if den < 1e-9 {
+        return None;
+    }
+    Some((1.0 - (skv - sk * sv / cnt) / den).clamp(0.0, 1.0))
 }
 
 /// `votes` (per pixel of `pixels`, indices into `rect`; a label of `nl`) without the stray
@@ -2428,6 +2476,84 @@ mod tests {
                 }
                 assert_eq!(sums[y * w + x], want, "at ({x}, {y})");
             }
+        }
+    }
+
+    /// [`Band::inside_costs`] as it was before it summed over the hole's box alone: every
+    /// view warped and summed over the band's whole rect.
+    fn inside_costs_over_rect(
+        band: &Band,
+        views: &[GrayF32],
+        hs: &[Option<Homography>],
+        min_texture: f32,
+    ) -> Vec<f32> {
+        let (rw, rh, n, r) = (band.rect.width, band.rect.height, band.rect.area(), band.window);
+        // Per view: window count, sum, sum of squares, and the warped values.
+        type Sums = (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>);
+        let warped: Vec<Sums> = views
+            .iter()
+            .zip(hs)
+            .map(|(view, hm)| {
+                let hm = hm.as_ref().unwrap();
+                let (mut img, mut ok) = (vec![0.0f32; n], vec![0.0f32; n]);
+                for i in (0..n).filter(|&i| band.inside_need.as_slice()[i]) {
+                    let p = Point2::new((band.rect.x + i % rw) as f64, (band.rect.y + i / rw) as f64);
+                    if let Some(val) = hm.apply(p).and_then(|q| bilinear(view, q.x as f32, q.y as f32)) {
+                        (img[i], ok[i]) = (val, 1.0);
+                    }
+                }
+                let sq: Vec<f32> = img.iter().map(|a| a * a).collect();
+                (box_sum(&ok, rw, rh, r), box_sum(&img, rw, rh, r), box_sum(&sq, rw, rh, r), img)
+            })
+            .collect();
+        let min_var = min_texture * min_texture;
+        let mut out = Vec::new();
+        for a in 0..views.len() {
+            for b in a + 1..views.len() {
+                let ((ca, sa, qa, ia), (cb, sb, qb, ib)) = (&warped[a], &warped[b]);
+                let ab = box_sum(&ia.iter().zip(ib).map(|(x, y)| x * y).collect::<Vec<_>>(), rw, rh, r);
+                out.extend(band.inside.iter().map(|&i| {
+                    let area = band.area[i];
+                    if ca[i] < area - 0.5 || cb[i] < area - 0.5 {
+                        return f32::NAN;
+                    }
+                    let va = (qa[i] - sa[i] * sa[i] / area).max(0.0);
+                    let vb = (qb[i] - sb[i] * sb[i] / area).max(0.0);
+                    if va < min_var * area || vb < min_var * area {
+                        1.0
+                    } else {
+                        (1.0 - (ab[i] - sa[i] * sb[i] / area) / (va * vb).sqrt()).clamp(0.0, 1.0)
+                    }
+                }));
+            }
+        }
+        out
+    }
+
+    /// The hole's costs, summed over the box its windows need rather than over the band's
+    /// rect, are the same bits: nothing outside that box is sampled, and a running sum over
+    /// zeros adds nothing.
+    #[test]
+    fn the_hole_is_scored_over_its_own_box_with_the_same_bits() {
+        let (w, h, key, mask) = textured_square_hole();
+        let params = SweepParams::default();
+        let band = Band::new(&key, &mask, 1, &params).expect("a band");
+        assert!(band.inside_rect.area() * 2 < band.rect.area(), "the hole's box is the smaller");
+        let views: Vec<GrayF32> = [(0.0, 0.0), (3.5, -1.25), (-80.0, 2.0)]
+            .iter()
+            .map(|&(dx, dy)| GrayF32::from_fn(w, h, |x, y| tex(x as f64 + dx, y as f64 + dy)))
+            .collect();
+        // The third view is seen through a map that leaves the frame for part of the hole.
+        let hs: Vec<Option<Homography>> = [(0.0, 0.0), (-3.5, 1.25), (80.0, -2.0)]
+            .iter()
+            .map(|&(dx, dy)| Some(Homography::translation(dx, dy)))
+            .collect();
+        let got = band.inside_costs(&views, &hs, params.min_texture);
+        let want = inside_costs_over_rect(&band, &views, &hs, params.min_texture);
+        assert_eq!(got.len(), want.len());
+        assert!(got.iter().any(|c| c.is_nan()) && got.iter().any(|c| *c < 0.1), "covered and not");
+        for (k, (a, b)) in got.iter().zip(&want).enumerate() {
+            assert_eq!(a.to_bits(), b.to_bits(), "pair-pixel {k}: {a} against {b}");
         }
     }
 
