@@ -206,3 +206,42 @@ fn judge<P: RgbPixel>(
     );
     gain
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::facade::parallax_case;
+
+    /// A keyframe over the judge's budget is judged on its inputs halved, and the result is
+    /// the full-size fill the judge chose: through the true surfaces of a facade with slabs,
+    /// which line the views up where the walls cannot.
+    #[test]
+    fn a_large_keyframe_is_judged_halved_and_filled_at_full_size() {
+        let c = parallax_case(640, 480, 3, 3, false);
+        let planes = c.true_surfaces(24);
+        assert!(!planes.is_empty());
+        let walls = c.wall();
+        let sources: Vec<Source<'_>> =
+            c.views.iter().zip(&walls).map(|(image, &homography)| Source { image, homography }).collect();
+        let none = FillExtras::default();
+        for budget in [usize::MAX, 640 * 480 / 4] {
+            let params = FillParams { judge_max_pixels: budget, ..FillParams::default() };
+            let swept = fill_swept(&c.key, &c.mask, &sources, &none, &params, planes.clone(), 7, &mut ());
+            assert!(swept.used, "budget {budget}: the true surfaces are chosen");
+            let direct = fill_with(
+                &c.key,
+                &c.mask,
+                &sources,
+                &FillExtras { planes: &planes, ..none },
+                &params,
+                7,
+                &mut (),
+            );
+            assert_eq!((swept.filled.image.width(), swept.filled.image.height()), (640, 480));
+            assert!(
+                swept.filled.image.as_slice() == direct.image.as_slice(),
+                "budget {budget}: the fill through them"
+            );
+        }
+    }
+}
