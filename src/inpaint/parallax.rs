@@ -2457,10 +2457,6 @@ mod tests {
         (w, h, key, mask)
     }
 
-    /// A view that sees the band around the mask as a surface off the wall (plane +
-    /// parallax with a known epipole): the refinement, started from an epipole that puts
-    /// the surface 3 pixels off, comes back to within a fraction of a pixel and says the view
-    /// agrees; a view of something else does not.
     #[test]
     fn box_sums_are_the_window_sums_clipped_at_the_borders() {
         let (w, h, r) = (13, 9, 2);
@@ -2557,6 +2553,10 @@ mod tests {
         }
     }
 
+    /// A view that sees the band around the mask as a surface off the wall (plane +
+    /// parallax with a known epipole): the refinement, started from an epipole that puts
+    /// the surface 3 pixels off, comes back to within a fraction of a pixel and says the view
+    /// agrees; a view of something else does not.
     #[test]
     fn the_epipole_is_refined_to_where_the_view_agrees_with_the_keyframe() {
         let (w, h, key, mask) = textured_square_hole();
