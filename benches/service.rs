@@ -43,8 +43,12 @@ struct Shoot {
 }
 
 fn jpeg(img: &RgbF32) -> Vec<u8> {
+    jpeg_of(&to_rgb8(img))
+}
+
+fn jpeg_of(img: &image::RgbImage) -> Vec<u8> {
     let mut out = std::io::Cursor::new(Vec::new());
-    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 90).encode_image(&to_rgb8(img)).unwrap();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 90).encode_image(img).unwrap();
     out.into_inner()
 }
 
@@ -86,15 +90,14 @@ fn shoot_depth(n: usize) -> Shoot {
     let big = |img: &RgbF32| {
         image::imageops::resize(&to_rgb8(img), W as u32, H as u32, image::imageops::FilterType::Triangle)
     };
-    let jpeg_of = |img: &RgbF32| {
-        let mut out = std::io::Cursor::new(Vec::new());
-        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 90).encode_image(&big(img)).unwrap();
-        out.into_inner()
-    };
     let mask = Mask::from_fn(W, H, |x, y| case.mask.get(x / 4, y / 4));
     let mut key_png = std::io::Cursor::new(Vec::new());
     big(&case.key).write_to(&mut key_png, image::ImageFormat::Png).unwrap();
-    Shoot { key_png: key_png.into_inner(), mask, views: case.views.iter().map(jpeg_of).collect() }
+    Shoot {
+        key_png: key_png.into_inner(),
+        mask,
+        views: case.views.iter().map(|v| jpeg_of(&big(v))).collect(),
+    }
 }
 
 fn rgb8(img: &DynamicImage) -> Rgb8 {

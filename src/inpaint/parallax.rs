@@ -31,6 +31,7 @@ use crate::imaging::pyramid::half;
 use crate::imaging::{GrayF32, Mask, Plane, Rect, bilinear};
 use crate::inpaint::automask::dilate;
 use crate::inpaint::occlusion::KeyRegion;
+use crate::inpaint::reduced::{levels_for, reduction};
 
 /// A surface off the wall, as the fill takes it: its homography in each source (`None`
 /// where that view's matches gave none) and the keyframe rectangle it may be chosen in.
@@ -157,22 +158,6 @@ pub struct Guided {
     pub walls: Vec<Homography>,
 }
 
-/// Full resolution → an image halved `levels` times (pixel centres kept).
-fn shrink_map(levels: u32) -> Homography {
-    let s = f64::from(1u32 << levels);
-    let off = (s - 1.0) / (2.0 * s);
-    Homography::from_rows([[1.0 / s, 0.0, -off], [0.0, 1.0 / s, -off], [0.0, 0.0, 1.0]]).expect("regular")
-}
-
-/// How many times a `w × h` image is halved to have at most `max_pixels`.
-fn levels_for(w: usize, h: usize, max_pixels: usize) -> u32 {
-    let mut levels = 0;
-    while (w >> levels) * (h >> levels) > max_pixels.max(1) {
-        levels += 1;
-    }
-    levels
-}
-
 /// Matching-resolution pixels around the mask where no keyframe point is taken.
 const GUARD: usize = 3;
 
@@ -201,7 +186,7 @@ struct Matcher {
 impl Matcher {
     fn new(key: &GrayF32, params: &SurfaceParams) -> Self {
         let levels = levels_for(key.width(), key.height(), params.max_pixels);
-        let t = shrink_map(levels);
+        let t = reduction(levels);
         let key_s = Self::shrink(levels, key);
         let key_c = half(&key_s);
         let harris = HarrisParams {
@@ -302,7 +287,7 @@ impl Matcher {
         points: &[Point2<f64>],
         params: &SurfaceParams,
     ) -> Vec<Correspondence> {
-        let t1 = shrink_map(1);
+        let t1 = reduction(1);
         let t1_inv = t1.inverse().expect("regular");
         let coarse: Vec<(Point2<f64>, (f64, f64))> =
             points.iter().map(|p| (t1.apply(*p).expect("affine"), (0.0, 0.0))).collect();
@@ -649,7 +634,7 @@ impl<'a> Sweep<'a> {
         }
         let levels = levels_for(w, h, params.max_pixels);
         let shrink = |img: &GrayF32| (0..levels).fold(img.clone(), |g, _| half(&g));
-        let tw = shrink_map(levels);
+        let tw = reduction(levels);
         let tw_inv = tw.inverse().expect("regular");
         let tm_inv = t.inverse().expect("regular");
         // Matching resolution → sweep resolution.
@@ -1171,7 +1156,7 @@ impl<'a> Sweep<'a> {
 /// Full resolution → the resolution the guided matching (and so the parallax family of
 /// [`parallax_family`]) works at.
 pub fn matching_map(width: usize, height: usize, params: &SurfaceParams) -> Homography {
-    shrink_map(levels_for(width, height, params.max_pixels))
+    reduction(levels_for(width, height, params.max_pixels))
 }
 
 /// The plane + parallax family of [`swept_planes`] (at the matching resolution) and the map
