@@ -16,7 +16,12 @@
 //! tied by the truth, and the true slab planes on the estimated walls; and, per fill, the
 //! share of masked pixels whose chosen surface is not the one the truth shows there.
 //!
-//! `cargo run --release --example parallax_eval -- [--seeds N] [--first K] [--size WxH] [--views N] [--flat] [--dump DIR] [--oracles] [--epipoles] [--split] [--no-refine] [--no-supported-ties] [--no-inside] [--no-rejoin] [--repair] [--no-across] [--sweep-pixels N]`
+//! With `--epipoles`, a third table gives each view's epipole error, and in brackets what the
+//! fit had to go on ([`epipole_support`]). `--true-walls` takes the true wall homographies
+//! instead of the aligned ones; `--match-pixels` and `--sweep-pixels` set the resolutions the
+//! guided matching and the sweep run at.
+//!
+//! `cargo run --release --example parallax_eval -- [--seeds N] [--first K] [--size WxH] [--views N] [--flat] [--true-walls] [--dump DIR] [--oracles] [--epipoles] [--split] [--no-refine] [--no-supported-ties] [--no-inside] [--no-rejoin] [--repair] [--no-across] [--match-pixels N] [--sweep-pixels N]`
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -179,6 +184,44 @@ fn true_family(c: &ParallaxCase, walls: &[Homography], t: &Homography) -> Parall
     }
     let observed = vec![gammas; walls.len()];
     ParallaxFamily { walls: mats, epipoles, observed }
+}
+
+/// Per view, `pool:fitted t true`: the guided matches the wall misses by a parallax the fit
+/// considers, how many of them the fitted epipole took, and how many the true epipole would
+/// take under the same line test: when the true one explains few of the pool, the matches
+/// off the wall are not of the surfaces off it (repeats, not parallax), and no fit can find it.
+fn epipole_support(
+    c: &ParallaxCase,
+    walls: &[Homography],
+    t: &Homography,
+    own: &ParallaxFamily,
+    matches: &[Vec<clearview::geometry::Correspondence>],
+    fit: &clearview::geometry::planes::ParallaxFitParams,
+) -> String {
+    let truth = true_family(c, walls, t);
+    own.observed
+        .iter()
+        .enumerate()
+        .map(|(v, fitted)| {
+            let (m, e) = (truth.walls[v], truth.epipoles[v].expect("every view has its true epipole"));
+            let wall = Homography::from_matrix(m).expect("regular");
+            let pool: Vec<_> = matches[v]
+                .iter()
+                .filter(|c| (fit.min_parallax_px..=fit.max_parallax_px).contains(&c.residual(&wall)))
+                .collect();
+            let agree = pool
+                .iter()
+                .filter(|c| {
+                    let p = m * nalgebra::Vector3::new(c.key.x, c.key.y, 1.0);
+                    let l = (p / p.z).cross(&e);
+                    (l.dot(&nalgebra::Vector3::new(c.view.x, c.view.y, 1.0)) / l.xy().norm()).abs()
+                        < fit.line_px
+                })
+                .count();
+            format!("{}:{}t{agree}", pool.len(), fitted.len())
+        })
+        .collect::<Vec<_>>()
+        .join("/")
 }
 
 /// How far a tied family's views are from the truth, per view (keyframe-scale pixels): per
@@ -397,6 +440,7 @@ fn main() {
         (8u64, 640usize, 480usize, 3usize, false, None);
     let mut first = 1u64;
     let mut oracles = false;
+    let mut true_walls = false;
     let mut epipoles = false;
     let mut splits: Vec<(u64, Split)> = Vec::new();
     let mut want_split = false;
@@ -416,6 +460,7 @@ fn main() {
                 (w, h) = (a.parse().expect("width"), b.parse().expect("height"));
             }
             "--flat" => flat = true,
+            "--true-walls" => true_walls = true,
             "--oracles" => oracles = true,
             "--epipoles" => epipoles = true,
             "--split" => want_split = true,
@@ -426,6 +471,9 @@ fn main() {
             "--repair" => sp.repair_ties = true,
             "--no-across" => sp.across_hole = false,
             "--no-common-ties" => sp.common_ties = false,
+            "--match-pixels" => {
+                sp.matching.max_pixels = it.next().and_then(|v| v.parse().ok()).expect("--match-pixels N")
+            }
             "--sweep-pixels" => {
                 sp.max_pixels = it.next().and_then(|v| v.parse().ok()).expect("--sweep-pixels N")
             }
@@ -458,8 +506,11 @@ fn main() {
         let t0 = Instant::now();
         let kf = Frame::new(luminance(&c.key), &params);
         let frames: Vec<Frame> = c.views.iter().map(|v| Frame::new(luminance(v), &params)).collect();
-        let walls: Vec<Homography> =
-            frames.iter().map(|f| align(&kf, f, &params, None).homography.expect("aligned")).collect();
+        let walls: Vec<Homography> = if true_walls {
+            c.wall()
+        } else {
+            frames.iter().map(|f| align(&kf, f, &params, None).homography.expect("aligned")).collect()
+        };
         let align_ms = t0.elapsed().as_secs_f64() * 1e3;
         let t1 = Instant::now();
         let grays: Vec<_> = c.views.iter().map(luminance).collect();
@@ -524,7 +575,11 @@ fn main() {
                                 )
                             });
                     (
-                        format!("{} | {geo}", fmt(&epipole_errors_alone(&c, &t, &own))),
+                        format!(
+                            "{} [{}] | {geo}",
+                            fmt(&epipole_errors_alone(&c, &t, &own)),
+                            epipole_support(&c, &walls, &t, &own, &g.matches, &sp.epipoles),
+                        ),
                         tied_family(&key_gray, &refs, &c.mask, &sp, &own, &g.matches, &t)
                             .map_or("none".into(), |f| fmt(&epipole_errors(&c, &t, &f))),
                     )
@@ -682,7 +737,7 @@ fn main() {
     if epipoles {
         println!("\nepipole error, px off the true slab planes near the mask, per view:");
         println!(
-            "| seed | sparse (own depth each) | geometric tie (common points) | tied (one depth) | swept dB | swept − today |"
+            "| seed | sparse (own depth each) [pool:fitted t true] | geometric tie (common points) | tied (one depth) | swept dB | swept − today |"
         );
         println!("|---:|---|---|---:|---:|");
         for r in &epipole_rows {
