@@ -308,7 +308,11 @@ pub struct FillParams {
     /// The fill through the surfaces off the wall is judged against the walls' alone
     /// ([`swept::fill_swept`]) on the inputs halved until the keyframe has at most this many
     /// pixels (then only the fill chosen is made at full resolution): the judge needs
-    /// shares of the mask, and four fills of a 12 MP keyframe cost seconds.
+    /// shares of the mask, and four fills of a 12 MP keyframe cost seconds. At 600 000 a
+    /// keyframe is judged at 150 000–600 000 pixels, about the size of the evaluations'
+    /// (640 × 480, judged as they are); a 12 MP one at 500 × 375, where at 1.3 MP it was
+    /// judged at 1000 × 750 for 2.5 s more and no better (BENCHMARKS.md, "The judge at a
+    /// third of a megapixel").
     pub judge_max_pixels: usize,
     /// Around each hole, each view moved by the shift that best brings it onto the
     /// keyframe's own pixels there, when that shift makes them clearly more alike
@@ -352,7 +356,7 @@ impl Default for FillParams {
             select_views: true,
             select_margin: KEEP_MARGIN,
             select_budget: 4_000_000,
-            judge_max_pixels: 1_300_000,
+            judge_max_pixels: 600_000,
             local_shift: Some(ShiftParams::default()),
             fuse: Some(FuseParams::default()),
             own: Some(OwnParams::default()),
