@@ -212,6 +212,17 @@ mod tests {
     use super::*;
     use crate::synth::facade::parallax_case;
 
+    /// The judge's default budget keeps the evaluations' size (640 × 480) as it is and brings
+    /// a 12 MP keyframe down to the same order (500 × 375), not to 1000 × 750, where its four
+    /// fills cost 2.5 s more and decided no better (BENCHMARKS.md).
+    #[test]
+    fn the_default_judge_works_at_about_a_third_of_a_megapixel() {
+        let budget = FillParams::default().judge_max_pixels;
+        assert_eq!(levels_for(640, 480, budget), 0);
+        assert_eq!(levels_for(1280, 960, budget), 1);
+        assert_eq!(levels_for(4000, 3000, budget), 3);
+    }
+
     /// A keyframe over the judge's budget is judged on its inputs halved, and the result is
     /// the full-size fill the judge chose: through the true surfaces of a facade with slabs,
     /// which line the views up where the walls cannot.
