@@ -308,7 +308,7 @@ pub struct FillParams {
     /// The fill through the surfaces off the wall is judged against the walls' alone
     /// ([`swept::fill_swept`]) on the inputs halved until the keyframe has at most this many
     /// pixels (then only the fill chosen is made at full resolution): the judge needs
-    /// shares of the mask, and four fills of a 12 MP keyframe cost seconds. At 600 000 a
+    /// shares of the mask, and four fills of a 12 MP keyframe cost seconds. At 600 000 a larger
     /// keyframe is judged at 150 000–600 000 pixels, about the size of the evaluations'
     /// (640 × 480, judged as they are); a 12 MP one at 500 × 375, where at 1.3 MP it was
     /// judged at 1000 × 750 for 2.5 s more and no better (BENCHMARKS.md, "The judge at a
