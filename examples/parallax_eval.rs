@@ -28,7 +28,7 @@ use std::time::Instant;
 
 use clearview::align::{AlignParams, Frame, align};
 use clearview::geometry::Homography;
-use clearview::geometry::planes::{ParallaxFamily, common_scales};
+use clearview::geometry::planes::{ParallaxFamily, common_scales, epipolar_distance};
 use clearview::imaging::RgbF32;
 use clearview::imaging::convert::{luminance, to_rgb8};
 use clearview::imaging::metrics::masked_psnr;
@@ -209,15 +209,7 @@ fn epipole_support(
                 .iter()
                 .filter(|c| (fit.min_parallax_px..=fit.max_parallax_px).contains(&c.residual(&wall)))
                 .collect();
-            let agree = pool
-                .iter()
-                .filter(|c| {
-                    let p = m * nalgebra::Vector3::new(c.key.x, c.key.y, 1.0);
-                    let l = (p / p.z).cross(&e);
-                    (l.dot(&nalgebra::Vector3::new(c.view.x, c.view.y, 1.0)) / l.xy().norm()).abs()
-                        < fit.line_px
-                })
-                .count();
+            let agree = pool.iter().filter(|c| epipolar_distance(c, &m, &e) < fit.line_px).count();
             format!("{}:{}t{agree}", pool.len(), fitted.len())
         })
         .collect::<Vec<_>>()

@@ -372,8 +372,8 @@ pub(crate) fn gamma_of(c: &Correspondence, m: &nalgebra::Matrix3<f64>, e: &nalge
 }
 
 /// Distance in the view from `c.view` to the line through the wall's prediction and `e`
-/// (infinite when the prediction is undefined).
-fn epipolar_distance(c: &Correspondence, m: &nalgebra::Matrix3<f64>, e: &nalgebra::Vector3<f64>) -> f64 {
+/// (infinite when the prediction is undefined): the line test of [`fit_parallax`].
+pub fn epipolar_distance(c: &Correspondence, m: &nalgebra::Matrix3<f64>, e: &nalgebra::Vector3<f64>) -> f64 {
     let p = m * nalgebra::Vector3::new(c.key.x, c.key.y, 1.0);
     if p.z.abs() < 1e-12 {
         return f64::INFINITY;

@@ -158,6 +158,12 @@ pub struct Guided {
     pub walls: Vec<Homography>,
 }
 
+/// `img` halved `levels` times (the matching and the sweep resolutions; `reduction(levels)`
+/// maps full-resolution pixels to it).
+fn shrink(levels: u32, img: &GrayF32) -> GrayF32 {
+    (0..levels).fold(img.clone(), |g, _| half(&g))
+}
+
 /// Matching-resolution pixels around the mask where no keyframe point is taken.
 const GUARD: usize = 3;
 
@@ -187,7 +193,7 @@ impl Matcher {
     fn new(key: &GrayF32, params: &SurfaceParams) -> Self {
         let levels = levels_for(key.width(), key.height(), params.max_pixels);
         let t = reduction(levels);
-        let key_s = Self::shrink(levels, key);
+        let key_s = shrink(levels, key);
         let key_c = half(&key_s);
         let harris = HarrisParams {
             max_corners: params.corners,
@@ -196,10 +202,6 @@ impl Matcher {
         };
         let response = harris_response(&key_s, &harris);
         Self { levels, t_inv: t.inverse().expect("regular"), t, key_s, key_c, harris, response }
-    }
-
-    fn shrink(levels: u32, img: &GrayF32) -> GrayF32 {
-        (0..levels).fold(img.clone(), |g, _| half(&g))
     }
 
     /// How near the mask (full-resolution pixels) no corner is taken: its patch would reach
@@ -267,7 +269,7 @@ impl Matcher {
 
     /// `view` (full resolution) at the resolutions [`Self::matches`] searches.
     fn levels_of(&self, view: &GrayF32) -> ViewLevels {
-        let fine = Self::shrink(self.levels, view);
+        let fine = shrink(self.levels, view);
         let coarse = half(&fine);
         ViewLevels { fine, coarse }
     }
@@ -633,17 +635,16 @@ impl<'a> Sweep<'a> {
             return None;
         }
         let levels = levels_for(w, h, params.max_pixels);
-        let shrink = |img: &GrayF32| (0..levels).fold(img.clone(), |g, _| half(&g));
         let tw = reduction(levels);
         let tw_inv = tw.inverse().expect("regular");
         let tm_inv = t.inverse().expect("regular");
         // Matching resolution → sweep resolution.
         let to_sweep = tw.after(&tm_inv);
         let to_sweep_inv = to_sweep.inverse().expect("regular");
-        let key_w = shrink(key);
+        let key_w = shrink(levels, key);
         let band = Band::new(&key_w, mask, 1 << levels, params)?;
         let rect = band.rect;
-        let views_w: Vec<GrayF32> = views.iter().map(|v| shrink(v)).collect();
+        let views_w: Vec<GrayF32> = views.iter().map(|v| shrink(levels, v)).collect();
         let centre = to_sweep_inv
             .apply(Point2::new(
                 rect.x as f64 + 0.5 * rect.width as f64,
