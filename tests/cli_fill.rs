@@ -208,6 +208,7 @@ fn with_and_without_planes(s: &Scene) -> [(RgbF32, serde_json::Value, String); 2
         if !planes {
             a.insert(0, "--no-planes".into());
         }
+        a.splice(0..0, ["--surfaces".into(), s.path(&format!("{name}.surfaces.png"))]);
         let o = fill(a);
         assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
         let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
@@ -237,6 +238,23 @@ fn planes_reports_the_surfaces_it_filled_through() {
         assert_eq!(p["region"].as_array().unwrap().len(), 4);
     }
     assert!(stdout.contains(&format!("{filled} masked pixels filled through")), "{stdout}");
+    // The surface map says the same pixel by pixel: 1 through the wall, 2 + s through
+    // surface s, nothing outside the mask; without the sweep every masked pixel is the wall's.
+    let counts = |name: &str| {
+        let map = image::open(s.path(&format!("{name}.surfaces.png"))).unwrap().into_luma8();
+        let mut n = vec![0u64; 256];
+        for (&v, &m) in map.as_raw().iter().zip(s.mask.as_slice()) {
+            assert!((m > 127) == (v > 0), "surface {v} where the mask is {m}");
+            n[usize::from(v)] += 1;
+        }
+        n
+    };
+    let n = counts("planes");
+    assert_eq!(n[1], masked - filled);
+    for (k, p) in surfaces.iter().enumerate() {
+        assert_eq!(n[2 + k], p["filled_pixels"].as_u64().unwrap(), "surface {k}");
+    }
+    assert_eq!(counts("wall")[1], masked);
     let (a, b) = (masked_psnr(&wall, &s.truth, &s.mask), masked_psnr(&swept, &s.truth, &s.mask));
     assert!(b > a + 1.5, "swept {b:.2} dB vs the wall alone {a:.2} dB");
 

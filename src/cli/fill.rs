@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use clap::Args;
-use image::DynamicImage;
+use image::{DynamicImage, GrayImage};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
@@ -71,6 +71,11 @@ pub struct FillArgs {
     /// edge there may be a fraction of a pixel off).
     #[arg(long)]
     pub confidence: Option<PathBuf>,
+    /// Also write the surface map: 8-bit, the keyframe's size, 0 outside the mask, inside 1
+    /// where the pixel was filled through its view's wall and `2 + s` where through the
+    /// report's surface `s` off the wall (`planes.surfaces[s]`).
+    #[arg(long)]
+    pub surfaces: Option<PathBuf>,
     /// Refuse images with more pixels than this (decompression bombs).
     #[arg(long, default_value_t = DecodeLimits::default().max_pixels)]
     pub max_pixels: u64,
@@ -251,7 +256,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     let usage = |m: String| (exit::USAGE, m);
     let failure = |m: String| (exit::FAILURE, m);
     result_format(&args.out).map_err(|e| usage(e.to_string()))?;
-    for p in [&args.save_mask, &args.confidence].into_iter().flatten() {
+    for p in [&args.save_mask, &args.confidence, &args.surfaces].into_iter().flatten() {
         output_format(p).map_err(|e| usage(e.to_string()))?;
     }
     let auto = args.mask == "auto";
@@ -260,10 +265,8 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     if !auto {
         inputs.push(Path::new(&args.mask));
     }
-    for written in [Some(&args.out), args.report.as_ref(), args.save_mask.as_ref(), args.confidence.as_ref()]
-        .into_iter()
-        .flatten()
-    {
+    let outputs = [&args.report, &args.save_mask, &args.confidence, &args.surfaces];
+    for written in std::iter::once(&args.out).chain(outputs.into_iter().flatten()) {
         if inputs.iter().any(|i| same_file(i, written)) {
             return Err(usage(format!(
                 "{}: is one of the inputs; refusing to overwrite it",
@@ -408,6 +411,14 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     if let Some(p) = &args.confidence {
         save_image(p, &DynamicImage::ImageLuma8(mask_to_luma8(&filled.confidence)))
             .map_err(|e| failure(e.to_string()))?;
+    }
+    if let Some(p) = &args.surfaces {
+        let map = GrayImage::from_fn(mask.width() as u32, mask.height() as u32, |x, y| {
+            let (x, y) = (x as usize, y as usize);
+            let s = filled.surface.get(x, y).saturating_add(1).min(255);
+            image::Luma([if mask.is_hole(x, y) { s as u8 } else { 0 }])
+        });
+        save_image(p, &DynamicImage::ImageLuma8(map)).map_err(|e| failure(e.to_string()))?;
     }
     let timings = progress.finish();
 
