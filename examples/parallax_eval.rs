@@ -31,7 +31,7 @@ use clearview::geometry::Homography;
 use clearview::geometry::planes::{ParallaxFamily, common_scales, epipolar_distance};
 use clearview::imaging::RgbF32;
 use clearview::imaging::convert::{luminance, to_rgb8};
-use clearview::imaging::metrics::masked_psnr;
+use clearview::imaging::metrics::{Honesty, honesty, masked_psnr};
 use clearview::inpaint::parallax::{
     SurfaceParams, SurfacePlane, SweepParams, matching_map, parallax_family, surface_planes, sweep_family,
     swept_planes, tied_family,
@@ -489,6 +489,7 @@ fn main() {
     let geo_min_common = geo_min.unwrap_or(sp.min_common);
     let names = ["today", "reference", "planes", "swept", "true-planes"];
     let mut sums = [0.0f64; 5];
+    let mut honest: [Honesty; 5] = Default::default();
     let mut stage_ms: Vec<(String, f64)> = Vec::new();
     println!("| seed | slabs | masked px | planes found | swept found | {} |", names.join(" | "));
     println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
@@ -533,6 +534,9 @@ fn main() {
             ),
         ];
         let psnr: Vec<f64> = results.iter().map(|f| masked_psnr(&f.image, &c.truth, &c.mask)).collect();
+        for (h, f) in honest.iter_mut().zip(&results) {
+            h.add(&honesty(&f.image, &c.truth, &c.mask, &f.confidence));
+        }
         if want_split {
             splits.push((seed, split(&c, &results[3], &swept, &results[4])));
         }
@@ -726,6 +730,21 @@ fn main() {
         "| **mean** | | | | | {} |",
         sums.iter().map(|s| format!("{:.2}", s / k)).collect::<Vec<_>>().join(" | ")
     );
+    println!("\nhonesty over all seeds (confident share | confident error rate | flagged recall):");
+    println!("| {} |", names.join(" | "));
+    println!("|{}", "---|".repeat(names.len()));
+    let cells: Vec<String> = honest
+        .iter()
+        .map(|h| {
+            format!(
+                "{:.3} / {:.3} / {:.3}",
+                h.confident as f64 / h.masked.max(1) as f64,
+                h.confident_error_rate(),
+                h.flagged_recall()
+            )
+        })
+        .collect();
+    println!("| {} |", cells.join(" | "));
     if epipoles {
         println!("\nepipole error, px off the true slab planes near the mask, per view:");
         println!(
