@@ -301,3 +301,40 @@ fn the_views_own_occluders_are_kept_out_of_the_fill() {
     }
     assert!(on > off - 0.3, "shared: {on:.2} dB against {off:.2} dB");
 }
+
+/// A pale pier runs down the keyframe to the mask's edge, and no view shows it (as through
+/// a wrong surface, whose plane carried the pier off): inside the mask the views agree with
+/// each other as before, so each copied pixel is as well witnessed as without the pier. Only
+/// where the pier meets the mask's edge does the blend see the disagreement, and it spreads
+/// the pier's colour inwards as a glow: those pixels are no longer what a view saw, and none
+/// of them may be reported sure (without the pier, two in five of them are).
+#[test]
+fn pixels_the_blend_moved_grossly_are_not_called_confident() {
+    let plain = occlusion_case(CaseFamily::Planar, 320, 240, 4, 1);
+    // Down to the mask, over the 16 columns where the most of it lies.
+    let (w, h) = (plain.mask.width(), plain.mask.height());
+    let column = |x: usize| (0..h).filter(|&y| plain.mask.is_hole(x, y)).count();
+    let x0 = (0..w - 16).max_by_key(|&x| (x..x + 16).map(column).sum::<usize>()).unwrap();
+    let mut c = plain.clone();
+    for x in x0..x0 + 16 {
+        for y in (0..h).take_while(|&y| !plain.mask.is_hole(x, y)) {
+            c.key.set(x, y, [0.9, 0.88, 0.82]);
+        }
+    }
+    let (f, g) = (run(&c, &FillParams::default()), run(&plain, &FillParams::default()));
+    let (mut moved, mut sure, mut sure_before) = (0usize, 0usize, 0usize);
+    for (i, &m) in c.mask.as_slice().iter().enumerate() {
+        let (a, b) = (f.image.as_slice()[i], g.image.as_slice()[i]);
+        if m > 127 && (0..3).any(|k| (a[k] - b[k]).abs() > 40.0 / 255.0) {
+            moved += 1;
+            sure += usize::from(f.confidence.as_slice()[i] >= CONFIDENT);
+            sure_before += usize::from(g.confidence.as_slice()[i] >= CONFIDENT);
+        }
+    }
+    eprintln!(
+        "{moved} masked pixels moved by the pier's glow: {sure} reported sure, {sure_before} without the pier"
+    );
+    assert!(moved >= 100, "the blend did not glow: {moved} pixels moved");
+    assert!(sure_before * 3 >= moved, "{sure_before} of {moved} sure without the pier");
+    assert!(sure * 50 <= moved, "{sure} of {moved} moved pixels reported sure");
+}

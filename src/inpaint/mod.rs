@@ -69,6 +69,15 @@ const LIFTED_CONFIDENCE: f32 = 0.45;
 const LIFTED_RESEMBLES: f32 = 0.08;
 /// The confidence of a pixel the single-image fallback invented.
 const INVENTED: f32 = 0.2;
+/// The most the fill may trust a pixel the blend moved by more than a gross difference
+/// ([`GROSS`]) beyond its part's common correction: below [`CONFIDENT`], since what it
+/// shows is no longer what a view saw. The blend's correction is smooth, and nearly
+/// constant wherever the copies meet the keyframe (exposure); it moves a pixel that far
+/// from the rest only where they disagree across the mask's edge (a mullion the fill cut at
+/// the border, spread inwards as a glow). On a six-view facade with surfaces off the wall
+/// nine in ten of the pixels this caps were grossly wrong (BENCHMARKS.md, "What the
+/// confidence does not see through the surfaces").
+const MOVED_CONFIDENCE: f32 = 0.45;
 
 /// One aligned view, as the fill sees it. Its pixels are [`RgbF32`] by default, or 8-bit
 /// ([`crate::imaging::Rgb8`], a quarter of the memory; the result is the same as with their
@@ -1096,19 +1105,24 @@ impl Staged<'_> {
                 if observer.cancelled() {
                     break;
                 }
-                let blended: Vec<Vec<[f32; 3]>> = pb
+                let blended: Vec<(Vec<[f32; 3]>, Vec<bool>)> = pb
                     .par_iter()
                     .zip(wb.par_iter())
                     .zip(rb.par_iter())
                     .map(|((part, ws), res)| blend_one(image, part, ws, res, &params.blend_params))
                     .collect();
-                for (part, u) in pb.iter().zip(&blended) {
+                for (part, (u, moved)) in pb.iter().zip(&blended) {
                     let r = part.rect;
                     for y in 0..r.height {
                         let row = &mut image.row_mut(r.y + y)[r.x..r.x + r.width];
                         for (x, px) in row.iter_mut().enumerate() {
-                            if part.hole.get(x, y) {
-                                *px = u[y * r.width + x];
+                            let i = y * r.width + x;
+                            if part.hole.as_slice()[i] {
+                                *px = u[i];
+                            }
+                            if moved[i] {
+                                let c = made.confidence.get(r.x + x, r.y + y);
+                                made.confidence.set(r.x + x, r.y + y, c.min(to_byte(MOVED_CONFIDENCE)));
                             }
                         }
                     }
@@ -1858,14 +1872,16 @@ fn harmonic(image: &RgbF32, hole: &Mask, params: &BlendParams) -> Option<RgbF32>
 /// Poisson-blends one region of `image`. The guidance across an edge `p–q` is the gradient
 /// of the view (at its chosen shift) that filled `p`, or else `q`; so seams between views
 /// and the border with the keyframe are dissolved without flattening the views' detail.
-/// Returns the region's pixels after blending (only the hole's are meant to be used).
+/// Returns the region's pixels after blending (only the hole's are meant to be used), and
+/// the hole pixels it moved by more than a gross difference beyond the correction common to
+/// the part (exposure the photometric fit left): those the border's disagreement reached.
 fn blend_one(
     image: &RgbF32,
     part: &Part,
     warps: &[&Warped],
     res: &RegionFill,
     params: &BlendParams,
-) -> Vec<[f32; 3]> {
+) -> (Vec<[f32; 3]>, Vec<bool>) {
     let r = part.rect;
     let (w, h) = (r.width, r.height);
     let mut u: Vec<[f32; 3]> = Vec::with_capacity(r.area());
@@ -1970,7 +1986,20 @@ fn blend_one(
     };
     let b = guidance_rhs(w, h, omega, &u, guide);
     let c = solve_membrane(w, h, omega, &b, params);
-    u.iter().zip(&c).map(|(p, d)| std::array::from_fn(|k| p[k] + d[k])).collect()
+    // The correction common to the part is exposure the photometric fit left; a pixel
+    // moved grossly beyond it is one the border's disagreement reached.
+    let mut common = [0.0f32; 3];
+    let mut vals: Vec<f32> = Vec::with_capacity(c.len());
+    for (k, m) in common.iter_mut().enumerate() {
+        vals.clear();
+        vals.extend(c.iter().zip(omega).filter(|&(_, &o)| o).map(|(d, _)| d[k]));
+        if !vals.is_empty() {
+            let mid = vals.len() / 2;
+            *m = *vals.select_nth_unstable_by(mid, f32::total_cmp).1;
+        }
+    }
+    let moved = c.iter().zip(omega).map(|(d, &o)| o && occlusion::max_channel(*d, common) > GROSS).collect();
+    (u.iter().zip(&c).map(|(p, d)| std::array::from_fn(|k| p[k] + d[k])).collect(), moved)
 }
 
 #[cfg(test)]
