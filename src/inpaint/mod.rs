@@ -300,7 +300,8 @@ pub struct FillParams {
     /// ninth pass").
     pub fallback_guide_from: Option<u8>,
     /// Which surface each pixel shows, where [`FillExtras::planes`] gives surfaces off the
-    /// wall.
+    /// wall: given for a 640 × 480 keyframe, and scaled to the keyframe's size
+    /// ([`ParallaxParams::at_diagonal`]).
     pub parallax: ParallaxParams,
     /// Views join the fill one by one, in the order given, each only when the fill with it
     /// agrees with what all the views show ([`FillReport::witnessed_quality`]) at least as
@@ -677,13 +678,16 @@ pub fn fill_with<P: RgbPixel>(
     if observer.cancelled() {
         return unfinished(surface, report);
     }
+    let (ww, wh) = extras.whole.unwrap_or((w, h));
+    let diagonal = (ww as f32).hypot(wh as f32);
     if !extras.planes.is_empty() {
         observer.stage(Stage::Planes);
+        let choice = params.parallax.at_diagonal(diagonal);
         let labels: Vec<Vec<u16>> = parts
             .par_iter()
             .zip(warps.par_iter_mut())
             .zip(plane_warps.par_iter())
-            .map(|((part, ws), pw)| compose_planes(key, part, ws, pw, extras.planes, &params.parallax))
+            .map(|((part, ws), pw)| compose_planes(key, part, ws, pw, extras.planes, &choice))
             .collect();
         for (part, l) in parts.iter().zip(&labels) {
             let rw = part.rect.width;
@@ -702,8 +706,6 @@ pub fn fill_with<P: RgbPixel>(
     }
     observer.stage(Stage::Occlusion);
     let all: Vec<usize> = (0..nv).collect();
-    let (ww, wh) = extras.whole.unwrap_or((w, h));
-    let diagonal = (ww as f32).hypot(wh as f32);
     let maps: Vec<OcclusionMap> = parts
         .par_iter()
         .zip(warps.par_iter())

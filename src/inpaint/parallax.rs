@@ -2172,6 +2172,24 @@ pub struct ParallaxParams {
     pub wall_bias: f32,
 }
 
+impl ParallaxParams {
+    /// These parameters for a keyframe `diagonal` pixels across: the window and the penalty
+    /// of a label change are multiplied by the whole number of times it holds
+    /// [`TUNED_DIAGONAL`], the size they were measured at (a keyframe under twice that size
+    /// keeps them), so that the choice weighs the same stretch of the facade at any
+    /// resolution. At 12 MP a 5-pixel
+    /// window sees a fraction of a brick, and a region's cost along a path grows with its
+    /// length in pixels while a label change costs the same: the sign's letters were filled
+    /// through the wall (BENCHMARKS.md, "The plane choice at camera resolution").
+    pub fn at_diagonal(&self, diagonal: f32) -> Self {
+        let k = (diagonal / TUNED_DIAGONAL).floor().max(1.0);
+        Self { window: self.window * k as usize, penalty: self.penalty * k, ..self.clone() }
+    }
+}
+
+/// The keyframe diagonal [`ParallaxParams`]' window and penalty are given for (640 × 480).
+pub const TUNED_DIAGONAL: f32 = 800.0;
+
 impl Default for ParallaxParams {
     fn default() -> Self {
         Self { window: 2, truncate: 0.03, penalty: 0.08, wall_bias: 0.0005 }
@@ -3157,5 +3175,75 @@ mod tests {
         let allowed = vec![vec![true; n], vec![false; n]];
         let labels = choose_planes(&PlaneInput { allowed: &allowed, ..input }, &ParallaxParams::default());
         assert!(labels.iter().all(|&l| l == 0));
+    }
+
+    /// The same region with every pixel four times as large (a keyframe of four times the
+    /// diagonal): with the parameters for that size, each pixel gets the label its original
+    /// got.
+    #[test]
+    fn the_plane_choice_weighs_the_same_stretch_of_facade_at_any_resolution() {
+        let (w, h) = (48, 36);
+        let n = w * h;
+        // Texture in blocks of 3 pixels, so that the views' shifts move whole blocks and a
+        // 5-pixel window at four times the size sees a single block.
+        let tex = |x: usize, y: usize, s: usize| {
+            let v = ((((x + s) / 3) * 7 + (y / 3) * 13) % 11) as f32 / 11.0;
+            [v, 1.0 - v, 0.5]
+        };
+        let slab = |x: usize, y: usize| (8..30).contains(&x) && (6..30).contains(&y);
+        let view = |p: usize, shift: usize| -> Vec<[f32; 3]> {
+            (0..n)
+                .map(|i| {
+                    let (x, y) = (i % w, i / w);
+                    match (slab(x, y), p) {
+                        (true, 0) => tex(x, y, shift),
+                        (true, _) | (false, 0) => tex(x, y, 0),
+                        (false, _) => tex(x, y, shift + 3),
+                    }
+                })
+                .collect()
+        };
+        let key: Vec<[f32; 3]> = (0..n).map(|i| tex(i % w, i / w, 0)).collect();
+        let hole: Vec<bool> =
+            (0..n).map(|i| (4..32).contains(&(i / w)) && (4..44).contains(&(i % w))).collect();
+        let views = [view(0, 3), view(1, 3), view(0, 6), view(1, 6)];
+        let labels_at = |k: usize, params: &ParallaxParams| -> Vec<u16> {
+            let big = |v: &[[f32; 3]]| -> Vec<[f32; 3]> {
+                (0..n * k * k).map(|i| v[(i / (w * k) / k) * w + (i % (w * k)) / k]).collect()
+            };
+            let bigb = |v: &[bool]| -> Vec<bool> {
+                (0..n * k * k).map(|i| v[(i / (w * k) / k) * w + (i % (w * k)) / k]).collect()
+            };
+            let vs: Vec<Vec<[f32; 3]>> = views.iter().map(|v| big(v)).collect();
+            let (key, hole) = (big(&key), bigb(&hole));
+            let (ok, blocked) = (vec![true; n * k * k], vec![false; n * k * k]);
+            let planes = vec![
+                vec![Some((vs[0].as_slice(), ok.as_slice())), Some((vs[2].as_slice(), ok.as_slice()))],
+                vec![Some((vs[1].as_slice(), ok.as_slice())), Some((vs[3].as_slice(), ok.as_slice()))],
+            ];
+            let allowed = vec![vec![true; n * k * k]; 2];
+            let region = KeyRegion {
+                width: w * k,
+                height: h * k,
+                key: &key,
+                hole: &hole,
+                need: &ok,
+                blocked: &blocked,
+            };
+            choose_planes(&PlaneInput { region, planes: &planes, allowed: &allowed }, params)
+        };
+        let base = ParallaxParams::default();
+        let small = labels_at(1, &base);
+        let k = 4;
+        let diagonal = k as f32 * TUNED_DIAGONAL;
+        let large = labels_at(k, &base.at_diagonal(diagonal));
+        let differ =
+            (0..n * k * k).filter(|&i| large[i] != small[(i / (w * k) / k) * w + (i % (w * k)) / k]).count();
+        let wrong = (0..n).filter(|&i| small[i] != u16::from(slab(i % w, i / w))).count();
+        eprintln!("{wrong} of {n} wrong at 1x; {differ} of {} differ at {k}x", n * k * k);
+        // Both sizes part only along the slab's edges (with the tuned parameters at four
+        // times the size, 5 % differ).
+        assert!(wrong * 10 < n, "{wrong} of {n} pixels wrong at the tuned size");
+        assert!(differ * 30 < n * k * k, "{differ} of {} pixels differ at {k}x", n * k * k);
     }
 }
