@@ -2177,10 +2177,10 @@ impl ParallaxParams {
     /// of a label change are multiplied by the whole number of times it holds
     /// [`TUNED_DIAGONAL`], the size they were measured at (a keyframe under twice that size
     /// keeps them), so that the choice weighs the same stretch of the facade at any
-    /// resolution. At 12 MP a 5-pixel
-    /// window sees a fraction of a brick, and a region's cost along a path grows with its
-    /// length in pixels while a label change costs the same: the sign's letters were filled
-    /// through the wall (BENCHMARKS.md, "The plane choice at camera resolution").
+    /// resolution. At 12 MP a 5-pixel window sees a fraction of a letter's stroke, and a
+    /// region's cost along a path grows with its length in pixels while a label change costs
+    /// the same: a sign's letters were filled through the wall (BENCHMARKS.md, "The plane
+    /// choice at camera resolution").
     pub fn at_diagonal(&self, diagonal: f32) -> Self {
         let k = (diagonal / TUNED_DIAGONAL).floor().max(1.0);
         Self { window: self.window * k as usize, penalty: self.penalty * k, ..self.clone() }
@@ -3177,6 +3177,11 @@ mod tests {
         assert!(labels.iter().all(|&l| l == 0));
     }
 
+    /// `v` (`w` wide) with every pixel repeated `k × k` times.
+    fn enlarged<T: Copy>(v: &[T], w: usize, k: usize) -> Vec<T> {
+        (0..v.len() * k * k).map(|i| v[(i / (w * k) / k) * w + (i % (w * k)) / k]).collect()
+    }
+
     /// The same region with every pixel four times as large (a keyframe of four times the
     /// diagonal): with the parameters for that size, each pixel gets the label its original
     /// got.
@@ -3208,14 +3213,8 @@ mod tests {
             (0..n).map(|i| (4..32).contains(&(i / w)) && (4..44).contains(&(i % w))).collect();
         let views = [view(0, 3), view(1, 3), view(0, 6), view(1, 6)];
         let labels_at = |k: usize, params: &ParallaxParams| -> Vec<u16> {
-            let big = |v: &[[f32; 3]]| -> Vec<[f32; 3]> {
-                (0..n * k * k).map(|i| v[(i / (w * k) / k) * w + (i % (w * k)) / k]).collect()
-            };
-            let bigb = |v: &[bool]| -> Vec<bool> {
-                (0..n * k * k).map(|i| v[(i / (w * k) / k) * w + (i % (w * k)) / k]).collect()
-            };
-            let vs: Vec<Vec<[f32; 3]>> = views.iter().map(|v| big(v)).collect();
-            let (key, hole) = (big(&key), bigb(&hole));
+            let vs: Vec<Vec<[f32; 3]>> = views.iter().map(|v| enlarged(v, w, k)).collect();
+            let (key, hole) = (enlarged(&key, w, k), enlarged(&hole, w, k));
             let (ok, blocked) = (vec![true; n * k * k], vec![false; n * k * k]);
             let planes = vec![
                 vec![Some((vs[0].as_slice(), ok.as_slice())), Some((vs[2].as_slice(), ok.as_slice()))],
@@ -3237,8 +3236,7 @@ mod tests {
         let k = 4;
         let diagonal = k as f32 * TUNED_DIAGONAL;
         let large = labels_at(k, &base.at_diagonal(diagonal));
-        let differ =
-            (0..n * k * k).filter(|&i| large[i] != small[(i / (w * k) / k) * w + (i % (w * k)) / k]).count();
+        let differ = large.iter().zip(enlarged(&small, w, k)).filter(|&(a, b)| *a != b).count();
         let wrong = (0..n).filter(|&i| small[i] != u16::from(slab(i % w, i / w))).count();
         eprintln!("{wrong} of {n} wrong at 1x; {differ} of {} differ at {k}x", n * k * k);
         // Both sizes part only along the slab's edges (with the tuned parameters at four
