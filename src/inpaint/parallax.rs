@@ -2302,7 +2302,7 @@ fn consensus_cost(vals: &[[f32; 3]], t: f32) -> f32 {
 }
 
 /// Sum over a `(2r + 1)²` window (clipped at the borders).
-fn box_sum(v: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
+pub(crate) fn box_sum(v: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
     let one: Vec<[f32; 1]> = v.iter().map(|&a| [a]).collect();
     box_sums(&one, w, h, r).into_iter().map(|[a]| a).collect()
 }
