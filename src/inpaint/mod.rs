@@ -82,7 +82,7 @@ const MOVED_CONFIDENCE: f32 = 0.45;
 /// the ring nearest to it ([`contradicted_by_ring`]): below [`CONFIDENT`]. With one view of
 /// a six-view facade missing, the walls' fill called the bricks behind a masked pipe sure
 /// (confident error rate 41.7 %, 25.4 % with this); over 16 facades with slabs the pixels it
-/// doubts are wrong 15–43 times in a hundred, three to five times the rate among the sure
+/// doubts are wrong 15–43 times in a hundred, three to eight times the rate among the sure
 /// (BENCHMARKS.md, "What the confidence does not see through the surfaces").
 const CONTRADICTED_CONFIDENCE: f32 = 0.45;
 
