@@ -68,8 +68,8 @@ pub struct FillArgs {
     /// Also write the confidence map: 8-bit, the keyframe's size, 0 outside the mask, inside
     /// how sure the fill is that the pixel shows the building (>= 128: sure; below: the
     /// fallback invented it, the views disagree or may show an occluder there, a sharp edge
-    /// there may be a fraction of a pixel off, or the blend moved it far from what the views
-    /// saw).
+    /// there may be a fraction of a pixel off, the blend moved it far from what the views saw,
+    /// or its view contradicts the keyframe around the mask near it).
     #[arg(long)]
     pub confidence: Option<PathBuf>,
     /// Also write the surface map: 8-bit, the keyframe's size, 0 outside the mask, inside 1
