@@ -1760,14 +1760,15 @@ fn contradicted_by_ring(
         (0..n).filter(|&i| state[i] == multiview::FILLED).map(|i| pick[i].view as usize).collect();
     used.sort_unstable();
     used.dedup();
+    let keyed: Vec<(usize, [f32; 3])> =
+        (0..n).filter(|&j| ring[j]).map(|j| (j, key.get(r.x + j % w, r.y + j / w))).collect();
     let mut share: Vec<Option<Vec<f32>>> = vec![None; warps.len()];
     for v in used {
         let (img, ok) = (warps[v].image.as_slice(), warps[v].valid.as_slice());
         let mut unlike = vec![0.0f32; n];
         let mut seen = vec![0.0f32; n];
-        for j in (0..n).filter(|&j| ring[j] && ok[j]) {
+        for &(j, k) in keyed.iter().filter(|&&(j, _)| ok[j]) {
             seen[j] = 1.0;
-            let k = key.get(r.x + j % w, r.y + j / w);
             unlike[j] = f32::from(u8::from(occlusion::max_channel(img[j], k) > GROSS));
         }
         let (u, s) = (
@@ -1965,6 +1966,18 @@ fn harmonic(image: &RgbF32, hole: &Mask, params: &BlendParams) -> Option<RgbF32>
     Some(out)
 }
 
+/// The per-channel median of `values` (the upper one of an even count; 0 with none).
+fn channel_median(values: impl Iterator<Item = [f32; 3]>) -> [f32; 3] {
+    let mut chans: [Vec<f32>; 3] = Default::default();
+    for v in values {
+        chans.iter_mut().zip(v).for_each(|(c, x)| c.push(x));
+    }
+    chans.map(|mut c| {
+        let k = c.len() / 2;
+        if c.is_empty() { 0.0 } else { *c.select_nth_unstable_by(k, f32::total_cmp).1 }
+    })
+}
+
 /// Poisson-blends one region of `image`. The guidance across an edge `p–q` is the gradient
 /// of the view (at its chosen shift) that filled `p`, or else `q`; so seams between views
 /// and the border with the keyframe are dissolved without flattening the views' detail.
@@ -2037,26 +2050,16 @@ fn blend_one(
             border_pixels.push(q);
         }
     }
+    let seen = &border;
     let smooth: Vec<(usize, [f32; 3])> = border_pixels
         .par_iter()
         .map(|&q| {
             let (x, y) = (q % w, q / w);
-            let mut vals: [Vec<f32>; 3] = Default::default();
-            for yy in y.saturating_sub(BORDER_MEDIAN)..(y + BORDER_MEDIAN + 1).min(h) {
-                for xx in x.saturating_sub(BORDER_MEDIAN)..(x + BORDER_MEDIAN + 1).min(w) {
-                    if let Some(d) = border[yy * w + xx] {
-                        for c in 0..3 {
-                            vals[c].push(d[c]);
-                        }
-                    }
-                }
-            }
-            let med = std::array::from_fn(|c| {
-                let v = &mut vals[c];
-                let k = v.len() / 2;
-                *v.select_nth_unstable_by(k, f32::total_cmp).1
+            let window = (y.saturating_sub(BORDER_MEDIAN)..(y + BORDER_MEDIAN + 1).min(h)).flat_map(|yy| {
+                (x.saturating_sub(BORDER_MEDIAN)..(x + BORDER_MEDIAN + 1).min(w))
+                    .filter_map(move |xx| seen[yy * w + xx])
             });
-            (q, med)
+            (q, channel_median(window))
         })
         .collect();
     for (q, m) in smooth {
@@ -2084,16 +2087,7 @@ fn blend_one(
     let c = solve_membrane(w, h, omega, &b, params);
     // The correction common to the part is exposure the photometric fit left; a pixel
     // moved grossly beyond it is one the border's disagreement reached.
-    let mut common = [0.0f32; 3];
-    let mut vals: Vec<f32> = Vec::with_capacity(c.len());
-    for (k, m) in common.iter_mut().enumerate() {
-        vals.clear();
-        vals.extend(c.iter().zip(omega).filter(|&(_, &o)| o).map(|(d, _)| d[k]));
-        if !vals.is_empty() {
-            let mid = vals.len() / 2;
-            *m = *vals.select_nth_unstable_by(mid, f32::total_cmp).1;
-        }
-    }
+    let common = channel_median(c.iter().zip(omega).filter(|&(_, &o)| o).map(|(d, _)| *d));
     let moved = c.iter().zip(omega).map(|(d, &o)| o && occlusion::max_channel(*d, common) > GROSS).collect();
     (u.iter().zip(&c).map(|(p, d)| std::array::from_fn(|k| p[k] + d[k])).collect(), moved)
 }
