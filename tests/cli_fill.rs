@@ -178,6 +178,39 @@ fn never_overwrites_an_input_and_refuses_unknown_formats() {
     assert_eq!(o.status.code(), Some(64));
 }
 
+/// `--confidence` writes the fill's confidence as it is: 0 outside the mask, and inside every
+/// grade the model gave, so that the map's mean over the mask is the report's expected
+/// quality and its pixels at 128 or more are the report's confident ones. (It was written as
+/// a mask, 0 or 255, and the grades were lost.)
+#[test]
+fn the_confidence_map_keeps_the_grades_the_report_counts() {
+    let s = scene();
+    let (out, report, conf) = (s.path("clear.png"), s.path("report.json"), s.path("confidence.png"));
+    let mut a = args(&s, &out, &report);
+    a.splice(0..0, ["--confidence".into(), conf.clone()]);
+    let o = fill(a);
+    assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let map = image::open(&conf).unwrap().to_luma8();
+    assert_eq!((map.width() as usize, map.height() as usize), (W, H));
+    let (mut sum, mut sure, mut grades) = (0.0f64, 0u64, std::collections::BTreeSet::new());
+    for (&c, &m) in map.as_raw().iter().zip(s.mask.as_slice()) {
+        if m > 127 {
+            sum += f64::from(c) / 255.0;
+            sure += u64::from(c >= 128);
+            grades.insert(c);
+        } else {
+            assert_eq!(c, 0, "confidence outside the mask");
+        }
+    }
+    assert_eq!(sure, v["confident_pixels"].as_u64().unwrap());
+    let mean = sum / s.mask.hole_count() as f64;
+    let expected = v["expected_quality"].as_f64().unwrap();
+    println!("mean confidence {mean:.4}, report {expected:.4}, {} grades", grades.len());
+    assert!((mean - expected).abs() < 1e-6, "the map's mean {mean:.4}, the report's {expected:.4}");
+    assert!(grades.len() > 2, "grades {grades:?}");
+}
+
 /// Writes a case as a user's files: keyframe, mask and views.
 fn write_scene(key: &RgbF32, mask: &Mask, truth: RgbF32, rendered: &[RgbF32]) -> Scene {
     let dir = tempfile::tempdir().unwrap();

@@ -169,6 +169,16 @@ fn a_session_improves_as_views_arrive_and_bad_files_are_skipped() {
         .filter(|&(x, y)| scene.mask.is_hole(x, y) && conf.get_pixel(x as u32, y as u32).0[0] >= 128)
         .count();
     assert_eq!(sure as u64, report["confident_px"].as_u64().unwrap());
+    // The map holds the confidence's grades, not only sure or not: its mean over the mask
+    // is the score (it was written as a mask, 0 or 255).
+    let mean = (0..H)
+        .flat_map(|y| (0..W).map(move |x| (x, y)))
+        .filter(|&(x, y)| scene.mask.is_hole(x, y))
+        .map(|(x, y)| f64::from(conf.get_pixel(x as u32, y as u32).0[0]) / 255.0)
+        .sum::<f64>()
+        / scene.mask.hole_count() as f64;
+    let score = report["score"].as_f64().unwrap();
+    assert!((mean - score).abs() < 1e-6, "confidence.png's mean {mean:.4}, the score {score:.4}");
     no_temporaries(&f.outbox);
     no_temporaries(&f.state);
 }

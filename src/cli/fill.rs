@@ -17,7 +17,9 @@ use super::load::{LoadError, load_image, load_photo};
 use super::save::{output_format, result_format, save_image, save_result};
 use crate::align::{AlignParams, Frame, align};
 use crate::geometry::{Homography, Rows};
-use crate::imaging::convert::{crop_rgb8, luminance, mask_to_luma8, to_luminance, to_mask, to_rgb};
+use crate::imaging::convert::{
+    crop_rgb8, luminance, mask_to_luma8, plane_to_luma8, to_luminance, to_mask, to_rgb,
+};
 use crate::imaging::decode::DecodeLimits;
 use crate::imaging::encode::{EncodeOptions, OutputSpace};
 use crate::imaging::meta::{Metadata, Provenance};
@@ -410,7 +412,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         eprintln!("clearview fill: {}: {w}", args.out.display());
     }
     if let Some(p) = &args.confidence {
-        save_image(p, &DynamicImage::ImageLuma8(mask_to_luma8(&filled.confidence)))
+        save_image(p, &DynamicImage::ImageLuma8(plane_to_luma8(&filled.confidence)))
             .map_err(|e| failure(e.to_string()))?;
     }
     if let Some(p) = &args.surfaces {

@@ -152,6 +152,13 @@ pub fn to_mask(img: &DynamicImage) -> Mask {
     Mask::from_vec(g.width() as usize, g.height() as usize, g.into_raw())
 }
 
+/// An 8-bit plane as a grey image, every value as it is (a confidence map keeps its grades;
+/// [`mask_to_luma8`] would make it 0 or 255).
+pub fn plane_to_luma8(plane: &crate::imaging::Plane<u8>) -> GrayImage {
+    GrayImage::from_raw(plane.width() as u32, plane.height() as u32, plane.as_slice().to_vec())
+        .expect("a plane holds width × height values")
+}
+
 /// A mask as an 8-bit grey image (0 or 255).
 pub fn mask_to_luma8(mask: &Mask) -> GrayImage {
     GrayImage::from_fn(mask.width() as u32, mask.height() as u32, |x, y| {

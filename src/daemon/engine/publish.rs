@@ -361,7 +361,7 @@ pub(super) fn write_mask(ctx: &Ctx, slot: &Slot) {
 fn write_confidence(ctx: &Ctx, slot: &Slot, conf: &crate::inpaint::Confidence) {
     let path = ctx.emitter.session_dir(&slot.name).join("confidence.png");
     let mut png = std::io::Cursor::new(Vec::new());
-    let r = crate::imaging::convert::mask_to_luma8(conf)
+    let r = crate::imaging::convert::plane_to_luma8(conf)
         .write_to(&mut png, image::ImageFormat::Png)
         .map_err(std::io::Error::other)
         .and_then(|()| crate::fsio::atomic_write(&path, png.get_ref()));
