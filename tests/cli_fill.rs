@@ -178,6 +178,29 @@ fn never_overwrites_an_input_and_refuses_unknown_formats() {
     assert_eq!(o.status.code(), Some(64));
 }
 
+/// An output named in a folder that does not exist is refused before any work, with the
+/// path and the reason, and nothing is written (it failed after the fill, the result
+/// already written beside it). `--save-mask` with a mask file is bad usage: there is no
+/// found mask to save.
+#[test]
+fn an_output_in_a_missing_folder_is_refused_before_the_fill() {
+    let s = scene();
+    let (out, report) = (s.path("clear.png"), s.path("report.json"));
+    let missing = s.path("no-such-folder").join("confidence.png");
+    let mut a = args(&s, &out, &report);
+    a.splice(0..0, ["--confidence".into(), missing.clone()]);
+    let o = fill(a);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "stderr: {err}");
+    assert!(err.contains(&missing.display().to_string()) && err.contains("does not exist"), "{err}");
+    assert!(!out.exists() && !report.exists(), "written before the refusal");
+    let mut a = args(&s, &out, &report);
+    a.splice(0..0, ["--save-mask".into(), s.path("found.png")]);
+    let o = fill(a);
+    assert_eq!(o.status.code(), Some(64), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(!out.exists() && !s.path("found.png").exists());
+}
+
 /// `--confidence` writes the fill's confidence as it is: 0 outside the mask, and inside every
 /// grade the model gave, so that the map's mean over the mask is the report's expected
 /// quality and its pixels at 128 or more are the report's confident ones. (It was written as

@@ -237,6 +237,21 @@ impl Observer for Progress {
     }
 }
 
+/// Why an output cannot be written where it is named, as far as its folder says: the folder
+/// is missing or is not a folder. (Whether the folder lets us write is known only by
+/// writing; the write reports it.)
+fn unwritable_folder(path: &Path) -> Option<String> {
+    let parent = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    match std::fs::metadata(parent) {
+        Ok(m) if m.is_dir() => None,
+        Ok(_) => Some(format!("{} is not a folder", parent.display())),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            Some(format!("the folder {} does not exist", parent.display()))
+        }
+        Err(e) => Some(format!("{}: {e}", parent.display())),
+    }
+}
+
 /// A view that survived alignment: the part of it the fill needs, in 8 bits (a quarter of
 /// the memory of `f32`; the fill reads it as `f32` where it samples it).
 struct Aligned {
@@ -263,6 +278,13 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         output_format(p).map_err(|e| usage(e.to_string()))?;
     }
     let auto = args.mask == "auto";
+    if let (Some(p), false) = (&args.save_mask, auto) {
+        return Err(usage(format!(
+            "{}: --save-mask writes the mask --mask auto finds; the mask here is the file {}",
+            p.display(),
+            args.mask
+        )));
+    }
     let mut inputs: Vec<&Path> = vec![&args.keyframe];
     inputs.extend(args.views.iter().map(PathBuf::as_path));
     if !auto {
@@ -275,6 +297,10 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
                 "{}: is one of the inputs; refusing to overwrite it",
                 written.display()
             )));
+        }
+        // Checked before the work, not after it: a fill at camera resolution takes seconds.
+        if let Some(why) = unwritable_folder(written) {
+            return Err(failure(format!("{}: cannot write: {why}", written.display())));
         }
     }
 
