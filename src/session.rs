@@ -63,6 +63,34 @@ pub use crate::imaging::Rgb8;
 /// nothing and would paint the occluder back in, so it is rejected.
 pub const SAME_AS_KEY: f64 = 0.02;
 
+/// Whether a view's `pixels`, mapped by keyframe → view `h`, show the keyframe's own
+/// pixels over the mask ([`SAME_AS_KEY`]): the keyframe's file again, or a shot from the
+/// same spot with the occluder where it was. `false` when the view sees less than half of
+/// the mask.
+pub fn shows_the_keyframe(key: &RgbF32, mask: &Mask, h: &Homography, pixels: &Rgb8) -> bool {
+    let Some(region) = mask.hole_bounds() else { return false };
+    let step = if mask.hole_count() > 250_000 { 2 } else { 1 };
+    let (w, h_px) = (pixels.width() as f64, pixels.height() as f64);
+    let (mut sum, mut seen, mut holes) = (0.0f64, 0usize, 0usize);
+    for y in (region.y..region.y1()).step_by(step) {
+        for x in (region.x..region.x1()).step_by(step) {
+            if !mask.is_hole(x, y) {
+                continue;
+            }
+            holes += 1;
+            let Some(p) = h.apply(Point2::new(x as f64, y as f64)) else { continue };
+            let (vx, vy) = (p.x.round(), p.y.round());
+            if vx < 0.0 || vy < 0.0 || vx >= w || vy >= h_px {
+                continue;
+            }
+            let (v, k) = (pixels.get(vx as usize, vy as usize), key.get(x, y));
+            sum += (0..3).map(|c| f64::from((f32::from(v[c]) / 255.0 - k[c]).abs())).sum::<f64>() / 3.0;
+            seen += 1;
+        }
+    }
+    seen > 0 && seen * 2 >= holes && sum / (seen as f64) < SAME_AS_KEY
+}
+
 /// The current result stays against a new fill only when the views back it on at least
 /// this share of the mask more than the new fill: the default of the fill's own margin for
 /// a view to join (`FillParams::select_margin`), which the publish rule uses, so that a view
@@ -222,6 +250,12 @@ impl Buffered {
 pub enum Admission {
     Rejected {
         reason: String,
+    },
+    /// The same pixels as buffered view `of` (a copy of its file under another name, the
+    /// same upload twice): as a second witness it would only add weight to that view's own
+    /// errors, so it is not buffered.
+    Duplicate {
+        of: String,
     },
     /// Accepted but it sees none of the mask's region: not buffered.
     OutsideMask,
@@ -481,7 +515,8 @@ impl Session {
             });
         }
         if let Some(p) = pixels
-            && self.same_as_key(&homography, p)
+            && let (Some(key), Some(mask)) = (&self.key, &self.mask)
+            && shows_the_keyframe(&key.rgb, &mask.mask, &homography, p)
         {
             return Ok(Admission::Rejected {
                 reason: "shows what the keyframe shows where the mask is (the same picture): it adds nothing"
@@ -513,8 +548,18 @@ impl Session {
             }
             improves = fallback_px.max(weak_px).max(doubtful_px) >= self.params.min_new_pixels;
             if let Some(p) = pixels {
+                let image = p.crop(rect);
+                if let Some(b) = self.buffer.iter().find(|b| {
+                    b.id != id
+                        && b.record.view_size == record.view_size
+                        && b.crop
+                            .as_ref()
+                            .is_some_and(|c| c.rect == rect && c.image.as_slice() == image.as_slice())
+                }) {
+                    return Ok(Admission::Duplicate { of: b.id.clone() });
+                }
                 crop = Some(Crop {
-                    image: p.crop(rect),
+                    image,
                     homography: into_crop(&homography, &rect),
                     rect,
                     occluders: None,
@@ -583,33 +628,6 @@ impl Session {
         self.mask = None;
         self.mask_changed();
         self.dirty = false;
-    }
-
-    /// Whether view `pixels`, mapped by keyframe → view `h`, show the keyframe's own
-    /// pixels over the mask ([`SAME_AS_KEY`]); `false` when it sees less than half of it.
-    fn same_as_key(&self, h: &Homography, pixels: &Rgb8) -> bool {
-        let (Some(key), Some(mask)) = (&self.key, &self.mask) else { return false };
-        let Some(region) = mask.region else { return false };
-        let step = if mask.mask.hole_count() > 250_000 { 2 } else { 1 };
-        let (w, h_px) = (pixels.width() as f64, pixels.height() as f64);
-        let (mut sum, mut seen, mut holes) = (0.0f64, 0usize, 0usize);
-        for y in (region.y..region.y1()).step_by(step) {
-            for x in (region.x..region.x1()).step_by(step) {
-                if !mask.mask.is_hole(x, y) {
-                    continue;
-                }
-                holes += 1;
-                let Some(p) = h.apply(Point2::new(x as f64, y as f64)) else { continue };
-                let (vx, vy) = (p.x.round(), p.y.round());
-                if vx < 0.0 || vy < 0.0 || vx >= w || vy >= h_px {
-                    continue;
-                }
-                let (v, k) = (pixels.get(vx as usize, vy as usize), key.rgb.get(x, y));
-                sum += (0..3).map(|c| f64::from((f32::from(v[c]) / 255.0 - k[c]).abs())).sum::<f64>() / 3.0;
-                seen += 1;
-            }
-        }
-        seen > 0 && seen * 2 >= holes && sum / (seen as f64) < SAME_AS_KEY
     }
 
     /// Ids of buffered views whose pixels are not in memory (the mask arrived, or changed,
@@ -1091,6 +1109,25 @@ mod tests {
             let b = bilinear_rgb(&crop_f, c.x as f32, c.y as f32).unwrap();
             assert!((0..3).all(|k| (a[k] - b[k]).abs() < 1e-5), "{a:?} vs {b:?} at ({x},{y})");
         }
+    }
+
+    #[test]
+    fn a_copy_of_a_buffered_view_is_a_duplicate_and_the_view_itself_again_is_not() {
+        let mut s = session_with_key();
+        s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+        let h = Homography::translation(-12.0, 5.0);
+        let view = to8(&synth::facade(W, H, 9));
+        assert!(matches!(s.admit("v".into(), record(&h), Some(&view)).unwrap(), Admission::Accepted { .. }));
+        // The same pixels under another name: not a second witness.
+        let a = s.admit("copy".into(), record(&h), Some(&view)).unwrap();
+        assert!(matches!(&a, Admission::Duplicate { of } if of == "v"), "{a:?}");
+        assert_eq!(s.buffered().len(), 1);
+        // The same view offered again under its own name replaces itself.
+        assert!(matches!(s.admit("v".into(), record(&h), Some(&view)).unwrap(), Admission::Accepted { .. }));
+        // Another view from the same place is buffered.
+        let other = to8(&synth::facade(W, H, 11));
+        assert!(matches!(s.admit("w".into(), record(&h), Some(&other)).unwrap(), Admission::Accepted { .. }));
+        assert_eq!(s.buffered().len(), 2);
     }
 
     #[test]

@@ -412,6 +412,13 @@ fn every_bad_file_is_refused_or_used_with_a_reason_and_no_result_is_damaged() {
         ));
         cases.push(Case::new(
             "scenes",
+            "v1-copy.png",
+            "a buffered view's file again under another name",
+            std::fs::read(f.inbox.join("scenes/v1.png")).unwrap(),
+            Want::Rejected("already buffered: v1.png"),
+        ));
+        cases.push(Case::new(
+            "scenes",
             "tiny.png",
             "1 x 1",
             png(&RgbF32::new(1, 1, [0.5; 3])),

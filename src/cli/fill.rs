@@ -30,6 +30,7 @@ use crate::inpaint::{
     AutoMaskParams, FillExtras, FillParams, Observer, Source, Stage, SurfacesReport, auto_mask_report,
     fill_swept, sweep_surfaces,
 };
+use crate::session::shows_the_keyframe;
 
 /// Views decoded and aligned at the same time. JPEG decoding is sequential, so with two in
 /// flight (and the keyframe decoded beside them) both cores stay busy; the alignment inside
@@ -237,6 +238,13 @@ impl Observer for Progress {
     }
 }
 
+/// Marks an aligned view as not used, with the reason, and says so on stderr.
+fn skip(report: &mut ViewReport, reason: &str) {
+    eprintln!("clearview fill: {}: skipped: {reason}", report.path.display());
+    report.accepted = false;
+    report.reason = Some(reason.to_owned());
+}
+
 /// Why an output cannot be written where it is named, as far as its folder says: the folder
 /// is missing or is not a folder. (Whether the folder lets us write is known only by
 /// writing; the write reports it.)
@@ -365,13 +373,39 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         reports.push(o.report);
     }
 
-    let sources: Vec<Source<'_, [u8; 3]>> =
+    // A view given twice (the same file, or a copy of it) would witness its own errors
+    // twice: only the first is kept.
+    let mut kept: Vec<Aligned> = Vec::with_capacity(aligned.len());
+    for a in aligned {
+        match kept.iter().find(|k| k.homography == a.homography && k.crop == a.crop) {
+            Some(first) => {
+                let first = reports[first.report].path.display().to_string();
+                skip(
+                    &mut reports[a.report],
+                    &format!("the same picture as {first} (the same pixels); it adds nothing"),
+                );
+            }
+            None => kept.push(a),
+        }
+    }
+    let mut aligned = kept;
+    let mut sources: Vec<Source<'_, [u8; 3]>> =
         aligned.iter().map(|a| Source { image: &a.crop, homography: a.homography }).collect();
     let (mask, auto): (Mask, Option<AutoMaskSummary>) = match given_mask {
         Some(m) => (m, None),
         None => {
             progress.begin("auto mask", 0);
-            let found = auto_mask_report(&key_rgb, &sources, &AutoMaskParams::default());
+            let mut found = auto_mask_report(&key_rgb, &sources, &AutoMaskParams::default());
+            // A copy of the keyframe agrees with it everywhere and hides its occluders from
+            // the consensus: the mask is found again without such views.
+            if aligned.iter().any(|a| shows_the_keyframe(&key_rgb, &found.mask, &a.homography, &a.crop)) {
+                let rest: Vec<Source<'_, [u8; 3]>> = aligned
+                    .iter()
+                    .filter(|a| !shows_the_keyframe(&key_rgb, &found.mask, &a.homography, &a.crop))
+                    .map(|a| Source { image: &a.crop, homography: a.homography })
+                    .collect();
+                found = auto_mask_report(&key_rgb, &rest, &AutoMaskParams::default());
+            }
             if let Some(p) = &args.save_mask {
                 save_image(p, &DynamicImage::ImageLuma8(mask_to_luma8(&found.mask)))
                     .map_err(|e| failure(e.to_string()))?;
@@ -384,6 +418,26 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
             (found.mask, Some(summary))
         }
     };
+    // A view that shows what the keyframe shows over the mask (the keyframe's own file
+    // among the views, a shot from the same spot with the occluder where it was) can only
+    // paint the occluder back: it is skipped, as the service turns it down.
+    let same: Vec<bool> =
+        aligned.iter().map(|a| shows_the_keyframe(&key_rgb, &mask, &a.homography, &a.crop)).collect();
+    if same.iter().any(|&s| s) {
+        drop(sources);
+        let mut keep = same.iter().map(|&s| !s);
+        aligned.retain(|a| {
+            let keep = keep.next().expect("one flag per view");
+            if !keep {
+                skip(
+                    &mut reports[a.report],
+                    "shows what the keyframe shows where the mask is (the same picture): it adds nothing",
+                );
+            }
+            keep
+        });
+        sources = aligned.iter().map(|a| Source { image: &a.crop, homography: a.homography }).collect();
+    }
     let sweep = !args.no_planes;
     let params = FillParams::default();
     let planes = if sweep {

@@ -71,8 +71,18 @@ impl Slot {
             align_ms: (align_ms * 10.0).round() / 10.0,
         };
         let m = &ctx.registry.metrics;
+        let duplicate = matches!(admission, Admission::Duplicate { .. });
         let (status, reason, admitted) = match admission {
-            Admission::Rejected { reason } => {
+            Admission::Rejected { reason } | Admission::Duplicate { of: reason } => {
+                // A copy of a buffered view is turned down as any other view is, naming it.
+                let reason = if duplicate {
+                    format!(
+                        "the same picture as a view already buffered: {} (the same pixels); it adds nothing",
+                        name_of(&reason)
+                    )
+                } else {
+                    reason
+                };
                 m.rejected(&reason);
                 tracing::info!(%reason, from_state, "view rejected");
                 let e = ViewRejected { view, reason: reason.clone() };
