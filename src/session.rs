@@ -45,7 +45,7 @@ use thiserror::Error;
 
 use crate::align::{AlignParams, Alignment, Frame, align};
 use crate::geometry::Homography;
-use crate::imaging::convert::luminance;
+use crate::imaging::convert::{MASK_MAX_GREY, luminance, mask_grey_share};
 use crate::imaging::{GrayF32, Mask, Rect, RgbF32, RgbPixel};
 use crate::inpaint::parallax::{SurfacePlane, SweepParams, ViewMatches};
 use crate::inpaint::region::{footprint, into_crop};
@@ -152,6 +152,11 @@ pub enum SessionError {
     NoKey,
     #[error("the mask is {mask_w}x{mask_h} but the keyframe is {key_w}x{key_h}")]
     MaskSize { mask_w: usize, mask_h: usize, key_w: usize, key_h: usize },
+    #[error(
+        "not a mask: {:.0} % of its pixels are neither black nor white (a photograph?); a mask is white where to remove, black elsewhere",
+        100.0 * grey
+    )]
+    NotAMask { grey: f64 },
     #[error("the view is {got_w}x{got_h} but was aligned as {want_w}x{want_h}")]
     ViewSize { got_w: usize, got_h: usize, want_w: usize, want_h: usize },
 }
@@ -430,6 +435,10 @@ impl Session {
                 key_w: kw,
                 key_h: kh,
             });
+        }
+        let grey = mask_grey_share(&mask);
+        if grey > MASK_MAX_GREY {
+            return Err(SessionError::NotAMask { grey });
         }
         // What is under the mask is to be removed: its corners are not matched.
         key.frame.set_mask(Some(&mask));
@@ -1067,6 +1076,17 @@ mod tests {
         })
     }
 
+    /// `view` as another shot would give it: one pixel inside the tests' masks a level or
+    /// a few off (by the id's letter), so that views the tests want alike are not copies
+    /// of one another (a copy is not buffered twice).
+    fn shot(view: &Rgb8, id: &str) -> Rgb8 {
+        let mut v = view.clone();
+        let p = v.get(45, 35);
+        let k = id.as_bytes()[0].wrapping_sub(b'a').wrapping_add(1);
+        v.set(45, 35, [p[0].wrapping_add(k), p[1], p[2]]);
+        v
+    }
+
     fn record(h: &Homography) -> AlignRecord {
         AlignRecord {
             accepted: true,
@@ -1203,7 +1223,7 @@ mod tests {
             s.set_mask("mask".into(), mask.clone()).unwrap();
             let h = Homography::identity();
             for v in ["a", "b", "c"] {
-                s.admit(v.into(), record(&h), Some(&to8(&boarded([0.9, 0.1, 0.1])))).unwrap();
+                s.admit(v.into(), record(&h), Some(&shot(&to8(&boarded([0.9, 0.1, 0.1])), v))).unwrap();
                 if marked {
                     assert!(s.set_view_occluders(v, &marks));
                 }
@@ -1273,14 +1293,14 @@ mod tests {
         let h = Homography::translation(1.0, 1.0);
         // Two witnesses (the rule's threshold), then a result that used no fallback.
         for id in ["a", "b"] {
-            let a = s.admit(id.into(), record(&h), Some(&view)).unwrap();
+            let a = s.admit(id.into(), record(&h), Some(&shot(&view, id))).unwrap();
             assert!(matches!(a, Admission::Accepted { improves: true, .. }), "{a:?}");
         }
         let region = s.mask.as_ref().unwrap().region.unwrap();
         s.provenance = Some(Provenance::new(region.width, region.height, 1));
         s.confidence = Some(Confidence::new(region.width, region.height, 255));
         s.dirty = false;
-        let a = s.admit("c".into(), record(&h), Some(&view)).unwrap();
+        let a = s.admit("c".into(), record(&h), Some(&shot(&view, "c"))).unwrap();
         assert_eq!(
             a,
             Admission::Accepted {
@@ -1300,7 +1320,7 @@ mod tests {
             }
         }
         s.provenance = Some(p);
-        let a = s.admit("d".into(), record(&h), Some(&view)).unwrap();
+        let a = s.admit("d".into(), record(&h), Some(&shot(&view, "d"))).unwrap();
         match a {
             Admission::Accepted { improves: true, fallback_px, weak_px: 0, doubtful_px: 0, .. } => {
                 assert!((40..=60).contains(&fallback_px), "{fallback_px}")
@@ -1377,12 +1397,12 @@ mod tests {
         let view = to8(&synth::facade(W, H, 9));
         let h = Homography::identity();
         for id in ["a", "b", "c"] {
-            s.admit(id.into(), record(&h), Some(&view)).unwrap();
+            s.admit(id.into(), record(&h), Some(&shot(&view, id))).unwrap();
         }
         for (b, c) in s.buffer.iter_mut().zip([30, 5, 20]) {
             b.contribution = Some(c);
         }
-        let a = s.admit("d".into(), record(&h), Some(&view)).unwrap();
+        let a = s.admit("d".into(), record(&h), Some(&shot(&view, "d"))).unwrap();
         match a {
             Admission::Accepted { dropped, .. } => assert_eq!(dropped, vec!["b".to_owned()]),
             other => panic!("{other:?}"),
@@ -1413,7 +1433,7 @@ mod tests {
         s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
         let view = to8(&synth::facade(W, H, 9));
         for id in ["a", "b", "c"] {
-            s.admit(id.into(), record(&Homography::identity()), Some(&view)).unwrap();
+            s.admit(id.into(), record(&Homography::identity()), Some(&shot(&view, id))).unwrap();
         }
         let first = s.fill(&mut ()).unwrap();
         assert!(first.image.is_some());
@@ -1452,7 +1472,7 @@ mod tests {
         s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
         let view = to8(&synth::facade(W, H, 9));
         for id in ["a", "b"] {
-            s.admit(id.into(), record(&Homography::identity()), Some(&view)).unwrap();
+            s.admit(id.into(), record(&Homography::identity()), Some(&shot(&view, id))).unwrap();
         }
         assert!(s.buffer.iter().all(|b| b.joined.is_none()));
         assert!(s.fill(&mut ()).unwrap().image.is_some());
@@ -1502,13 +1522,29 @@ mod tests {
             let mut s = session_with_key();
             s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
             for id in ids {
-                s.admit((*id).into(), record(&h), Some(&view)).unwrap();
+                s.admit((*id).into(), record(&h), Some(&shot(&view, id))).unwrap();
             }
             s.inputs_digest()
         };
         assert_eq!(build(&["a", "b"]), build(&["b", "a"]));
         assert_ne!(build(&["a", "b"]), build(&["a", "c"]));
         assert_ne!(build(&["a"]), build(&["a", "b"]));
+    }
+
+    #[test]
+    fn a_photograph_given_as_the_mask_is_refused_and_a_soft_painted_mask_is_not() {
+        let mut s = session_with_key();
+        // The keyframe's own picture as a mask: every pixel over 127 would be removed.
+        let photo = Mask::from_fn(W, H, |x, y| (60 + (x * 3 + y * 5) % 140) as u8);
+        let e = s.set_mask("m".into(), photo).unwrap_err();
+        assert!(matches!(e, SessionError::NotAMask { grey } if grey > 0.9), "{e:?}");
+        assert!(e.to_string().contains("not a mask"), "{e}");
+        // A disc painted with a soft brush: grey only along its edge.
+        let soft = Mask::from_fn(W, H, |x, y| {
+            let d = (x as f32 - 45.0).hypot(y as f32 - 35.0);
+            (255.0 * (12.0 - d).clamp(0.0, 4.0) / 4.0) as u8
+        });
+        s.set_mask("soft".into(), soft).unwrap();
     }
 
     #[test]

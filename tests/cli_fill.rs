@@ -201,6 +201,21 @@ fn an_output_in_a_missing_folder_is_refused_before_the_fill() {
     assert!(!out.exists() && !s.path("found.png").exists());
 }
 
+/// A photograph given as the mask (the wrong file picked: it has the keyframe's size) is
+/// refused with the reason: taken as a mask, every pixel over 127 would have been removed.
+#[test]
+fn a_photograph_given_as_the_mask_is_refused() {
+    let s = scene();
+    let (out, report) = (s.path("clear.png"), s.path("report.json"));
+    let mut a = args(&s, &out, &report);
+    a[3] = s.views[0].clone();
+    let o = fill(a);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "stderr: {err}");
+    assert!(err.contains(&s.views[0].display().to_string()) && err.contains("not a mask"), "{err}");
+    assert!(!out.exists());
+}
+
 /// A glob that takes in the keyframe (`*.jpg`), or a view given twice, is what a user
 /// types. The keyframe as a view shows the occluder where the mask is and painted it back
 /// (on a facade with slabs, 25.3 dB fell to 16.6 dB and most of the mask went doubtful); a

@@ -18,7 +18,8 @@ use super::save::{output_format, result_format, save_image, save_result};
 use crate::align::{AlignParams, Frame, align};
 use crate::geometry::{Homography, Rows};
 use crate::imaging::convert::{
-    crop_rgb8, luminance, mask_to_luma8, plane_to_luma8, to_luminance, to_mask, to_rgb,
+    MASK_MAX_GREY, crop_rgb8, luminance, mask_grey_share, mask_to_luma8, plane_to_luma8, to_luminance,
+    to_mask, to_rgb,
 };
 use crate::imaging::decode::DecodeLimits;
 use crate::imaging::encode::{EncodeOptions, OutputSpace};
@@ -575,6 +576,14 @@ fn load_key(
                 m.width(),
                 m.height(),
                 args.keyframe.display()
+            )));
+        }
+        let grey = mask_grey_share(&m);
+        if grey > MASK_MAX_GREY {
+            return Err(failure(format!(
+                "{}: not a mask: {:.0} % of its pixels are neither black nor white (a photograph?); a mask is white where to remove, black elsewhere",
+                path.display(),
+                100.0 * grey
             )));
         }
         Some(m)

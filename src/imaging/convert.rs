@@ -152,6 +152,18 @@ pub fn to_mask(img: &DynamicImage) -> Mask {
     Mask::from_vec(g.width() as usize, g.height() as usize, g.into_raw())
 }
 
+/// The share of a mask's pixels that are neither near black nor near white (32..=223). A
+/// painted mask has grey only along its edges (a soft brush, a JPEG's ringing); a
+/// photograph given as the mask by mistake is mostly grey and would mark half the frame
+/// (every pixel over 127) for removal.
+pub fn mask_grey_share(mask: &Mask) -> f64 {
+    let grey = mask.as_slice().iter().filter(|&&v| (32..=223).contains(&v)).count();
+    grey as f64 / mask.as_slice().len().max(1) as f64
+}
+
+/// A mask with more than this share of grey ([`mask_grey_share`]) is not taken as a mask.
+pub const MASK_MAX_GREY: f64 = 0.25;
+
 /// An 8-bit plane as a grey image, every value as it is (a confidence map keeps its grades;
 /// [`mask_to_luma8`] would make it 0 or 255).
 pub fn plane_to_luma8(plane: &crate::imaging::Plane<u8>) -> GrayImage {

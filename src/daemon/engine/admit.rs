@@ -249,7 +249,10 @@ mod tests {
                 since: Instant::now(),
                 path: None,
             };
-            assert!(matches!(slot.admit(&ctx, offer, Some(&view)), Ok(Admitted::Buffered { .. })));
+            // Each frame a little different: a copy of a frame is not buffered again.
+            let mut frame = view.clone();
+            frame.set(0, 0, [i as u8, 0, 0]);
+            assert!(matches!(slot.admit(&ctx, offer, Some(&frame)), Ok(Admitted::Buffered { .. })));
         }
         let m = &ctx.registry.metrics;
         assert_eq!(m.views_accepted.load(Ordering::Relaxed), 3);
