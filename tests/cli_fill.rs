@@ -201,6 +201,29 @@ fn an_output_in_a_missing_folder_is_refused_before_the_fill() {
     assert!(!out.exists() && !s.path("found.png").exists());
 }
 
+/// `--mask auto` with one view cannot judge anything (the mask is what two views agree
+/// the keyframe shows wrongly): it says so, and the result is the keyframe.
+#[test]
+fn an_automatic_mask_from_one_view_says_it_could_judge_nothing() {
+    let s = scene();
+    let out = s.path("clear.png");
+    let key = s.path("key.png");
+    let o = fill([
+        "--keyframe".into(),
+        key.clone(),
+        "--mask".into(),
+        "auto".into(),
+        "--out".into(),
+        out.clone(),
+        s.views[0].clone(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(0), "stderr: {err}");
+    assert!(err.contains("--mask auto") && err.contains("1 view aligned"), "{err}");
+    let (a, b) = (image::open(&key).unwrap().to_rgb8(), image::open(&out).unwrap().to_rgb8());
+    assert!(a == b, "the result is not the keyframe");
+}
+
 /// A photograph given as the mask (the wrong file picked: it has the keyframe's size) is
 /// refused with the reason: taken as a mask, every pixel over 127 would have been removed.
 #[test]

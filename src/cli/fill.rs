@@ -395,6 +395,13 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     let (mask, auto): (Mask, Option<AutoMaskSummary>) = match given_mask {
         Some(m) => (m, None),
         None => {
+            if aligned.len() < 2 {
+                eprintln!(
+                    "clearview fill: --mask auto: the mask is what two views agree the keyframe shows wrongly, and {} view{} aligned: nothing can be judged, the result is the keyframe (paint a mask, or add views)",
+                    aligned.len(),
+                    if aligned.len() == 1 { "" } else { "s" }
+                );
+            }
             progress.begin("auto mask", 0);
             let mut found = auto_mask_report(&key_rgb, &sources, &AutoMaskParams::default());
             // A copy of the keyframe agrees with it everywhere and hides its occluders from
