@@ -557,18 +557,20 @@ impl Session {
             }
             improves = fallback_px.max(weak_px).max(doubtful_px) >= self.params.min_new_pixels;
             if let Some(p) = pixels {
-                let image = p.crop(rect);
+                // Compared where the buffered view was kept, whatever this one's alignment
+                // (a copy aligned from another prior lands a fraction of a pixel apart).
                 if let Some(b) = self.buffer.iter().find(|b| {
                     b.id != id
                         && b.record.view_size == record.view_size
-                        && b.crop
-                            .as_ref()
-                            .is_some_and(|c| c.rect == rect && c.image.as_slice() == image.as_slice())
+                        && b.crop.as_ref().is_some_and(|c| {
+                            let r = c.rect;
+                            (0..r.height).all(|y| &p.row(r.y + y)[r.x..r.x1()] == c.image.row(y))
+                        })
                 }) {
                     return Ok(Admission::Duplicate { of: b.id.clone() });
                 }
                 crop = Some(Crop {
-                    image,
+                    image: p.crop(rect),
                     homography: into_crop(&homography, &rect),
                     rect,
                     occluders: None,
@@ -1138,8 +1140,9 @@ mod tests {
         let h = Homography::translation(-12.0, 5.0);
         let view = to8(&synth::facade(W, H, 9));
         assert!(matches!(s.admit("v".into(), record(&h), Some(&view)).unwrap(), Admission::Accepted { .. }));
-        // The same pixels under another name: not a second witness.
-        let a = s.admit("copy".into(), record(&h), Some(&view)).unwrap();
+        // The same pixels under another name: not a second witness, even aligned a
+        // fraction of a pixel apart (from another prior).
+        let a = s.admit("copy".into(), record(&Homography::translation(-12.3, 5.2)), Some(&view)).unwrap();
         assert!(matches!(&a, Admission::Duplicate { of } if of == "v"), "{a:?}");
         assert_eq!(s.buffered().len(), 1);
         // The same view offered again under its own name replaces itself.
