@@ -269,6 +269,13 @@ struct Aligned {
     report: usize,
 }
 
+impl Aligned {
+    /// The view as the fill takes it.
+    fn source(&self) -> Source<'_, [u8; 3]> {
+        Source { image: &self.crop, homography: self.homography }
+    }
+}
+
 pub fn run(args: &FillArgs) -> u8 {
     match try_run(args) {
         Ok(code) => code,
@@ -390,8 +397,6 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         }
     }
     let mut aligned = kept;
-    let mut sources: Vec<Source<'_, [u8; 3]>> =
-        aligned.iter().map(|a| Source { image: &a.crop, homography: a.homography }).collect();
     let (mask, auto): (Mask, Option<AutoMaskSummary>) = match given_mask {
         Some(m) => (m, None),
         None => {
@@ -403,15 +408,17 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
                 );
             }
             progress.begin("auto mask", 0);
+            let sources: Vec<Source<'_, [u8; 3]>> = aligned.iter().map(Aligned::source).collect();
             let mut found = auto_mask_report(&key_rgb, &sources, &AutoMaskParams::default());
             // A copy of the keyframe agrees with it everywhere and hides its occluders from
             // the consensus: the mask is found again without such views.
-            if aligned.iter().any(|a| shows_the_keyframe(&key_rgb, &found.mask, &a.homography, &a.crop)) {
-                let rest: Vec<Source<'_, [u8; 3]>> = aligned
-                    .iter()
-                    .filter(|a| !shows_the_keyframe(&key_rgb, &found.mask, &a.homography, &a.crop))
-                    .map(|a| Source { image: &a.crop, homography: a.homography })
-                    .collect();
+            let copies: Vec<bool> = aligned
+                .iter()
+                .map(|a| shows_the_keyframe(&key_rgb, &found.mask, &a.homography, &a.crop))
+                .collect();
+            if copies.contains(&true) {
+                let rest: Vec<Source<'_, [u8; 3]>> =
+                    sources.into_iter().zip(&copies).filter(|&(_, &c)| !c).map(|(s, _)| s).collect();
                 found = auto_mask_report(&key_rgb, &rest, &AutoMaskParams::default());
             }
             if let Some(p) = &args.save_mask {
@@ -429,23 +436,17 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     // A view that shows what the keyframe shows over the mask (the keyframe's own file
     // among the views, a shot from the same spot with the occluder where it was) can only
     // paint the occluder back: it is skipped, as the service turns it down.
-    let same: Vec<bool> =
-        aligned.iter().map(|a| shows_the_keyframe(&key_rgb, &mask, &a.homography, &a.crop)).collect();
-    if same.iter().any(|&s| s) {
-        drop(sources);
-        let mut keep = same.iter().map(|&s| !s);
-        aligned.retain(|a| {
-            let keep = keep.next().expect("one flag per view");
-            if !keep {
-                skip(
-                    &mut reports[a.report],
-                    "shows what the keyframe shows where the mask is (the same picture): it adds nothing",
-                );
-            }
-            keep
-        });
-        sources = aligned.iter().map(|a| Source { image: &a.crop, homography: a.homography }).collect();
-    }
+    aligned.retain(|a| {
+        let same = shows_the_keyframe(&key_rgb, &mask, &a.homography, &a.crop);
+        if same {
+            skip(
+                &mut reports[a.report],
+                "shows what the keyframe shows where the mask is (the same picture): it adds nothing",
+            );
+        }
+        !same
+    });
+    let sources: Vec<Source<'_, [u8; 3]>> = aligned.iter().map(Aligned::source).collect();
     let sweep = !args.no_planes;
     let params = FillParams::default();
     let planes = if sweep {
