@@ -13,15 +13,17 @@
 //! With `--oracles`, a second table says where the swept fill loses against the true planes:
 //! the same sweep given the true epipoles (in each view's own scale, tied by the sweep as
 //! the estimated ones are; or already in one scale), the estimated epipoles with their scales
-//! tied by the truth, and the true slab planes on the estimated walls; and, per fill, the
-//! share of masked pixels whose chosen surface is not the one the truth shows there.
+//! tied by the truth, the estimated epipoles with the views whose own epipole is wrong left
+//! out, and the true slab planes on the estimated walls; and, per fill, the share of masked
+//! pixels whose chosen surface is not the one the truth shows there.
 //!
 //! With `--epipoles`, a third table gives each view's epipole error, and in brackets what the
 //! fit had to go on ([`epipole_support`]). `--true-walls` takes the true wall homographies
 //! instead of the aligned ones; `--match-pixels` and `--sweep-pixels` set the resolutions the
-//! guided matching and the sweep run at.
+//! guided matching and the sweep run at, `--search-radius` how far the guided matching
+//! searches (pixels at half the matching resolution).
 //!
-//! `cargo run --release --example parallax_eval -- [--seeds N] [--first K] [--size WxH] [--views N] [--flat] [--true-walls] [--dump DIR] [--oracles] [--epipoles] [--split] [--no-refine] [--no-supported-ties] [--no-inside] [--no-rejoin] [--repair] [--no-across] [--match-pixels N] [--sweep-pixels N]`
+//! `cargo run --release --example parallax_eval -- [--seeds N] [--first K] [--size WxH] [--views N] [--flat] [--true-walls] [--dump DIR] [--oracles] [--epipoles] [--split] [--no-refine] [--no-supported-ties] [--no-inside] [--no-rejoin] [--repair] [--no-across] [--match-pixels N] [--search-radius N] [--sweep-pixels N]`
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -466,6 +468,9 @@ fn main() {
             "--match-pixels" => {
                 sp.matching.max_pixels = it.next().and_then(|v| v.parse().ok()).expect("--match-pixels N")
             }
+            "--search-radius" => {
+                sp.matching.search_radius = it.next().and_then(|v| v.parse().ok()).expect("--search-radius N")
+            }
             "--sweep-pixels" => {
                 sp.max_pixels = it.next().and_then(|v| v.parse().ok()).expect("--sweep-pixels N")
             }
@@ -648,8 +653,24 @@ fn main() {
                     .collect()
             };
             let (swept_any, tied_any) = (anywhere(&sweeps[0]), anywhere(&sweeps[3]));
+            // The estimated family with each view whose own epipole is more than 1.5 px off
+            // the true slabs left out: what a check that knew a wrong epipole would give.
+            let dropped =
+                parallax_family(&key_gray, &refs, &walls, &c.mask, &sp, 1).map_or_else(Vec::new, |(f, g)| {
+                    let errors = epipole_errors_alone(&c, &t, &f);
+                    let mut kept = f.clone();
+                    for (e, err) in kept.epipoles.iter_mut().zip(&errors) {
+                        if err.is_none_or(|d| d > 1.5) {
+                            *e = None;
+                        }
+                    }
+                    if kept.epipoles.iter().all(Option::is_none) {
+                        return Vec::new();
+                    }
+                    sweep_family(&key_gray, &refs, &c.mask, &sp, &kept, &g.matches, &t, false)
+                });
             let sweeps: Vec<Vec<SurfacePlane>> =
-                sweeps.into_iter().chain([snapped, everywhere, swept_any, tied_any]).collect();
+                sweeps.into_iter().chain([snapped, everywhere, swept_any, tied_any, dropped]).collect();
             let mut p = Vec::new();
             let mut wrong = Vec::new();
             let mut found = Vec::new();
@@ -799,6 +820,7 @@ fn main() {
             "true slabs anywhere",
             "swept anywhere",
             "E* tied anywhere",
+            "est. E, wrong ones out",
             "true planes",
         ];
         println!("\nmasked PSNR dB (surfaces found | wrongly chosen masked pixels %):");
