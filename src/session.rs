@@ -91,6 +91,106 @@ pub fn shows_the_keyframe(key: &RgbF32, mask: &Mask, h: &Homography, pixels: &Rg
     seen > 0 && seen * 2 >= holes && sum / (seen as f64) < SAME_AS_KEY
 }
 
+/// Two views from one viewpoint ([`SAME_SHOT_VIEWPOINT_PX`]) with less than this share of
+/// their pixels over the mask grossly apart (a channel more than [`SAME_SHOT_GROSS`] off)...
+/// A JPEG at quality 75 of a photograph differs from it grossly at 0.01 % of the pixels (0.005
+/// on average); the same halved, at 1.8 % (0.015); two photographs of the same facade from
+/// places a few metres apart, at 15 % (0.05).
+pub const SAME_SHOT_GROSS_SHARE: f64 = 0.025;
+pub const SAME_SHOT_GROSS: f32 = 24.0 / 255.0;
+/// ...and with their mean colours apart by less than this in every channel (0..=1) are one
+/// shot saved twice ([`the_same_shot`]): saving a shot again keeps its exposure, while two
+/// shots even from one tripod are seldom exposed alike.
+pub const SAME_SHOT_BIAS: f64 = 0.004;
+/// Two views whose maps from the keyframe differ by more than this (keyframe pixels, at the
+/// corners of the mask's box), or this share of the box's diagonal, from a similarity are
+/// shots from two places.
+pub const SAME_SHOT_VIEWPOINT_PX: f64 = 2.0;
+pub const SAME_SHOT_VIEWPOINT_SHARE: f64 = 0.005;
+
+/// Whether two views, each its `pixels` with the keyframe → pixels homography `h`, show the
+/// same picture over the mask: one shot saved twice (a JPEG beside its HEIC, an export, a
+/// copy re-encoded), not only the same file's bytes under another name. Over the masked
+/// pixels both see (at least half of those the one that sees fewer sees), from one
+/// viewpoint, their colours agree within re-encoding noise: almost none grossly apart
+/// ([`SAME_SHOT_GROSS_SHARE`]) and the same exposure ([`SAME_SHOT_BIAS`]). Two shots from a tripod between which
+/// a passer-by moved differ grossly where the passer-by was, and both are kept. As a
+/// second witness, a copy would only add weight to its original's own errors.
+pub fn the_same_shot(mask: &Mask, a: (&Homography, &Rgb8), b: (&Homography, &Rgb8)) -> bool {
+    let Some(region) = mask.hole_bounds() else { return false };
+    if !one_viewpoint(region, a.0, b.0) {
+        return false;
+    }
+    // About 200 000 pixels at most, spread evenly: a pair costs a few milliseconds.
+    let step = ((mask.hole_count() as f64 / 200_000.0).sqrt().ceil() as usize).max(1);
+    let sample = |(h, pixels): (&Homography, &Rgb8), x: usize, y: usize| -> Option<[f32; 3]> {
+        let p = h.apply(Point2::new(x as f64, y as f64))?;
+        crate::imaging::bilinear_rgb(pixels, p.x as f32, p.y as f32)
+    };
+    let (mut gross, mut both, mut seen_a, mut seen_b) = (0usize, 0usize, 0usize, 0usize);
+    let mut bias = [0.0f64; 3];
+    for y in (region.y..region.y1()).step_by(step) {
+        for x in (region.x..region.x1()).step_by(step) {
+            if !mask.is_hole(x, y) {
+                continue;
+            }
+            let (pa, pb) = (sample(a, x, y), sample(b, x, y));
+            seen_a += usize::from(pa.is_some());
+            seen_b += usize::from(pb.is_some());
+            let (Some(pa), Some(pb)) = (pa, pb) else { continue };
+            both += 1;
+            (0..3).for_each(|c| bias[c] += f64::from(pa[c] - pb[c]));
+            gross += usize::from((0..3).any(|c| (pa[c] - pb[c]).abs() > SAME_SHOT_GROSS));
+        }
+    }
+    both > 0
+        && both * 2 >= seen_a.min(seen_b)
+        && bias.iter().all(|b| (b / both as f64).abs() < SAME_SHOT_BIAS)
+        && (gross as f64) < SAME_SHOT_GROSS_SHARE * both as f64
+}
+
+/// Whether two views see the keyframe's `region` from one viewpoint: one view's pixels are
+/// the other's moved, turned and scaled alike everywhere (the same shot cropped, rotated or
+/// resized; a similarity, within [`SAME_SHOT_VIEWPOINT_PX`] at the region's corners), not
+/// under another perspective. Two photographs from places apart that agree over a plain
+/// wall are two witnesses, however alike their pixels.
+fn one_viewpoint(region: Rect, a: &Homography, b: &Homography) -> bool {
+    let corners =
+        [(region.x, region.y), (region.x1(), region.y), (region.x, region.y1()), (region.x1(), region.y1())]
+            .map(|(x, y)| Point2::new(x as f64, y as f64));
+    let (mut pa, mut pb) = ([Point2::origin(); 4], [Point2::origin(); 4]);
+    for (i, c) in corners.iter().enumerate() {
+        let (Some(p), Some(q)) = (a.apply(*c), b.apply(*c)) else { return false };
+        (pa[i], pb[i]) = (p, q);
+    }
+    // The similarity q = s·R·p + t as complex numbers, q = c·p + t, by least squares.
+    let mean = |ps: &[Point2<f64>; 4]| ps.iter().fold(nalgebra::Vector2::zeros(), |m, p| m + p.coords) / 4.0;
+    let (ma, mb) = (mean(&pa), mean(&pb));
+    let (mut re, mut im, mut norm) = (0.0, 0.0, 0.0);
+    for (p, q) in pa.iter().zip(&pb) {
+        let (u, v) = (p.coords - ma, q.coords - mb);
+        // conj(u)·v
+        re += u.x * v.x + u.y * v.y;
+        im += u.x * v.y - u.y * v.x;
+        norm += u.norm_squared();
+    }
+    if norm < 1e-9 {
+        return false;
+    }
+    let (cr, ci) = (re / norm, im / norm);
+    // Two alignments of one shot differ a little, and most at corners that lie beyond what
+    // the view shows (the whole frame, when the mask is still to be found): 1–2 px at the
+    // corners of a 1440 × 1080 frame, against 60–400 px for photographs from places apart.
+    let diagonal = (region.width as f64).hypot(region.height as f64);
+    let tolerance = SAME_SHOT_VIEWPOINT_PX.max(SAME_SHOT_VIEWPOINT_SHARE * diagonal);
+    let scale = cr.hypot(ci);
+    pa.iter().zip(&pb).all(|(p, q)| {
+        let u = p.coords - ma;
+        let fit = nalgebra::Vector2::new(cr * u.x - ci * u.y, ci * u.x + cr * u.y) + mb;
+        (q.coords - fit).norm() / scale.max(1e-9) <= tolerance
+    })
+}
+
 /// The current result stays against a new fill only when the views back it on at least
 /// this share of the mask more than the new fill: the default of the fill's own margin for
 /// a view to join (`FillParams::select_margin`), which the publish rule uses, so that a view
@@ -256,9 +356,9 @@ pub enum Admission {
     Rejected {
         reason: String,
     },
-    /// The same pixels as buffered view `of` (a copy of its file under another name, the
-    /// same upload twice): as a second witness it would only add weight to that view's own
-    /// errors, so it is not buffered.
+    /// The same shot as buffered view `of` (a copy of its file under another name, the
+    /// same upload twice, the shot saved again: [`the_same_shot`]): as a second witness it
+    /// would only add weight to that view's own errors, so it is not buffered.
     Duplicate {
         of: String,
     },
@@ -496,12 +596,36 @@ impl Session {
 
     /// Offers an aligned view. `pixels` are the whole view (they are cropped here); without
     /// them, or without a mask yet, only the alignment is kept. A view already buffered
-    /// under `id` is replaced.
+    /// under `id` is replaced; one that is the same shot as a buffered view
+    /// ([`the_same_shot`]: the same pixels, or the shot saved again) is not buffered.
     pub fn admit(
         &mut self,
         id: String,
         record: AlignRecord,
         pixels: Option<&Rgb8>,
+    ) -> Result<Admission, SessionError> {
+        self.admit_view(id, record, pixels, false)
+    }
+
+    /// [`Self::admit`] for a frame of a video: an exposure of its own, so only a frame with
+    /// the same pixels as a buffered one (a stream that repeats frames) is a duplicate. Two
+    /// frames from where the camera stood still differ by their own noise, which the fill
+    /// averages; a file saved twice has one noise.
+    pub fn admit_frame(
+        &mut self,
+        id: String,
+        record: AlignRecord,
+        pixels: Option<&Rgb8>,
+    ) -> Result<Admission, SessionError> {
+        self.admit_view(id, record, pixels, true)
+    }
+
+    fn admit_view(
+        &mut self,
+        id: String,
+        record: AlignRecord,
+        pixels: Option<&Rgb8>,
+        frame: bool,
     ) -> Result<Admission, SessionError> {
         if self.key.is_none() {
             return Err(SessionError::NoKey);
@@ -557,14 +681,18 @@ impl Session {
             }
             improves = fallback_px.max(weak_px).max(doubtful_px) >= self.params.min_new_pixels;
             if let Some(p) = pixels {
-                // Compared where the buffered view was kept, whatever this one's alignment
-                // (a copy aligned from another prior lands a fraction of a pixel apart).
+                // The same pixels where the buffered view was kept, whatever this one's
+                // alignment (a copy aligned from another prior lands a fraction of a pixel
+                // apart); or the same shot saved again (at another size or quality: not the
+                // same bytes), compared over the mask, each through its own alignment.
                 if let Some(b) = self.buffer.iter().find(|b| {
                     b.id != id
-                        && b.record.view_size == record.view_size
                         && b.crop.as_ref().is_some_and(|c| {
                             let r = c.rect;
-                            (0..r.height).all(|y| &p.row(r.y + y)[r.x..r.x1()] == c.image.row(y))
+                            (b.record.view_size == record.view_size
+                                && (0..r.height).all(|y| &p.row(r.y + y)[r.x..r.x1()] == c.image.row(y)))
+                                || (!frame
+                                    && the_same_shot(&mask.mask, (&homography, p), (&c.homography, &c.image)))
                         })
                 }) {
                     return Ok(Admission::Duplicate { of: b.id.clone() });
@@ -1078,14 +1206,18 @@ mod tests {
         })
     }
 
-    /// `view` as another shot would give it: one pixel inside the tests' masks a level or
-    /// a few off (by the id's letter), so that views the tests want alike are not copies
-    /// of one another (a copy is not buffered twice).
+    /// `view` as another shot from the same place would give it: a small spot inside the
+    /// tests' masks (4 of their 100 pixels) 40 levels off, placed by the id's letter (a
+    /// passer-by's button), so that views the tests want alike are not the same shot twice
+    /// (a copy, or the same shot saved again, is not buffered twice).
     fn shot(view: &Rgb8, id: &str) -> Rgb8 {
         let mut v = view.clone();
-        let p = v.get(45, 35);
-        let k = id.as_bytes()[0].wrapping_sub(b'a').wrapping_add(1);
-        v.set(45, 35, [p[0].wrapping_add(k), p[1], p[2]]);
+        let k = usize::from(id.as_bytes()[0].wrapping_sub(b'a'));
+        let (x0, y0) = (42 + 2 * (k % 3), 32 + 2 * ((k / 3) % 3));
+        for (x, y) in [(x0, y0), (x0 + 1, y0), (x0, y0 + 1), (x0 + 1, y0 + 1)] {
+            let p = v.get(x, y);
+            v.set(x, y, [p[0].wrapping_add(40), p[1], p[2]]);
+        }
         v
     }
 
@@ -1133,6 +1265,83 @@ mod tests {
         }
     }
 
+    /// One shot saved again, at another quality, size or turned, is the same shot; two shots
+    /// from one tripod between which a passer-by moved, or exposed apart, and two shots from
+    /// places apart that agree over the mask are not.
+    #[test]
+    fn the_same_shot_saved_again_is_told_from_another_shot() {
+        let (w, h) = (240usize, 180usize);
+        let facade = synth::facade(w, h, 5);
+        let mask =
+            Mask::from_fn(
+                w,
+                h,
+                |x, y| if (80..160).contains(&x) && (60..120).contains(&y) { 255 } else { 0 },
+            );
+        let id = Homography::identity();
+        let a = to8(&facade);
+        let same = |h2: &Homography, b: &Rgb8| the_same_shot(&mask, (&id, &a), (h2, b));
+        // Saved again: a level of noise (a JPEG's), and quantised once more.
+        let mut noisy = facade.clone();
+        synth::add_noise(&mut noisy, 0.004, 9);
+        assert!(same(&id, &to8(&noisy)), "saved again");
+        // Turned a quarter (keyframe → view: (x, y) ↦ (h − 1 − y, x)).
+        let turned = Rgb8::from_fn(h, w, |x, y| a.get(y, h - 1 - x));
+        let quarter = Homography::from_matrix(nalgebra::Matrix3::new(
+            0.0,
+            -1.0,
+            (h - 1) as f64,
+            1.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            1.0,
+        ))
+        .unwrap();
+        assert!(same(&quarter, &turned), "turned");
+        // Cropped: the view's pixels shifted by the crop.
+        let cropped = Rgb8::from_fn(w - 30, h - 20, |x, y| a.get(x + 30, y + 20));
+        assert!(same(&Homography::translation(-30.0, -20.0), &cropped), "cropped");
+        // Two crops of it that share a narrow band of the mask each hold what the other
+        // lacks: both are kept.
+        let left = Rgb8::from_fn(130, h, |x, y| a.get(x, y));
+        let right = Rgb8::from_fn(w - 110, h, |x, y| a.get(x + 110, y));
+        let shift = Homography::translation(-110.0, 0.0);
+        assert!(!the_same_shot(&mask, (&id, &left), (&shift, &right)), "two crops apart");
+        // A passer-by moved between two shots from one tripod: two patches of the mask,
+        // 3 % of it each, swapped (as bright on the whole: only the gross share tells).
+        let mut moved = a.clone();
+        for y in 70..82 {
+            for x in 90..102 {
+                moved.set(x, y, a.get(x + 47, y + 25));
+                moved.set(x + 47, y + 25, a.get(x, y));
+            }
+        }
+        assert!(!same(&id, &moved), "a passer-by moved");
+        // Exposed 1.5 % brighter.
+        let brighter = to8(&RgbF32::from_fn(w, h, |x, y| facade.get(x, y).map(|v| v + 0.015)));
+        assert!(!same(&id, &brighter), "exposed apart");
+        // From another place: a plain, softly shaded wall, rendered exactly under each
+        // perspective, so that the pixels over the mask agree as in a copy.
+        let wall = |x: f64, y: f64| {
+            let v = 0.5 + 0.2 * (x / 23.0).sin() * (y / 31.0).cos();
+            [(v * 255.0).round() as u8, (0.9 * v * 255.0).round() as u8, 90]
+        };
+        let plain = Rgb8::from_fn(w, h, |x, y| wall(x as f64, y as f64));
+        let other = Homography::from_matrix(nalgebra::Matrix3::new(
+            1.12, 0.03, -10.0, -0.02, 0.95, 6.0, 0.0006, 0.0002, 1.0,
+        ))
+        .unwrap();
+        let back = other.inverse().unwrap();
+        let elsewhere = Rgb8::from_fn(w, h, |x, y| {
+            let p = back.apply(Point2::new(x as f64, y as f64)).unwrap();
+            wall(p.x, p.y)
+        });
+        assert!(the_same_shot(&mask, (&id, &plain), (&id, &plain)), "the plain wall is its own shot");
+        assert!(!the_same_shot(&mask, (&id, &plain), (&other, &elsewhere)), "from another place");
+    }
+
     #[test]
     fn a_copy_of_a_buffered_view_is_a_duplicate_and_the_view_itself_again_is_not() {
         let mut s = session_with_key();
@@ -1147,6 +1356,19 @@ mod tests {
         assert_eq!(s.buffered().len(), 1);
         // The same view offered again under its own name replaces itself.
         assert!(matches!(s.admit("v".into(), record(&h), Some(&view)).unwrap(), Admission::Accepted { .. }));
+        // The same shot saved again (a level of noise, as a JPEG's) is not one either...
+        let mut again = synth::facade(W, H, 9);
+        synth::add_noise(&mut again, 0.004, 3);
+        let again = to8(&again);
+        let a = s.admit("again".into(), record(&h), Some(&again)).unwrap();
+        assert!(matches!(&a, Admission::Duplicate { of } if of == "v"), "{a:?}");
+        // ...but a video frame is an exposure of its own (its own noise, which the fill
+        // averages), unless a stream repeated the very same pixels.
+        let a = s.admit_frame("frame-2".into(), record(&h), Some(&again)).unwrap();
+        assert!(matches!(a, Admission::Accepted { .. }), "{a:?}");
+        let a = s.admit_frame("frame-3".into(), record(&h), Some(&again)).unwrap();
+        assert!(matches!(&a, Admission::Duplicate { of } if of == "frame-2"), "{a:?}");
+        assert!(s.forget_view("frame-2"));
         // Another view from the same place is buffered.
         let other = to8(&synth::facade(W, H, 11));
         assert!(matches!(s.admit("w".into(), record(&h), Some(&other)).unwrap(), Admission::Accepted { .. }));

@@ -31,7 +31,7 @@ use crate::inpaint::{
     AutoMaskParams, FillExtras, FillParams, Observer, Source, Stage, SurfacesReport, auto_mask_report,
     fill_swept, sweep_surfaces,
 };
-use crate::session::shows_the_keyframe;
+use crate::session::{shows_the_keyframe, the_same_shot};
 
 /// Views decoded and aligned at the same time. JPEG decoding is sequential, so with two in
 /// flight (and the keyframe decoded beside them) both cores stay busy; the alignment inside
@@ -381,16 +381,27 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         reports.push(o.report);
     }
 
-    // A view given twice (the same file, or a copy of it) would witness its own errors
-    // twice: only the first is kept.
+    // A view given twice (the same file, a copy of it, the same shot saved again as
+    // another file) would witness its own errors twice: only the first is kept. Compared
+    // over the mask, or over the whole frame when the mask is still to be found.
+    let whole;
+    let over = match &given_mask {
+        Some(m) => m,
+        None => {
+            whole = Mask::new(key_rgb.width(), key_rgb.height(), 255);
+            &whole
+        }
+    };
     let mut kept: Vec<Aligned> = Vec::with_capacity(aligned.len());
     for a in aligned {
-        match kept.iter().find(|k| k.homography == a.homography && k.crop == a.crop) {
+        match kept.iter().find(|k| the_same_shot(over, (&k.homography, &k.crop), (&a.homography, &a.crop))) {
             Some(first) => {
                 let first = reports[first.report].path.display().to_string();
                 skip(
                     &mut reports[a.report],
-                    &format!("the same picture as {first} (the same pixels); it adds nothing"),
+                    &format!(
+                        "the same picture as {first} (the same pixels, or the same shot saved again); it adds nothing"
+                    ),
                 );
             }
             None => kept.push(a),

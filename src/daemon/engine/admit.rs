@@ -50,8 +50,12 @@ impl Slot {
         pixels: Option<&Rgb8>,
     ) -> Result<Admitted, String> {
         let Offer { id, frame, record, from_state, align_ms, since, path } = offer;
-        let admission =
-            self.session.admit(id.as_str().to_owned(), record.clone(), pixels).map_err(|e| e.to_string())?;
+        let admission = if frame.is_some() {
+            self.session.admit_frame(id.as_str().to_owned(), record.clone(), pixels)
+        } else {
+            self.session.admit(id.as_str().to_owned(), record.clone(), pixels)
+        }
+        .map_err(|e| e.to_string())?;
         ctx.stats.views.fetch_add(1, Ordering::Relaxed);
         let name = id.name().to_owned();
         if let Some(p) = path {
@@ -77,7 +81,7 @@ impl Slot {
                 // A copy of a buffered view is turned down as any other view is, naming it.
                 let reason = if duplicate {
                     format!(
-                        "the same picture as a view already buffered: {} (the same pixels); it adds nothing",
+                        "the same picture as a view already buffered: {} (the same pixels, or the same shot saved again); it adds nothing",
                         name_of(&reason)
                     )
                 } else {
