@@ -113,9 +113,9 @@ pub const SAME_SHOT_VIEWPOINT_SHARE: f64 = 0.005;
 /// copy re-encoded), not only the same file's bytes under another name. Over the masked
 /// pixels both see (at least half of those the one that sees fewer sees), from one
 /// viewpoint, their colours agree within re-encoding noise: almost none grossly apart
-/// ([`SAME_SHOT_GROSS_SHARE`]) and the same exposure ([`SAME_SHOT_BIAS`]). Two shots from a tripod between which
-/// a passer-by moved differ grossly where the passer-by was, and both are kept. As a
-/// second witness, a copy would only add weight to its original's own errors.
+/// ([`SAME_SHOT_GROSS_SHARE`]) and the same exposure ([`SAME_SHOT_BIAS`]). Two shots from a
+/// tripod between which a passer-by moved differ grossly where the passer-by was, and both
+/// are kept. As a second witness, a copy would only add weight to its original's own errors.
 pub fn the_same_shot(mask: &Mask, a: (&Homography, &Rgb8), b: (&Homography, &Rgb8)) -> bool {
     let Some(region) = mask.hole_bounds() else { return false };
     if !one_viewpoint(region, a.0, b.0) {
