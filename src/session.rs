@@ -45,6 +45,7 @@ use thiserror::Error;
 
 use crate::align::{AlignParams, Alignment, Frame, align};
 use crate::geometry::Homography;
+use crate::geometry::homography::similarity_lsq;
 use crate::imaging::convert::{MASK_MAX_GREY, luminance, mask_grey_share};
 use crate::imaging::{GrayF32, Mask, Rect, RgbF32, RgbPixel};
 use crate::inpaint::parallax::{SurfacePlane, SweepParams, ViewMatches};
@@ -158,37 +159,23 @@ fn one_viewpoint(region: Rect, a: &Homography, b: &Homography) -> bool {
     let corners =
         [(region.x, region.y), (region.x1(), region.y), (region.x, region.y1()), (region.x1(), region.y1())]
             .map(|(x, y)| Point2::new(x as f64, y as f64));
-    let (mut pa, mut pb) = ([Point2::origin(); 4], [Point2::origin(); 4]);
-    for (i, c) in corners.iter().enumerate() {
-        let (Some(p), Some(q)) = (a.apply(*c), b.apply(*c)) else { return false };
-        (pa[i], pb[i]) = (p, q);
+    let mut pairs = Vec::with_capacity(4);
+    for c in corners {
+        let (Some(p), Some(q)) = (a.apply(c), b.apply(c)) else { return false };
+        pairs.push((p, q));
     }
-    // The similarity q = s·R·p + t as complex numbers, q = c·p + t, by least squares.
-    let mean = |ps: &[Point2<f64>; 4]| ps.iter().fold(nalgebra::Vector2::zeros(), |m, p| m + p.coords) / 4.0;
-    let (ma, mb) = (mean(&pa), mean(&pb));
-    let (mut re, mut im, mut norm) = (0.0, 0.0, 0.0);
-    for (p, q) in pa.iter().zip(&pb) {
-        let (u, v) = (p.coords - ma, q.coords - mb);
-        // conj(u)·v
-        re += u.x * v.x + u.y * v.y;
-        im += u.x * v.y - u.y * v.x;
-        norm += u.norm_squared();
-    }
-    if norm < 1e-9 {
+    let Some(m) = similarity_lsq(&pairs.iter().collect::<Vec<_>>()).and_then(Homography::from_rows) else {
         return false;
-    }
-    let (cr, ci) = (re / norm, im / norm);
+    };
     // Two alignments of one shot differ a little, and most at corners that lie beyond what
     // the view shows (the whole frame, when the mask is still to be found): 1–2 px at the
     // corners of a 1440 × 1080 frame, against 60–400 px for photographs from places apart.
     let diagonal = (region.width as f64).hypot(region.height as f64);
     let tolerance = SAME_SHOT_VIEWPOINT_PX.max(SAME_SHOT_VIEWPOINT_SHARE * diagonal);
-    let scale = cr.hypot(ci);
-    pa.iter().zip(&pb).all(|(p, q)| {
-        let u = p.coords - ma;
-        let fit = nalgebra::Vector2::new(cr * u.x - ci * u.y, ci * u.x + cr * u.y) + mb;
-        (q.coords - fit).norm() / scale.max(1e-9) <= tolerance
-    })
+    // The similarity's scale: the residuals in keyframe pixels.
+    let r = m.rows();
+    let scale = r[0][0].hypot(r[1][0]);
+    pairs.iter().all(|(p, q)| m.apply(*p).is_some_and(|fit| (q - fit).norm() / scale <= tolerance))
 }
 
 /// The current result stays against a new fill only when the views back it on at least

@@ -249,6 +249,29 @@ pub fn cross(a: Point2<f64>, b: Point2<f64>, c: Point2<f64>) -> f64 {
     (b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x)
 }
 
+/// The least-squares similarity `v = a·k + b` (complex `a`) of point pairs, as rows.
+pub fn similarity_lsq(pairs: &[&(Point2<f64>, Point2<f64>)]) -> Option<[[f64; 3]; 3]> {
+    if pairs.len() < 2 {
+        return None;
+    }
+    let n = pairs.len() as f64;
+    let kc = pairs.iter().fold(nalgebra::Vector2::zeros(), |a, (k, _)| a + k.coords) / n;
+    let vc = pairs.iter().fold(nalgebra::Vector2::zeros(), |a, (_, v)| a + v.coords) / n;
+    let (mut re, mut im, mut nk) = (0.0, 0.0, 0.0);
+    for (k, v) in pairs {
+        let (dk, dv) = (k.coords - kc, v.coords - vc);
+        re += dv.x * dk.x + dv.y * dk.y;
+        im += dv.y * dk.x - dv.x * dk.y;
+        nk += dk.norm_squared();
+    }
+    if nk < 1e-9 {
+        return None;
+    }
+    let (ar, ai) = (re / nk, im / nk);
+    let b = (vc.x - (ar * kc.x - ai * kc.y), vc.y - (ai * kc.x + ar * kc.y));
+    Some([[ar, -ai, b.0], [ai, ar, b.1], [0.0, 0.0, 1.0]])
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
