@@ -119,14 +119,25 @@ pub const SAME_SHOT_VIEWPOINT_SHARE: f64 = 0.005;
 /// are kept. As a second witness, a copy would only add weight to its original's own errors.
 pub fn the_same_shot(mask: &Mask, a: (&Homography, &Rgb8), b: (&Homography, &Rgb8)) -> bool {
     let Some(region) = mask.hole_bounds() else { return false };
-    if !one_viewpoint(region, a.0, b.0) {
-        return false;
-    }
+    // `b`'s pixels per pixel of `a`.
+    let Some(ratio) = one_viewpoint(region, a.0, b.0) else { return false };
     // About 200 000 pixels at most, spread evenly: a pair costs a few milliseconds.
     let step = ((mask.hole_count() as f64 / 200_000.0).sqrt().ceil() as usize).max(1);
-    let sample = |(h, pixels): (&Homography, &Rgb8), x: usize, y: usize| -> Option<[f32; 3]> {
+    // The finer of the two is sampled as the coarser sees it: averaged over the coarser's
+    // pixel (k × k samples), or a halved copy differs from its original in every fine detail.
+    let box_of = |r: f64| if r < 0.8 { (1.0 / r).round().clamp(1.0, 4.0) as usize } else { 1 };
+    let (box_a, box_b) = (box_of(ratio), box_of(1.0 / ratio));
+    let sample = |(h, pixels): (&Homography, &Rgb8), k: usize, x: usize, y: usize| -> Option<[f32; 3]> {
         let p = h.apply(Point2::new(x as f64, y as f64))?;
-        crate::imaging::bilinear_rgb(pixels, p.x as f32, p.y as f32)
+        let mut sum = [0.0f32; 3];
+        for i in 0..k {
+            for j in 0..k {
+                let (dx, dy) = ((i as f32 + 0.5) - 0.5 * k as f32, (j as f32 + 0.5) - 0.5 * k as f32);
+                let c = crate::imaging::bilinear_rgb(pixels, p.x as f32 + dx, p.y as f32 + dy)?;
+                (0..3).for_each(|ch| sum[ch] += c[ch]);
+            }
+        }
+        Some(sum.map(|v| v / (k * k) as f32))
     };
     let (mut gross, mut both, mut seen_a, mut seen_b) = (0usize, 0usize, 0usize, 0usize);
     let mut bias = [0.0f64; 3];
@@ -135,7 +146,7 @@ pub fn the_same_shot(mask: &Mask, a: (&Homography, &Rgb8), b: (&Homography, &Rgb
             if !mask.is_hole(x, y) {
                 continue;
             }
-            let (pa, pb) = (sample(a, x, y), sample(b, x, y));
+            let (pa, pb) = (sample(a, box_a, x, y), sample(b, box_b, x, y));
             seen_a += usize::from(pa.is_some());
             seen_b += usize::from(pb.is_some());
             let (Some(pa), Some(pb)) = (pa, pb) else { continue };
@@ -154,19 +165,17 @@ pub fn the_same_shot(mask: &Mask, a: (&Homography, &Rgb8), b: (&Homography, &Rgb
 /// the other's moved, turned and scaled alike everywhere (the same shot cropped, rotated or
 /// resized; a similarity, within [`SAME_SHOT_VIEWPOINT_PX`] at the region's corners), not
 /// under another perspective. Two photographs from places apart that agree over a plain
-/// wall are two witnesses, however alike their pixels.
-fn one_viewpoint(region: Rect, a: &Homography, b: &Homography) -> bool {
+/// wall are two witnesses, however alike their pixels. The similarity's scale (`b`'s pixels
+/// per pixel of `a`) when they do.
+fn one_viewpoint(region: Rect, a: &Homography, b: &Homography) -> Option<f64> {
     let corners =
         [(region.x, region.y), (region.x1(), region.y), (region.x, region.y1()), (region.x1(), region.y1())]
             .map(|(x, y)| Point2::new(x as f64, y as f64));
     let mut pairs = Vec::with_capacity(4);
     for c in corners {
-        let (Some(p), Some(q)) = (a.apply(c), b.apply(c)) else { return false };
-        pairs.push((p, q));
+        pairs.push((a.apply(c)?, b.apply(c)?));
     }
-    let Some(m) = similarity_lsq(&pairs.iter().collect::<Vec<_>>()).and_then(Homography::from_rows) else {
-        return false;
-    };
+    let m = similarity_lsq(&pairs.iter().collect::<Vec<_>>()).and_then(Homography::from_rows)?;
     // Two alignments of one shot differ a little, and most at corners that lie beyond what
     // the view shows (the whole frame, when the mask is still to be found): 1–2 px at the
     // corners of a 1440 × 1080 frame, against 60–400 px for photographs from places apart.
@@ -175,7 +184,10 @@ fn one_viewpoint(region: Rect, a: &Homography, b: &Homography) -> bool {
     // The similarity's scale: the residuals in keyframe pixels.
     let r = m.rows();
     let scale = r[0][0].hypot(r[1][0]);
-    pairs.iter().all(|(p, q)| m.apply(*p).is_some_and(|fit| (q - fit).norm() / scale <= tolerance))
+    pairs
+        .iter()
+        .all(|(p, q)| m.apply(*p).is_some_and(|fit| (q - fit).norm() / scale <= tolerance))
+        .then_some(scale)
 }
 
 /// The current result stays against a new fill only when the views back it on at least
@@ -1290,6 +1302,22 @@ mod tests {
         // Cropped: the view's pixels shifted by the crop.
         let cropped = Rgb8::from_fn(w - 30, h - 20, |x, y| a.get(x + 30, y + 20));
         assert!(same(&Homography::translation(-30.0, -20.0), &cropped), "cropped");
+        // Halved (each pixel the mean of four), from a photograph as soft as a lens makes
+        // it (the facade through a 3 × 3 box): compared as the halved copy sees it.
+        let soft = RgbF32::from_fn(w, h, |x, y| {
+            let mut sum = [0.0f32; 3];
+            for (i, j) in (0..9).map(|k| ((x + k % 3).clamp(1, w) - 1, (y + k / 3).clamp(1, h) - 1)) {
+                (0..3).for_each(|c| sum[c] += facade.get(i, j)[c] / 9.0);
+            }
+            sum
+        });
+        let soft8 = to8(&soft);
+        let halved = Rgb8::from_fn(w / 2, h / 2, |x, y| {
+            let px = [(0, 0), (1, 0), (0, 1), (1, 1)].map(|(i, j)| soft8.get(2 * x + i, 2 * y + j));
+            [0, 1, 2].map(|c| (px.iter().map(|p| u32::from(p[c])).sum::<u32>() as f32 / 4.0).round() as u8)
+        });
+        let half = crate::inpaint::reduced::reduction(1);
+        assert!(the_same_shot(&mask, (&id, &soft8), (&half, &halved)), "halved");
         // Two crops of it that share a narrow band of the mask each hold what the other
         // lacks: both are kept.
         let left = Rgb8::from_fn(130, h, |x, y| a.get(x, y));
