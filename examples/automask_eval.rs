@@ -4,7 +4,8 @@
 //! (masked PSNR over the true mask, where the occluder stands).
 //!
 //! `cargo run --release --example automask_eval -- [--seeds N] [--first SEED] [--size WxH] [--views 2,3,4]
-//!  [--align] [--dump DIR (masks, fills, keyframe, truth, views)] [--parallax N] [--colour X] [--background X]`
+//!  [--align] [--dump DIR (masks, fills, keyframe, truth, views)] [--parallax N] [--colour X] [--background X]
+//!  [--sky GRADIENT (0: no sky looked for)]`
 //!
 //! With `--align` the views are aligned as the fill command aligns them (otherwise the true
 //! homographies are used, so that only the mask is judged). The targets: mean IoU
@@ -37,6 +38,7 @@ fn main() {
             "--parallax" => am.parallax_radius = args[i + 1].parse().expect("--parallax N"),
             "--colour" => am.colour_ratio = args[i + 1].parse().expect("--colour X"),
             "--background" => am.background_ratio = args[i + 1].parse().expect("--background X"),
+            "--sky" => am.sky_gradient = args[i + 1].parse().expect("--sky X"),
             "--dump" => dump = Some(PathBuf::from(&args[i + 1])),
             "--size" => {
                 let (a, b) = args[i + 1].split_once('x').expect("--size WxH");

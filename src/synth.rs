@@ -14,7 +14,13 @@ use crate::geometry::Homography;
 use crate::imaging::{GrayF32, Mask, RgbF32, bilinear_rgb};
 
 /// Smooth value noise in 0..=1 with `octaves` octaves starting at `cell` pixels.
-fn value_noise(width: usize, height: usize, cell: f32, octaves: usize, rng: &mut ChaCha8Rng) -> GrayF32 {
+pub(crate) fn value_noise(
+    width: usize,
+    height: usize,
+    cell: f32,
+    octaves: usize,
+    rng: &mut ChaCha8Rng,
+) -> GrayF32 {
     let mut out = GrayF32::new(width, height, 0.0);
     let mut amplitude = 1.0;
     let mut total = 0.0;
