@@ -76,9 +76,9 @@ pub struct AutoMaskParams {
     /// bright and reaches the top of the frame ([`sky`]): a pixel whose luminance gradient,
     /// averaged over 5 × 5 work pixels, is below `sky_gradient` (per work pixel; 0: no sky
     /// is looked for) and whose luminance is at least `sky_luma`, 4-connected through such
-    /// pixels to the top 2 % of the rows. Foliage, branches and the edges of a building are
-    /// far above that gradient: an occluder standing against the sky keeps its own pixels,
-    /// and the sky stops at the skyline.
+    /// pixels to the top 2 % of the rows, with its bright rim 2 px past the skyline. Foliage,
+    /// branches and the edges of a building are far above that gradient: an occluder
+    /// standing against the sky keeps its own pixels, and the sky stops at the skyline.
     pub sky_gradient: f32,
     pub sky_luma: f32,
     /// The mask is finally grown by this many pixels (full resolution).
@@ -152,7 +152,8 @@ struct Evidence {
 /// Stages: (1) each view warped into a reduced keyframe and compensated; (2) per pixel, the
 /// consensus of the views that agree with each other, and the keyframe's distance to it
 /// (strong and weak evidence); (3) strong pixels where the keyframe looks like its own
-/// surroundings and the consensus does not are dropped (the views share an occluder there);
+/// surroundings and the consensus does not are dropped (the views share an occluder there),
+/// and so is the sky ([`AutoMaskParams::sky_gradient`]), here and after every growth;
 /// (4) seeds (strong, opened) grown by hysteresis through the weak pixels connected to them;
 /// (5) closed, holes inside objects filled; (6) back to full size and grown.
 pub fn auto_mask_report<P: RgbPixel>(
