@@ -37,6 +37,13 @@ fn fill<S: AsRef<std::ffi::OsStr>>(args: impl IntoIterator<Item = S>) -> Output 
     Command::new(BIN).arg("fill").args(args).output().expect("the binary runs")
 }
 
+/// `fill` with `args`, which must succeed.
+fn fill_ok<S: AsRef<std::ffi::OsStr>>(args: impl IntoIterator<Item = S>) -> Output {
+    let o = fill(args);
+    assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    o
+}
+
 /// The usual arguments: keyframe, its mask, `out`, `report`, then the scene's views.
 fn args(s: &Scene, out: &Path, report: &Path) -> Vec<PathBuf> {
     let mut v: Vec<PathBuf> = vec![
@@ -57,8 +64,7 @@ fn args(s: &Scene, out: &Path, report: &Path) -> Vec<PathBuf> {
 fn fills_the_mask_writes_a_report_and_leaves_the_rest_alone() {
     let s = scene();
     let (out, report) = (s.path("clear.png"), s.path("report.json"));
-    let o = fill(args(&s, &out, &report));
-    assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    fill_ok(args(&s, &out, &report));
     let result = to_rgb(&image::open(&out).unwrap());
     let key = to_rgb(&image::open(s.path("key.png")).unwrap());
     assert_eq!((result.width(), result.height()), (W, H));
@@ -95,8 +101,7 @@ fn a_bad_view_is_reported_and_skipped_and_the_rest_still_fill() {
     s.views.push(bad.clone());
     s.views.push(other.clone());
     let (out, report) = (s.path("clear.jpg"), s.path("report.json"));
-    let o = fill(args(&s, &out, &report));
-    assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    let o = fill_ok(args(&s, &out, &report));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("broken.jpg") && err.contains("other.png"), "{err}");
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
@@ -248,15 +253,13 @@ fn a_photograph_given_as_the_mask_is_refused() {
 fn the_keyframe_among_the_views_and_a_view_given_twice_are_skipped() {
     let s = scene();
     let (plain, report) = (s.path("plain.png"), s.path("plain.json"));
-    let o = fill(args(&s, &plain, &report));
-    assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    fill_ok(args(&s, &plain, &report));
     let copy = s.path("copy-of-view-1.png");
     std::fs::copy(&s.views[0], &copy).unwrap();
     let (out, report) = (s.path("clear.png"), s.path("report.json"));
     let mut a = args(&s, &out, &report);
     a.extend([s.path("key.png"), copy.clone()]);
-    let o = fill(a);
-    assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    fill_ok(a);
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
     let views = v["views"].as_array().unwrap();
     assert_eq!(views.len(), 5);
@@ -278,8 +281,7 @@ fn the_keyframe_among_the_views_and_a_view_given_twice_are_skipped() {
 fn the_same_shot_saved_again_is_skipped() {
     let s = scene();
     let (plain, report) = (s.path("plain.png"), s.path("plain.json"));
-    let o = fill(args(&s, &plain, &report));
-    assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    fill_ok(args(&s, &plain, &report));
     let again = s.path("view-2-again.jpg");
     let view = image::open(&s.views[1]).unwrap().to_rgb8();
     let mut jpeg = Vec::new();
@@ -288,8 +290,7 @@ fn the_same_shot_saved_again_is_skipped() {
     let (out, report) = (s.path("clear.png"), s.path("report.json"));
     let mut a = args(&s, &out, &report);
     a.push(again.clone());
-    let o = fill(a);
-    assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    fill_ok(a);
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
     let views = v["views"].as_array().unwrap();
     assert_eq!(views.len(), 4);
@@ -315,8 +316,7 @@ fn the_confidence_map_keeps_the_grades_the_report_counts() {
     let (out, report, conf) = (s.path("clear.png"), s.path("report.json"), s.path("confidence.png"));
     let mut a = args(&s, &out, &report);
     a.splice(0..0, ["--confidence".into(), conf.clone()]);
-    let o = fill(a);
-    assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    fill_ok(a);
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
     let map = image::open(&conf).unwrap().to_luma8();
     assert_eq!((map.width() as usize, map.height() as usize), (W, H));
@@ -369,8 +369,7 @@ fn with_and_without_planes(s: &Scene) -> [(RgbF32, serde_json::Value, String); 2
             a.insert(0, "--no-planes".into());
         }
         a.splice(0..0, ["--surfaces".into(), s.path(&format!("{name}.surfaces.png"))]);
-        let o = fill(a);
-        assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+        let o = fill_ok(a);
         let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
         (to_rgb(&image::open(&out).unwrap()), v, String::from_utf8_lossy(&o.stdout).into_owned())
     })

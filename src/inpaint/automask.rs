@@ -12,6 +12,7 @@ use rayon::prelude::*;
 
 use super::Source;
 use crate::geometry::Homography;
+use crate::imaging::convert::luminance;
 use crate::imaging::photometric::{Gain, GainParams, fit_gain};
 use crate::imaging::warp::{Interpolation, Rect, warp};
 use crate::imaging::{Mask, Plane, RgbF32, RgbPixel};
@@ -603,7 +604,7 @@ fn sky(key: &RgbF32, params: &AutoMaskParams) -> Plane<bool> {
     if params.sky_gradient <= 0.0 || w < 3 || h < 3 {
         return Plane::new(w, h, false);
     }
-    let l = Plane::from_fn(w, h, |x, y| crate::imaging::convert::luma(key.get(x, y)));
+    let l = luminance(key);
     // Sobel, per unit of distance; the border takes its inner neighbour's.
     let gradient = Plane::from_fn(w, h, |x, y| {
         let (x, y) = (x.clamp(1, w - 2), y.clamp(1, h - 2));
