@@ -82,6 +82,11 @@ pub struct AutoMaskParams {
     /// standing against the sky keeps its own pixels, and the sky stops at the skyline.
     pub sky_gradient: f32,
     pub sky_luma: f32,
+    /// ...and no pixel of the sky is itself on an edge steeper than this (its own gradient,
+    /// not averaged): the faint outline of a plain pale object against a plain pale wall
+    /// that reaches the top (a white board before a rendered facade) stops the sky there,
+    /// where the average alone let it through and the object was lost whole.
+    pub sky_edge: f32,
     /// The mask is finally grown by this many pixels (full resolution).
     pub dilate_radius: usize,
     /// The comparison runs on an image box-reduced to at most this many pixels.
@@ -107,6 +112,7 @@ impl Default for AutoMaskParams {
             parallax_radius: 3,
             sky_gradient: 0.015,
             sky_luma: 0.35,
+            sky_edge: 0.02,
             dilate_radius: 3,
             work_pixels: 1_500_000,
         }
@@ -614,8 +620,11 @@ fn sky(key: &RgbF32, params: &AutoMaskParams) -> Plane<bool> {
         (gx * gx + gy * gy).sqrt()
     });
     let smooth = box_mean(&gradient, &Plane::new(w, h, true), 2);
-    let like =
-        Plane::from_fn(w, h, |x, y| smooth.get(x, y) < params.sky_gradient && l.get(x, y) >= params.sky_luma);
+    let like = Plane::from_fn(w, h, |x, y| {
+        smooth.get(x, y) < params.sky_gradient
+            && gradient.get(x, y) < params.sky_edge
+            && l.get(x, y) >= params.sky_luma
+    });
     let mut out = Plane::new(w, h, false);
     // From the top rows (a frame's first row or two are often an edge of their own).
     let band = (h / 50).max(1);
@@ -1668,5 +1677,41 @@ mod tests {
             under_drifting_clouds(&AutoMaskParams { sky_gradient: 0.0, ..AutoMaskParams::default() });
         let sky = count(&m, 0..above);
         assert!(sky > w * above / 5, "only {sky} of the {} sky pixels taken without the rule", w * above);
+    }
+
+    #[test]
+    fn a_plain_pale_board_before_a_plain_pale_wall_reaching_the_top_is_not_sky() {
+        // The assumption the sky rests on, broken: the frame's top is a plain rendered wall,
+        // and a white board stands before it, its outline faint.
+        let (w, h, top) = (240, 180, 64);
+        let wall = facade(w, h, 11);
+        let scene = RgbF32::from_fn(w, h, |x, y| if y < top { [0.86, 0.85, 0.82] } else { wall.get(x, y) });
+        let mut key = scene.clone();
+        let mut truth = Mask::new(w, h, 0);
+        for y in 30..110 {
+            for x in 60..140 {
+                key.set(x, y, [0.92, 0.92, 0.93]);
+                truth.set(x, y, 255);
+            }
+        }
+        let hs = [
+            Homography::translation(2.5, -1.0),
+            Homography::translation(-3.0, 1.5),
+            Homography::translation(1.0, 2.0),
+        ];
+        let views: Vec<RgbF32> =
+            hs.iter().map(|hm| render_view(&scene, &hm.inverse().unwrap(), w, h, [0.5; 3])).collect();
+        let sources: Vec<Source<'_>> =
+            views.iter().zip(&hs).map(|(v, &homography)| Source { image: v, homography }).collect();
+        let found = |params: &AutoMaskParams| {
+            let m = auto_mask(&key, &sources, params);
+            (0..w * h).filter(|&i| truth.as_slice()[i] > 127 && m.as_slice()[i] > 127).count()
+        };
+        let board = truth.hole_count();
+        let with_edges = found(&AutoMaskParams::default());
+        assert!(with_edges as f32 > 0.9 * board as f32, "found {with_edges} of the board's {board} pixels");
+        // Without the edge check the sky runs through the board's outline and takes it.
+        let averaged_only = found(&AutoMaskParams { sky_edge: f32::INFINITY, ..AutoMaskParams::default() });
+        assert!((averaged_only as f32) < 0.1 * board as f32, "found {averaged_only} without the edge check");
     }
 }
