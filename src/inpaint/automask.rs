@@ -603,8 +603,9 @@ fn shared_occluders(key: &RgbF32, ev: &Evidence, params: &AutoMaskParams) -> Pla
 }
 
 /// The sky of `key` (work resolution): the pixels smooth and bright enough
-/// ([`AutoMaskParams::sky_gradient`], [`AutoMaskParams::sky_luma`]) 4-connected through such
-/// pixels to the top rows (the top 2 %), and the bright pixels within 2 px of them.
+/// ([`AutoMaskParams::sky_gradient`], [`AutoMaskParams::sky_edge`],
+/// [`AutoMaskParams::sky_luma`]) 4-connected through such pixels to the top rows (the top
+/// 2 %), and the bright pixels within 2 px of them.
 fn sky(key: &RgbF32, params: &AutoMaskParams) -> Plane<bool> {
     let (w, h) = (key.width(), key.height());
     if params.sky_gradient <= 0.0 || w < 3 || h < 3 {
