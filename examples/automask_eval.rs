@@ -4,8 +4,8 @@
 //! (masked PSNR over the true mask, where the occluder stands).
 //!
 //! `cargo run --release --example automask_eval -- [--seeds N] [--first SEED] [--size WxH] [--views 2,3,4]
-//!  [--align] [--dump DIR (masks, fills, keyframe, truth, views)] [--parallax N] [--colour X] [--background X]
-//!  [--sky GRADIENT (0: no sky looked for)]`
+//!  [--families planar,shared,nonplanar] [--align] [--dump DIR (masks, fills, keyframe, truth, views)] [--parallax N] [--colour X] [--background X]
+//!  [--sky GRADIENT (0: no sky looked for)] [--reach N (AutoMaskParams::unjudged_reach)]`
 //!
 //! With `--align` the views are aligned as the fill command aligns them (otherwise the true
 //! homographies are used, so that only the mask is judged). The targets: mean IoU
@@ -29,6 +29,7 @@ fn main() {
     let mut aligned = false;
     let mut dump: Option<PathBuf> = None;
     let mut am = AutoMaskParams::default();
+    let mut families: Vec<String> = Vec::new();
     let mut i = 0;
     while i < args.len() {
         match args[i].as_str() {
@@ -38,7 +39,9 @@ fn main() {
             "--parallax" => am.parallax_radius = args[i + 1].parse().expect("--parallax N"),
             "--colour" => am.colour_ratio = args[i + 1].parse().expect("--colour X"),
             "--background" => am.background_ratio = args[i + 1].parse().expect("--background X"),
+            "--reach" => am.unjudged_reach = args[i + 1].parse().expect("--reach N"),
             "--sky" => am.sky_gradient = args[i + 1].parse().expect("--sky X"),
+            "--families" => families = args[i + 1].split(',').map(str::to_owned).collect(),
             "--dump" => dump = Some(PathBuf::from(&args[i + 1])),
             "--size" => {
                 let (a, b) = args[i + 1].split_once('x').expect("--size WxH");
@@ -57,7 +60,9 @@ fn main() {
     println!("| case | views | true mask px | auto px | IoU | PSNR true mask | PSNR auto mask | loss dB |");
     println!("|---|---|---|---|---|---|---|---|");
     let (mut ious, mut losses) = (Vec::new(), Vec::new());
-    for &family in &CaseFamily::ALL {
+    let chosen =
+        CaseFamily::ALL.into_iter().filter(|f| families.is_empty() || families.iter().any(|n| n == f.name()));
+    for family in chosen {
         for seed in 1..=seeds {
             for &n in &counts {
                 let c = occlusion_case(family, w, h, n, first + seed);
