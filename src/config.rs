@@ -698,11 +698,11 @@ impl Default for RawVideo {
 /// Which frame of a video is the keyframe.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum VideoKeyframe {
-    /// The first sharp frame.
+    /// Frame 0, or the next sharp frame when it is blurred.
     First,
-    /// The first sharp frame at or after this stream time (seconds).
+    /// The first frame at or after this stream time (seconds), exactly (refused when blurred).
     AtSeconds(f64),
-    /// The first sharp frame at or after this frame number (0-based).
+    /// This frame number (0-based), exactly (refused when blurred).
     AtFrame(u64),
 }
 

@@ -43,10 +43,13 @@ pub struct VideoArgs {
     /// The video's mask: an image of the frame's size (white = remove) or `auto`.
     #[arg(long, value_name = "FILE|auto", requires = "video")]
     pub mask: Option<String>,
-    /// The keyframe is the first sharp frame at or after this time (seconds).
+    /// The keyframe is the first frame at or after this time (seconds), exactly: paint the
+    /// mask on it. A blurred one is refused (the session ends with the reason), never
+    /// replaced by another. Without this or --keyframe-frame: frame 0, unless it is blurred.
     #[arg(long, value_name = "SECONDS", requires = "video", conflicts_with = "keyframe_frame")]
     pub keyframe_at: Option<f64>,
-    /// The keyframe is the first sharp frame at or after this frame number (from 0).
+    /// The keyframe is this frame (from 0), exactly: paint the mask on it. A blurred one is
+    /// refused (the session ends with the reason), never replaced by another.
     #[arg(long, value_name = "N", requires = "video")]
     pub keyframe_frame: Option<u64>,
     /// The video's session name (its folder in the output).
