@@ -47,7 +47,7 @@ use crate::align::{AlignParams, Alignment, Frame, align};
 use crate::geometry::Homography;
 use crate::geometry::homography::similarity_lsq;
 use crate::imaging::convert::{MASK_MAX_GREY, luminance, mask_grey_share};
-use crate::imaging::{GrayF32, Mask, Rect, RgbF32, RgbPixel};
+use crate::imaging::{GrayF32, Mask, Plane, Rect, RgbF32, RgbPixel};
 use crate::inpaint::parallax::{SurfacePlane, SweepParams, ViewMatches};
 use crate::inpaint::region::{footprint, into_crop};
 use crate::inpaint::{
@@ -1141,10 +1141,11 @@ impl Session {
         Some(out)
     }
 
-    /// The automatic mask from whole views and their keyframe → view homographies.
-    pub fn auto_mask(&self, views: &[(RgbF32, Homography)]) -> Result<Mask, SessionError> {
+    /// The automatic mask from whole views (8-bit or float) and their keyframe → view
+    /// homographies.
+    pub fn auto_mask<P: RgbPixel>(&self, views: &[(Plane<P>, Homography)]) -> Result<Mask, SessionError> {
         let key = self.key.as_ref().ok_or(SessionError::NoKey)?;
-        let sources: Vec<Source<'_>> =
+        let sources: Vec<Source<'_, P>> =
             views.iter().map(|(image, h)| Source { image, homography: *h }).collect();
         Ok(inpaint::auto_mask(&key.rgb, &sources, &self.params.auto_mask))
     }

@@ -408,6 +408,78 @@ fn with_an_automatic_mask_the_occluder_is_found_and_removed() {
     assert_eq!(service.terminate(), 0);
 }
 
+/// With `mask = "auto"`, the mask is found from the first two accepted views and again as
+/// the views double. A passer-by of the keyframe's had not moved when the first view was
+/// taken: of the first two views one shows him and one the wall, they disagree, and the
+/// first mask leaves him. The next two views show the wall behind him; the mask found from
+/// the four takes him, and the result shows the wall where he stood.
+#[test]
+fn an_automatic_mask_is_found_again_as_the_views_double() {
+    let f = folders("[session]\nmask = \"auto\"\nauto_mask_views = 2\n");
+    let mut scene = Scene::new(73);
+    let mut walker = clearview::imaging::Mask::new(W, H, 0);
+    synth::paint_occluder(&mut scene.key, Some(&mut walker), synth::Occluder::Person, 330.0, 170.0, 60.0, 7);
+    let walker_share = |mask: &image::GrayImage| {
+        let (mut on, mut n) = (0usize, 0usize);
+        for (x, y, p) in mask.enumerate_pixels() {
+            if walker.is_hole(x as usize, y as usize) {
+                n += 1;
+                on += usize::from(p.0[0] > 127);
+            }
+        }
+        on as f64 / n as f64
+    };
+    let session = f.inbox.join("walker");
+    put(&session.join("key.png"), &png(&scene.key));
+    let service = Service::start(&f);
+    wait_for(&f, "the session to start", 30, |e| !of_kind(e, "session_started").is_empty());
+    put(&session.join("v1.png"), &png(&scene.view_with_keys_person(1, 330.0, 170.0, 60.0, 7)));
+    put(&session.join("v2.png"), &png(&scene.clear_view(2)));
+    wait_for(&f, "a result from two views", 40, |e| {
+        of_kind(e, "result_updated").iter().any(|r| r["views"] == 2)
+    });
+    let first = image::open(f.outbox.join("walker/mask.png")).unwrap().to_luma8();
+    let before = walker_share(&first);
+    eprintln!("the passer-by's pixels masked from two views: {before:.3}");
+    assert!(before < 0.5, "the case does not hold: two views found the passer-by ({before:.3})");
+    for i in 3..=4 {
+        put(&session.join(format!("v{i}.png")), &png(&scene.clear_view(i)));
+    }
+    let ev = wait_for(&f, "the mask found again from four views", 60, |e| {
+        of_kind(e, "mask_set").iter().any(|m| m["views"] == 4)
+            && of_kind(e, "result_updated").iter().any(|r| r["views"].as_u64().unwrap_or(0) >= 3)
+    });
+    let sets: Vec<_> =
+        of_kind(&ev, "mask_set").iter().map(|m| (m["views"].clone(), m["masked"].clone())).collect();
+    eprintln!("masks set (views, masked): {sets:?}");
+    let again = image::open(f.outbox.join("walker/mask.png")).unwrap().to_luma8();
+    let after = walker_share(&again);
+    eprintln!("the passer-by's pixels masked from four views: {after:.3}");
+    assert!(after > 0.9, "the mask from four views leaves the passer-by: {after:.3}");
+    // The result, once the fill with the new mask is published, shows the wall there.
+    let ev = wait_for(&f, "a result with the new mask", 60, |e| {
+        let set_at = e.iter().rposition(|x| x["event"] == "mask_set");
+        set_at.is_some_and(|i| e[i..].iter().any(|x| x["event"] == "result_updated"))
+    });
+    drop(ev);
+    let result = image::open(f.outbox.join("walker/result.png")).unwrap().to_rgb8();
+    let error = |img: &image::RgbImage| {
+        let (mut sum, mut n) = (0.0, 0usize);
+        for (x, y, p) in img.enumerate_pixels() {
+            if walker.is_hole(x as usize, y as usize) {
+                let t = scene.truth.get(x as usize, y as usize);
+                sum += (0..3).map(|c| (t[c] as f64 - p.0[c] as f64 / 255.0).abs()).sum::<f64>() / 3.0;
+                n += 1;
+            }
+        }
+        sum / n as f64
+    };
+    let (e_key, e_result) = (error(&to_rgb8(&scene.key)), error(&result));
+    eprintln!("error where the passer-by stood: keyframe {e_key:.4}, result {e_result:.4}");
+    assert!(e_result < 0.3 * e_key, "the passer-by is still there: {e_key} -> {e_result}");
+    assert_eq!(service.terminate(), 0);
+}
+
 #[test]
 fn idle_sessions_sleep_beyond_the_memory_budget_and_wake_without_realigning() {
     let f = folders("workers = 1\nresident_sessions = 1\n");

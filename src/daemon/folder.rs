@@ -17,7 +17,7 @@ use super::paths::Inbox;
 use super::policy::{self, KeyNow, KeySource, Listing, MaskFit};
 use super::watch::{self, Role};
 use crate::config::MaskRule;
-use crate::imaging::convert::{to_luminance, to_mask, to_rgb};
+use crate::imaging::convert::{to_luminance, to_mask};
 use crate::imaging::decode::DecodeLimits;
 
 /// The regular files of the session's folder, by name.
@@ -267,31 +267,65 @@ pub(super) fn mask_removed(ctx: &Ctx, slot: &mut Slot, file: &FileId) {
     }
 }
 
-/// With `mask = "auto"`: once enough views are accepted, the mask from their consensus.
+/// The most views an automatic mask is found from in a folder session.
+const AUTO_MASK_MAX_VIEWS: usize = 8;
+
+/// With `mask = "auto"`: once `auto_mask_views` views are accepted, the mask from their
+/// consensus; then found again from all the accepted views each time their number doubles,
+/// up to [`AUTO_MASK_MAX_VIEWS`]. Two views say little where each has an occluder of its
+/// own over the keyframe's (neither shows the building there, and they disagree): a
+/// passer-by of the keyframe's stays unmasked until two more views agree on the wall behind
+/// him. A mask found again with the same pixels changes nothing; a changed one is set as a
+/// new mask is (`mask_set`, every buffered view taken again, a new result). A mask from a
+/// file is the user's, and stays.
 fn auto_mask(ctx: &Ctx, slot: &mut Slot) {
     let MaskRule::Auto { views } = ctx.config.mask else { return };
-    if slot.session.mask_id().is_some() || slot.session.key_id().is_none() {
+    if slot.session.key_id().is_none() {
         return;
     }
-    let chosen: Vec<(String, PathBuf, crate::geometry::Homography)> = slot
-        .session
-        .buffered()
-        .iter()
-        .filter_map(|b| Some((b.id.clone(), slot.paths.get(&b.id)?.clone(), b.record.homography()?)))
-        .take(views)
-        .collect();
-    if chosen.len() < views {
+    // As many as the buffer holds at most.
+    let most = AUTO_MASK_MAX_VIEWS.min(slot.session.params().buffer).max(views);
+    let wanted = match (slot.session.mask_id(), slot.auto_views) {
+        (None, _) => views,
+        (Some(_), 0) => return,
+        (Some(_), from) if from >= most => return,
+        (Some(_), from) => (2 * from).min(most),
+    };
+    // Views that see none of the current mask count too: they may see what a new one holds.
+    let mut chosen = slot.accepted_views();
+    chosen.truncate(most);
+    if chosen.len() < wanted {
         return;
     }
+    // 8-bit pixels: up to eight whole views at once (a 12 MP view is 36 MB so, 144 MB as
+    // floats). A file that no longer holds what was aligned is left to the intake, which
+    // brings its new content.
     let mut images = Vec::new();
-    for (_, path, h) in &chosen {
-        let Ok((_, img)) = load(ctx, path, Role::View) else { return };
-        images.push((to_rgb(&img), *h));
+    for (id, h) in &chosen {
+        let path = slot.paths.get(id.as_str()).cloned().unwrap_or_else(|| slot.dir.join(id.name()));
+        let Ok((file, img)) = load(ctx, &path, Role::View) else { return };
+        if file.view_id(&img) != *id {
+            return;
+        }
+        images.push((rgb8(&img), *h));
     }
     let Ok(mask) = slot.session.auto_mask(&images) else { return };
     drop(images);
+    if slot.session.mask().is_some_and(|m| *m == mask) {
+        tracing::debug!(views = chosen.len(), "the automatic mask found again is the same");
+        slot.auto_views = chosen.len();
+        return;
+    }
     let id = format!("auto|{}", chosen.iter().map(|c| c.0.as_str()).collect::<Vec<_>>().join("|"));
-    if let Ok(again) = slot.set_mask(ctx, id, mask, MaskOrigin::Auto(views)) {
+    // Views that saw none of the old mask may see this one.
+    let refused: Vec<PathBuf> =
+        slot.refused_views().into_iter().map(|n| slot.dir.join(n)).filter(|p| p.is_file()).collect();
+    if let Ok(mut again) = slot.set_mask(ctx, id, mask, MaskOrigin::Auto(chosen.len())) {
+        for p in refused {
+            if !again.contains(&p) {
+                again.push(p);
+            }
+        }
         for p in again {
             reprocess(ctx, slot, &p);
         }

@@ -56,6 +56,19 @@ impl Scene {
         v
     }
 
+    /// A view from elsewhere showing the passer-by that the keyframe shows at `(kx, ky)`
+    /// (keyframe coordinates; `seed` as the keyframe's was painted), where he stood: he had
+    /// not moved.
+    pub fn view_with_keys_person(&mut self, i: u64, kx: f32, ky: f32, size: f32, seed: u64) -> RgbF32 {
+        let key_to_view = synth::random_homography(&mut self.rng, W, H, 0.1, 0.2, (0.9, 1.1));
+        let view_to_scene = self.centre.after(&key_to_view.inverse().unwrap());
+        let mut v = synth::render_view(&self.scene, &view_to_scene, W, H, [0.5; 3]);
+        let at = key_to_view.apply(nalgebra::Point2::new(kx as f64, ky as f64)).unwrap();
+        synth::paint_occluder(&mut v, None, Occluder::Person, at.x as f32, at.y as f32, size, seed);
+        synth::expose(&mut v, 0.9 + 0.03 * i as f32, 0.01);
+        v
+    }
+
     /// A view from elsewhere with nothing in front.
     pub fn clear_view(&mut self, i: u64) -> RgbF32 {
         self.view(i, 0.0, 0.0)

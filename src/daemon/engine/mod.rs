@@ -149,6 +149,9 @@ pub(crate) struct Slot {
     /// A keyframe without a mask was reported waiting (`session_waiting`), once.
     pub(crate) waiting_said: bool,
     mask_source: Option<String>,
+    /// How many views the current automatic mask was found from (0: none, or the mask is
+    /// a file's).
+    pub(crate) auto_views: usize,
     /// The mask (its content id) refused for the current keyframe: reported once, though
     /// it is read both beside the keyframe and as a file of its own.
     pub(crate) refused_mask: Option<String>,
@@ -213,6 +216,7 @@ impl Slot {
             key_source: None,
             waiting_said: false,
             mask_source: None,
+            auto_views: 0,
             refused_mask: None,
             parked: BTreeMap::new(),
             paths: HashMap::new(),
@@ -252,6 +256,20 @@ impl Slot {
             (Some(mask), Some(source)) if source.starts_with("file:") => Some(format!("{key}|mask|{mask}")),
             _ => Some(key.to_owned()),
         }
+    }
+
+    /// The views accepted against the current keyframe and still held (buffered, or seeing
+    /// none of the mask), in the order they came: their ids and keyframe → view homographies.
+    pub(crate) fn accepted_views(&self) -> Vec<(ViewId, crate::geometry::Homography)> {
+        let mut held: Vec<&ViewEntry> = self
+            .views
+            .values()
+            .filter(|v| matches!(v.status, ViewStatus::Buffered | ViewStatus::OutsideMask))
+            .collect();
+        held.sort_by_key(|v| v.seq);
+        held.iter()
+            .filter_map(|v| Some((v.id.clone(), v.record.as_ref().filter(|r| r.accepted)?.homography()?)))
+            .collect()
     }
 
     /// The current mask came from file `name`.
@@ -305,6 +323,7 @@ impl Slot {
         self.decided.clear();
         self.waiting_said = false;
         self.mask_source = None;
+        self.auto_views = 0;
         self.refused_mask = None;
         self.paths.clear();
         for v in self.views.values_mut() {
@@ -343,6 +362,7 @@ impl Slot {
             MaskOrigin::File(f) => (Some(f.to_owned()), None),
             MaskOrigin::Auto(n) => (None, Some(n)),
         };
+        self.auto_views = views.unwrap_or(0);
         self.mask_source = Some(file.as_ref().map_or_else(|| "auto".to_owned(), |f| format!("file:{f}")));
         publish::write_mask(ctx, self);
         // Masks that are probably mistakes say what will come of them.
@@ -371,6 +391,7 @@ impl Slot {
         if in_use {
             self.session.clear_mask();
             self.mask_source = None;
+            self.auto_views = 0;
             self.decided.clear();
         }
         let reason = "the mask file was deleted: no new result until a mask arrives; the last result is kept";
