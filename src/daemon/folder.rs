@@ -272,10 +272,10 @@ const AUTO_MASK_MAX_VIEWS: usize = 8;
 
 /// With `mask = "auto"`: once `auto_mask_views` views are accepted, the mask from their
 /// consensus; then found again from all the accepted views each time their number doubles,
-/// up to [`AUTO_MASK_MAX_VIEWS`]. Two views say little where each has an occluder of its
-/// own over the keyframe's (neither shows the building there, and they disagree): a
-/// passer-by of the keyframe's stays unmasked until two more views agree on the wall behind
-/// him. A mask found again with the same pixels changes nothing; a changed one is set as a
+/// up to [`AUTO_MASK_MAX_VIEWS`]. Two views say little where they disagree: one shows a
+/// passer-by of the keyframe's who had not moved, the other the wall behind him (or each
+/// has an occluder of its own there); he stays unmasked until more views agree on the
+/// wall. A mask found again with the same pixels changes nothing; a changed one is set as a
 /// new mask is (`mask_set`, every buffered view taken again, a new result). A mask from a
 /// file is the user's, and stays.
 fn auto_mask(ctx: &Ctx, slot: &mut Slot) {
