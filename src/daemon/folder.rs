@@ -222,24 +222,11 @@ fn apply_mask(ctx: &Ctx, slot: &mut Slot, file: &FileId, image: &DynamicImage) {
         tracing::debug!(mask = %watch::shown(&file.name), "refused already for this keyframe");
         return;
     }
-    // Views refused against the old mask (or none) may see this one, or align with it.
-    let refused: Vec<PathBuf> =
-        slot.refused_views().into_iter().map(|n| slot.dir.join(n)).filter(|p| p.is_file()).collect();
-    match slot.set_mask(ctx, id.clone(), to_mask(image), MaskOrigin::File(&file.name)) {
-        Ok(mut again) => {
-            for p in refused {
-                if !again.contains(&p) {
-                    again.push(p);
-                }
-            }
-            for p in again {
-                reprocess(ctx, slot, &p);
-            }
-        }
-        Err(reason) => {
-            skip(ctx, slot, &slot.dir.join(&file.name), &reason);
-            slot.refused_mask = Some(id);
-        }
+    if let Err(reason) =
+        set_mask_and_retake(ctx, slot, id.clone(), to_mask(image), MaskOrigin::File(&file.name))
+    {
+        skip(ctx, slot, &slot.dir.join(&file.name), &reason);
+        slot.refused_mask = Some(id);
     }
 }
 
@@ -317,19 +304,32 @@ fn auto_mask(ctx: &Ctx, slot: &mut Slot) {
         return;
     }
     let id = format!("auto|{}", chosen.iter().map(|c| c.0.as_str()).collect::<Vec<_>>().join("|"));
-    // Views that saw none of the old mask may see this one.
+    // A mask found from the views always fits the keyframe they were aligned to.
+    let _ = set_mask_and_retake(ctx, slot, id, mask, MaskOrigin::Auto(chosen.len()));
+}
+
+/// Sets the session's mask ([`Slot::set_mask`]) and offers again every buffered view and
+/// every view refused against the old mask (or none): they may see this one, or align with
+/// it. `Err`: why the mask does not fit the keyframe.
+fn set_mask_and_retake(
+    ctx: &Ctx,
+    slot: &mut Slot,
+    id: String,
+    mask: crate::imaging::Mask,
+    origin: MaskOrigin,
+) -> Result<(), String> {
     let refused: Vec<PathBuf> =
         slot.refused_views().into_iter().map(|n| slot.dir.join(n)).filter(|p| p.is_file()).collect();
-    if let Ok(mut again) = slot.set_mask(ctx, id, mask, MaskOrigin::Auto(chosen.len())) {
-        for p in refused {
-            if !again.contains(&p) {
-                again.push(p);
-            }
-        }
-        for p in again {
-            reprocess(ctx, slot, &p);
+    let mut again = slot.set_mask(ctx, id, mask, origin)?;
+    for p in refused {
+        if !again.contains(&p) {
+            again.push(p);
         }
     }
+    for p in again {
+        reprocess(ctx, slot, &p);
+    }
+    Ok(())
 }
 
 /// Reads a file of the session's folder again, as it is now (see [`super::job::load`]).

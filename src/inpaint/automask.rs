@@ -658,19 +658,7 @@ fn sky(key: &RgbF32, params: &AutoMaskParams) -> Plane<bool> {
     for &(x, y) in &top {
         out.set(x, y, true);
     }
-    flood(
-        (w, h),
-        top,
-        &NEIGHBOURS_4,
-        |_, _| {},
-        |x, y| {
-            let enter = !out.get(x, y) && like.get(x, y);
-            if enter {
-                out.set(x, y, true);
-            }
-            enter
-        },
-    );
+    grow_through(&mut out, top, &NEIGHBOURS_4, |x, y| like.get(x, y));
     // The gradient's average reaches 2 px past the skyline: the sky's rim along it is sky
     // too, where it is bright.
     let rim = dilate(&out, 2);
@@ -770,11 +758,22 @@ fn grow_from(seeds: &Plane<bool>, reach: &Plane<bool>) -> Plane<bool> {
 
 /// Sets in `out` every pixel 8-connected to `stack` through pixels `reach` accepts.
 fn grow_into(out: &mut Plane<bool>, stack: Vec<(usize, usize)>, reach: impl Fn(usize, usize) -> bool) {
+    grow_through(out, stack, &NEIGHBOURS_8, reach);
+}
+
+/// Sets in `out` every pixel connected (through `neighbours`) to `stack` through pixels
+/// `reach` accepts.
+fn grow_through(
+    out: &mut Plane<bool>,
+    stack: Vec<(usize, usize)>,
+    neighbours: &[(isize, isize)],
+    reach: impl Fn(usize, usize) -> bool,
+) {
     let size = (out.width(), out.height());
     flood(
         size,
         stack,
-        &NEIGHBOURS_8,
+        neighbours,
         |_, _| {},
         |x, y| {
             let enter = !out.get(x, y) && reach(x, y);
