@@ -102,7 +102,7 @@ def start_service(binary, work, buffer=None):
         + (f"[session]\nbuffer = {buffer}\n" if buffer else "")
     )
     log = work / "service.log"
-    env = dict(os.environ, CLEARVIEW_LOG="clearview=info")
+    env = dict(os.environ, CLEARVIEW_LOG=os.environ.get("CLEARVIEW_LOG", "clearview=info"))
     proc = subprocess.Popen([binary, "run", "--config", str(cfg)], stdout=subprocess.DEVNULL, stderr=log.open("w"), env=env)
     return proc, session, outbox, log
 

@@ -313,8 +313,9 @@ struct Crop {
     /// Crop-sized: the view's own pixels known to show an occluder (never copied; see
     /// [`Session::set_view_occluders`]).
     occluders: Option<Mask>,
-    /// What the sweep for surfaces off the wall matched in the crop, kept for the next
-    /// fills (it depends on the keyframe and the mask, which keep the crop too).
+    /// What the sweep for surfaces off the wall matched in the crop, and the view's place
+    /// in the family it settled on, kept for the next fills (they depend on the keyframe
+    /// and the mask, which keep the crop too).
     sweep: ViewMatches,
     /// The view's own occluders as the last fill found them, with what they were judged
     /// against (they depend on the keyframe and the mask too).

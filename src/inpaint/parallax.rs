@@ -18,6 +18,8 @@
 //! penalty (Hirschmüller's SGM over plane labels): labels form regions, the keyframe's
 //! surroundings propagate into the hole where the views say nothing, and speckle goes.
 
+use std::sync::Arc;
+
 use rayon::prelude::*;
 
 use nalgebra::Point2;
@@ -399,6 +401,11 @@ pub struct SweepParams {
     /// Every view's epipole found again where the views together vote, after the tie
     /// ([`Sweep::rejoin`]).
     pub rejoin: bool,
+    /// A session's next sweep starts from the family the last one settled on
+    /// ([`swept_planes_memo`]): the views it had keep their epipoles, and only a new view's
+    /// is found, at where they vote ([`Sweep::kept`]), instead of the tie and every view's
+    /// epipole again.
+    pub keep_family: bool,
     /// A view's scale of `γ` is the one it confirms the reference's votes under, where it
     /// confirms the lowest mean cost's poorly ([`tie_scale`]). Off by default: it repairs
     /// the tied epipoles it is meant to, but the swept fill loses as often as it gains
@@ -448,6 +455,7 @@ impl Default for SweepParams {
             min_density: 0.1,
             max_planes: 6,
             rejoin: true,
+            keep_family: true,
             repair_ties: false,
             inside: true,
             min_grow: 24,
@@ -486,7 +494,11 @@ pub fn swept_planes(
 /// [`swept_planes`] with each view's guided matches kept in `memo` (one entry per view,
 /// in order) and taken from it where they are there: the same keyframe, mask and view give
 /// the same matches, so a session that fills again with one more view matches only that
-/// one. `view(v)` gives view `v`'s luminance, asked for only where its matches are not in
+/// one. With [`SweepParams::keep_family`], `memo` keeps each view's place in the family the
+/// sweep settled on as well, and the next sweep starts from it ([`Sweep::kept`]): a session's
+/// views are not tied and found again at every fill (at 12 MP with 9 views that was two
+/// thirds of the sweep), and a new view joins at the depths they voted for. The one-shot
+/// command sweeps once, with fresh entries: as [`swept_planes`]. `view(v)` gives view `v`'s luminance, asked for only where its matches are not in
 /// `memo` and, for every view, once the views show parallax (the sweep itself). The
 /// caller clears an entry whose keyframe, mask or view changed. `stop` is asked between
 /// the steps (the keyframe's corners matched in the views, the grid beside the mask
@@ -515,17 +527,69 @@ pub fn swept_planes_memo(
     }
     let grays: Vec<GrayF32> = (0..walls.len()).into_par_iter().map(view).collect();
     let views: Vec<&GrayF32> = grays.iter().collect();
-    sweep_family(key, &views, mask, params, &own, &g.matches, &g.t, false)
+    let Some(s) = Sweep::new(key, &views, mask, params, &g.t) else { return Vec::new() };
+    let s = s.with_matches(&own, &g.matches);
+    let kept: Vec<Option<Place>> = memo.iter().map(|m| m.joined.clone()).collect();
+    let from_kept = if params.keep_family { s.kept(&own, &kept) } else { None };
+    tracing::debug!(
+        kept = kept.iter().flatten().filter(|p| p.member.is_some()).count(),
+        new = kept.iter().filter(|p| p.is_none()).count(),
+        surfaces = from_kept.as_ref().map(|s| s.planes.len()),
+        "the sweep from the kept family (surfaces: None when it swept afresh)"
+    );
+    let settled = match from_kept {
+        Some(settled) => Some(settled),
+        None => match s.joint(&own) {
+            // Rejoined: the family the next sweep starts from.
+            Some((family, None)) => {
+                let votes = s.votes(&family);
+                let planes = s.surfaces_of(&family, &votes);
+                Some(Settled { family, planes, votes: votes.list() })
+            }
+            // The tie's family found nothing to rejoin for (or rejoining is off): the next
+            // sweep ties afresh.
+            Some((_, Some(planes))) => {
+                memo.iter_mut().for_each(|m| m.joined = None);
+                return planes;
+            }
+            None => None,
+        },
+    };
+    let Some(Settled { family, planes, votes }) = settled else {
+        memo.iter_mut().for_each(|m| m.joined = None);
+        return Vec::new();
+    };
+    let votes = Arc::new(votes);
+    for (v, m) in memo.iter_mut().enumerate() {
+        let member = family.epipoles[v].map(|e| (e, family.observed[v].clone()));
+        m.joined = Some(Place { member, votes: Arc::clone(&votes) });
+    }
+    planes
 }
 
-/// What the guided matching of [`parallax_family`] found for one view, kept between the
-/// fills of a session ([`swept_planes_memo`]).
+/// A view's place in the family a sweep settled on ([`ViewMatches`]).
+#[derive(Debug, Clone, PartialEq)]
+struct Place {
+    /// Its epipole in the family's scale of `γ` and the depths its matches were seen at, or
+    /// `None` when the sweep left it out.
+    member: Option<(nalgebra::Vector3<f64>, Vec<f64>)>,
+    /// Where the family's views voted (`rect` pixel of the sweep's band, depth): a new view
+    /// joins at these ([`Sweep::kept`]). Shared by the family's views.
+    votes: Arc<Vec<(usize, f64)>>,
+}
+
+/// What the guided matching of [`parallax_family`] found for one view, and where the sweep
+/// placed it, kept between the fills of a session ([`swept_planes_memo`]).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct ViewMatches {
     /// The keyframe's corners matched in the view.
     corners: Option<Vec<Correspondence>>,
     /// The grid beside the mask matched in the view, once its corners gave it no epipole.
     grid: Option<Vec<Correspondence>>,
+    /// The view in the family the last sweep settled on (its views' scales tied and their
+    /// epipoles found again); `None` when that sweep did not settle on one, or had not this
+    /// view ([`SweepParams::keep_family`]).
+    joined: Option<Place>,
 }
 
 /// The sweep of [`swept_planes`] over a given plane + parallax family (`own`, in the
@@ -620,6 +684,32 @@ struct Votes {
     costs: Vec<Vec<f32>>,
     /// Per scored pixel: the depth (index into `labels`) it votes for, stray votes left out.
     kept: Vec<Option<usize>>,
+}
+
+impl Votes {
+    /// The supported votes: `rect` pixel and depth.
+    fn list(&self) -> Vec<(usize, f64)> {
+        self.kept.iter().enumerate().filter_map(|(j, l)| Some((self.pixels[j], self.labels[(*l)?]))).collect()
+    }
+
+    /// The most supported votes at one depth (±1 step).
+    fn peak(&self) -> usize {
+        let mut histogram = vec![0usize; self.labels.len()];
+        for l in self.kept.iter().flatten() {
+            histogram[*l] += 1;
+        }
+        (0..histogram.len())
+            .map(|l| histogram[l.saturating_sub(1)..(l + 2).min(histogram.len())].iter().sum::<usize>())
+            .max()
+            .unwrap_or(0)
+    }
+}
+
+/// The family a sweep settled on, its surfaces and the votes they came from.
+struct Settled {
+    family: ParallaxFamily,
+    planes: Vec<SurfacePlane>,
+    votes: Vec<(usize, f64)>,
 }
 
 impl<'a> Sweep<'a> {
@@ -899,30 +989,65 @@ impl<'a> Sweep<'a> {
     }
 
     fn rejoin(&self, own: &ParallaxFamily, family: ParallaxFamily, votes: &Votes) -> Option<ParallaxFamily> {
-        let params = self.params;
-        let band = &self.band;
-        let nv = self.views_w.len();
-        let list = |kept: &[Option<usize>]| -> Vec<(usize, f64)> {
-            kept.iter()
-                .enumerate()
-                .filter_map(|(j, l)| Some((votes.pixels[j], votes.labels[(*l)?])))
-                .collect()
-        };
         // Only where the views together vote for a surface (as many votes as a surface
         // needs at one depth, ±1 step): scattered votes are no evidence to move an epipole
         // by (a flat wall stays without surfaces).
-        let mut histogram = vec![0usize; votes.labels.len()];
-        for l in votes.kept.iter().flatten() {
-            histogram[*l] += 1;
-        }
-        let peak = (0..histogram.len())
-            .map(|l| histogram[l.saturating_sub(1)..(l + 2).min(histogram.len())].iter().sum::<usize>())
-            .max()
-            .unwrap_or(0);
-        if peak < params.min_votes {
+        if votes.peak() < self.params.min_votes {
             return Some(family);
         }
-        let all = list(&votes.kept);
+        let all: Vec<usize> = (0..self.views_w.len()).collect();
+        self.refit(own, family, &votes.list(), &all)
+    }
+
+    /// A session's sweep from the family the last one settled on (`kept`, per view: its
+    /// place there, `None` for a view it had not): those views as they were, each other
+    /// view's epipole found at the depths that sweep's views voted for ([`Self::refit`]),
+    /// then the votes of all together and their surfaces. `None` (the caller sweeps afresh)
+    /// when fewer than two kept views are left, or all together find no surface. A view the
+    /// kept family left out stays out: the tie and the rejoin found no depth at which it
+    /// agreed.
+    fn kept(&self, own: &ParallaxFamily, kept: &[Option<Place>]) -> Option<Settled> {
+        let mut family = own.clone();
+        let mut new = Vec::new();
+        for (v, k) in kept.iter().enumerate() {
+            match k.as_ref().map(|p| &p.member) {
+                Some(Some((e, seen))) => {
+                    family.epipoles[v] = Some(*e);
+                    family.observed[v].clone_from(seen);
+                }
+                other => {
+                    if other.is_none() {
+                        new.push(v);
+                    }
+                    family.epipoles[v] = None;
+                    family.observed[v].clear();
+                }
+            }
+        }
+        if family.epipoles.iter().flatten().count() < 2 {
+            return None;
+        }
+        let family = match kept.iter().flatten().next() {
+            Some(place) if !new.is_empty() => self.refit(own, family, &place.votes, &new)?,
+            _ => family,
+        };
+        let votes = self.votes(&family);
+        let planes = self.surfaces_of(&family, &votes);
+        (!planes.is_empty()).then(|| Settled { family, planes, votes: votes.list() })
+    }
+
+    /// The epipoles of the views `refit` found again at `all` (`rect` pixel, depth: where
+    /// the views together vote), the others as `family` has them ([`Self::rejoin`]).
+    fn refit(
+        &self,
+        own: &ParallaxFamily,
+        family: ParallaxFamily,
+        all: &[(usize, f64)],
+        refit: &[usize],
+    ) -> Option<ParallaxFamily> {
+        let params = self.params;
+        let band = &self.band;
+        let nv = self.views_w.len();
         let is_hole: Vec<bool> = {
             let mut m = vec![false; band.rect.area()];
             for &i in &band.inside {
@@ -931,7 +1056,7 @@ impl<'a> Sweep<'a> {
             m
         };
         let mut family = family;
-        for v in 0..nv {
+        for &v in refit {
             let others: Vec<usize> = (0..nv).filter(|&u| u != v && family.epipoles[u].is_some()).collect();
             if others.is_empty() {
                 continue;
@@ -942,7 +1067,7 @@ impl<'a> Sweep<'a> {
                 &family,
                 own.epipoles[v],
                 &others,
-                &all,
+                all,
                 &is_hole,
                 &self.to_sweep,
                 params,
@@ -2778,7 +2903,8 @@ mod tests {
     #[test]
     fn matches_kept_from_the_last_sweep_give_the_same_surfaces_without_matching_again() {
         use std::sync::atomic::{AtomicUsize, Ordering};
-        let params = SweepParams::default();
+        // The family kept as well changes how a new view joins (the next test).
+        let params = SweepParams { keep_family: false, ..SweepParams::default() };
         for flat in [false, true] {
             let c = crate::synth::facade::parallax_case(640, 480, 3, 3, flat);
             let key = crate::imaging::convert::luminance(&c.key);
@@ -2805,6 +2931,73 @@ mod tests {
             let new_view = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo, &|| false);
             assert_eq!(new_view, plain, "flat {flat}");
             assert_eq!(count(), vec![sweep, 1 + sweep, sweep], "flat {flat}: only the new view is matched");
+        }
+    }
+
+    /// A session's next sweep starts from the family the last one settled on: the views it
+    /// had keep their places (their epipoles are not found again), and a new view joins at
+    /// the depths they vote for, at the right scale: through every surface found, the new
+    /// view's homography lands where the slab's true one does, as the old views' do.
+    #[test]
+    fn a_kept_family_takes_a_new_view_in_at_the_surfaces_true_depth() {
+        let params = SweepParams::default();
+        let c = crate::synth::facade::parallax_case(640, 480, 4, 3, false);
+        let key = crate::imaging::convert::luminance(&c.key);
+        let grays: Vec<GrayF32> = c.views.iter().map(crate::imaging::convert::luminance).collect();
+        let walls = c.wall();
+        let view = |v: usize| grays[v].clone();
+        let stay = &|| false;
+        // Three views first, then the fourth.
+        let mut memo = vec![ViewMatches::default(); 3];
+        let three = swept_planes_memo(&key, &view, &walls[..3], &c.mask, &params, 1, &mut memo, stay);
+        assert!(!three.is_empty(), "three views find the slabs");
+        let before: Vec<Option<Place>> = memo.iter().map(|m| m.joined.clone()).collect();
+        assert!(
+            before.iter().flatten().filter(|p| p.member.is_some()).count() >= 2,
+            "the sweep settled on a family"
+        );
+        memo.push(ViewMatches::default());
+        let four = swept_planes_memo(&key, &view, &walls, &c.mask, &params, 1, &mut memo, stay);
+        assert!(!four.is_empty(), "four views find the slabs");
+        for v in 0..3 {
+            let (now, was) = (memo[v].joined.as_ref(), before[v].as_ref());
+            assert_eq!(now.map(|p| &p.member), was.map(|p| &p.member), "view {v}'s place was found again");
+        }
+        assert!(
+            memo[3].joined.as_ref().is_some_and(|p| p.member.is_some()),
+            "the new view joined the family"
+        );
+        // Pixels off between a found surface's homography in view `v` and the true plane
+        // `p`'s, over the surface's region (its centre and halfway to its corners).
+        let off = |s: &SurfacePlane, v: usize, p: usize| -> f64 {
+            let r = s.region;
+            let (cx, cy) = (r.x as f64 + 0.5 * r.width as f64, r.y as f64 + 0.5 * r.height as f64);
+            let (dx, dy) = (0.25 * r.width as f64, 0.25 * r.height as f64);
+            [(0.0, 0.0), (-dx, -dy), (dx, -dy), (-dx, dy), (dx, dy)]
+                .iter()
+                .map(|&(ox, oy)| {
+                    let q = Point2::new(cx + ox, cy + oy);
+                    let found = s.views[v].expect("in the family").apply(q).expect("finite");
+                    (found - c.planes[v][p].apply(q).expect("finite")).norm()
+                })
+                .fold(0.0, f64::max)
+        };
+        let slabs = c.planes[0].len();
+        for s in &four {
+            // The slab the old views place this surface on.
+            let (p, old) = (1..slabs)
+                .map(|p| {
+                    (p, (0..3).filter(|&v| s.views[v].is_some()).map(|v| off(s, v, p)).fold(0.0, f64::max))
+                })
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .expect("slabs");
+            assert!(old < 2.0, "the old views place {:?} {old:.2} px off slab {p}", s.region);
+            let new = off(s, 3, p);
+            assert!(
+                new < 2.0,
+                "the new view places {:?} {new:.2} px off slab {p} (the old {old:.2})",
+                s.region
+            );
         }
     }
 
