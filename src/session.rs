@@ -434,6 +434,8 @@ pub struct Session {
     /// The current result over the mask's region, as published (8-bit) but before the
     /// fusion ([`inpaint::Filled::judged_image`]): the next fill judges it on its own views.
     result: Option<Rgb8>,
+    /// The current result was filled through surfaces off the wall ([`inpaint::fill_swept`]).
+    result_swept: bool,
     best: Option<f64>,
     dirty: bool,
     admitted_since_fill: usize,
@@ -450,6 +452,7 @@ impl Session {
             provenance: None,
             confidence: None,
             result: None,
+            result_swept: false,
             best: None,
             dirty: false,
             admitted_since_fill: 0,
@@ -985,6 +988,7 @@ impl Session {
             whole: Some((key.rgb.width(), key.rgb.height())),
             occluders,
             own: own.as_deref(),
+            rival_swept: self.result_swept,
             ..inpaint::FillExtras::default()
         };
         // The surfaces are swept on the whole keyframe, as `clearview fill` sweeps them (the
@@ -1025,6 +1029,7 @@ impl Session {
             observer,
         );
         let surfaces = self.params.sweep.is_some().then(|| swept.report(&mask_region, (region.x, region.y)));
+        let through_surfaces = swept.used;
         let filled = swept.filled;
         drop((sources, own));
         for ((&i, m), o) in used.iter().zip(memo).zip(own_memo) {
@@ -1077,6 +1082,7 @@ impl Session {
             // candidate's copies are compared with copies.
             let judged = filled.judged_image();
             self.best = Some(score);
+            self.result_swept = through_surfaces;
             self.provenance = Some(filled.provenance);
             self.confidence = Some(filled.deciding);
             let mut full = key.rgb.clone();

@@ -428,6 +428,10 @@ pub struct FillExtras<'a> {
     /// and these sources, found already ([`own_occluders_memo`]: a session keeps them from
     /// one fill to the next): used where [`FillParams::own`] would find them.
     pub own: Option<&'a [Option<&'a Mask>]>,
+    /// `rival` was filled through surfaces off the wall ([`fill_swept`]): the surfaces then
+    /// stay unless the walls' fill is clearly better, so that a near tie does not flip a
+    /// session's result between the two from one view to the next.
+    pub rival_swept: bool,
 }
 
 /// A filled keyframe: the image, where each pixel came from, how sure the fill is of it,
