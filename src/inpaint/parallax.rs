@@ -495,10 +495,11 @@ pub fn swept_planes(
 /// in order) and taken from it where they are there: the same keyframe, mask and view give
 /// the same matches, so a session that fills again with one more view matches only that
 /// one. With [`SweepParams::keep_family`], `memo` keeps each view's place in the family the
-/// sweep settled on as well, and the next sweep starts from it ([`Sweep::kept`]): a session's
-/// views are not tied and found again at every fill (at 12 MP with 9 views that was two
-/// thirds of the sweep), and a new view joins at the depths they voted for. The one-shot
-/// command sweeps once, with fresh entries: as [`swept_planes`]. `view(v)` gives view `v`'s luminance, asked for only where its matches are not in
+/// sweep settled on as well, and the next sweep starts from it ([`Sweep::kept`]): a
+/// session's views are not tied and found again at every fill (at 12 MP with 9 views that
+/// was two thirds of the sweep), and a new view joins at the depths they voted for. The
+/// one-shot command sweeps once, with fresh entries: as [`swept_planes`]. `view(v)` gives
+/// view `v`'s luminance, asked for only where its matches are not in
 /// `memo` and, for every view, once the views show parallax (the sweep itself). The
 /// caller clears an entry whose keyframe, mask or view changed. `stop` is asked between
 /// the steps (the keyframe's corners matched in the views, the grid beside the mask
@@ -2941,9 +2942,7 @@ mod tests {
     #[test]
     fn a_kept_family_takes_a_new_view_in_at_the_surfaces_true_depth() {
         let params = SweepParams::default();
-        let c = crate::synth::facade::parallax_case(640, 480, 4, 3, false);
-        let key = crate::imaging::convert::luminance(&c.key);
-        let grays: Vec<GrayF32> = c.views.iter().map(crate::imaging::convert::luminance).collect();
+        let (c, key, grays) = seed3_luminance(640, 480, 4);
         let walls = c.wall();
         let view = |v: usize| grays[v].clone();
         let stay = &|| false;
@@ -3008,9 +3007,7 @@ mod tests {
     fn a_stopped_sweep_finds_nothing_and_keeps_its_matches() {
         use std::cell::Cell;
         let params = SweepParams::default();
-        let c = crate::synth::facade::parallax_case(640, 480, 3, 3, false);
-        let key = crate::imaging::convert::luminance(&c.key);
-        let grays: Vec<GrayF32> = c.views.iter().map(crate::imaging::convert::luminance).collect();
+        let (c, key, grays) = seed3_luminance(640, 480, 3);
         let walls = c.wall();
         let view = |v: usize| grays[v].clone();
         let asked = Cell::new(0);
@@ -3038,11 +3035,15 @@ mod tests {
         }
     }
 
-    /// Parallax seed 3 (`synth::facade::parallax_case`, three views) at `w × h`, with the
+    /// Parallax seed 3 (`synth::facade::parallax_case`, `n` views) at `w × h`, with the
     /// keyframe's and the views' luminance.
-    fn seed3_luminance(w: usize, h: usize) -> (crate::synth::facade::ParallaxCase, GrayF32, Vec<GrayF32>) {
+    fn seed3_luminance(
+        w: usize,
+        h: usize,
+        n: usize,
+    ) -> (crate::synth::facade::ParallaxCase, GrayF32, Vec<GrayF32>) {
         use crate::imaging::convert::luminance;
-        let c = crate::synth::facade::parallax_case(w, h, 3, 3, false);
+        let c = crate::synth::facade::parallax_case(w, h, n, 3, false);
         let key = luminance(&c.key);
         let grays = c.views.iter().map(luminance).collect();
         (c, key, grays)
@@ -3052,7 +3053,7 @@ mod tests {
     /// and the family is what the corners give: none, here, with no corner outside the mask.
     #[test]
     fn a_mask_over_the_whole_frame_gives_an_empty_grid_and_the_corners_answer() {
-        let (c, key, grays) = seed3_luminance(320, 240);
+        let (c, key, grays) = seed3_luminance(320, 240, 3);
         let refs: Vec<&GrayF32> = grays.iter().collect();
         let walls = c.wall();
         let full = Mask::new(320, 240, 255);
@@ -3090,7 +3091,7 @@ mod tests {
     #[test]
     fn a_view_its_corners_give_no_epipole_is_matched_again_beside_the_mask() {
         use crate::geometry::planes::gamma_of;
-        let (c, key, grays) = seed3_luminance(640, 480);
+        let (c, key, grays) = seed3_luminance(640, 480, 3);
         let refs: Vec<&GrayF32> = grays.iter().collect();
         let walls = c.wall();
         let family = |dense_step: usize| {

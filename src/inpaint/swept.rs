@@ -110,7 +110,9 @@ pub fn sweep_surfaces<P: RgbPixel>(
 /// homographies, and through the surfaces. Each fill agrees best with the evidence it was
 /// made from, so neither judgement alone can tell; the surfaces are kept when their fill
 /// gains more under the surfaces' evidence than it loses under the walls', by more than
-/// [`FillParams::select_margin`]. A surface that is there lines the views up and gains much;
+/// [`FillParams::select_margin`] (where the rival was filled through surfaces, unless they
+/// lose by more than it: [`FillExtras::rival_swept`]). A surface that is there lines the
+/// views up and gains much;
 /// one that is not (a label carried into the wall where a view it lacks shows an occluder, a
 /// repeat of texture) gains little and loses where it moved the wall's lines (BENCHMARKS.md,
 /// "Parallax").
@@ -233,6 +235,17 @@ mod tests {
         assert_eq!(levels_for(4000, 3000, budget), 3);
     }
 
+    /// The fill of case `c` through `planes` (seed 7).
+    fn through_planes(
+        c: &crate::synth::facade::ParallaxCase,
+        sources: &[Source<'_>],
+        planes: &[SurfacePlane],
+        params: &FillParams,
+    ) -> Filled {
+        let extras = FillExtras { planes, ..FillExtras::default() };
+        fill_with(&c.key, &c.mask, sources, &extras, params, 7, &mut ())
+    }
+
     /// A near tie keeps what the current result was filled through: with the judge's margin
     /// set above the surfaces' gain, the walls' fill is taken when the rival was filled
     /// through the walls (or there is none), and the surfaces when it was filled through
@@ -246,15 +259,7 @@ mod tests {
             c.views.iter().zip(&walls).map(|(image, &homography)| Source { image, homography }).collect();
         let none = FillExtras::default();
         let params = FillParams::default();
-        let through = fill_with(
-            &c.key,
-            &c.mask,
-            &sources,
-            &FillExtras { planes: &planes, ..none },
-            &params,
-            7,
-            &mut (),
-        );
+        let through = through_planes(&c, &sources, &planes, &params);
         let wall = fill_with(&c.key, &c.mask, &sources, &none, &params, 7, &mut ());
         let gain =
             judge(&c.key, &c.mask, &sources, &none, &params, 7, &mut Quiet(&()), &through, &wall, &planes);
@@ -287,15 +292,7 @@ mod tests {
             let params = FillParams { judge_max_pixels: budget, ..FillParams::default() };
             let swept = fill_swept(&c.key, &c.mask, &sources, &none, &params, planes.clone(), 7, &mut ());
             assert!(swept.used, "budget {budget}: the true surfaces are chosen");
-            let direct = fill_with(
-                &c.key,
-                &c.mask,
-                &sources,
-                &FillExtras { planes: &planes, ..none },
-                &params,
-                7,
-                &mut (),
-            );
+            let direct = through_planes(&c, &sources, &planes, &params);
             assert_eq!((swept.filled.image.width(), swept.filled.image.height()), (640, 480));
             assert!(
                 swept.filled.image.as_slice() == direct.image.as_slice(),
