@@ -538,34 +538,37 @@ pub fn swept_planes_memo(
         surfaces = from_kept.as_ref().map(|s| s.planes.len()),
         "the sweep from the kept family (surfaces: None when it swept afresh)"
     );
+    // The family to start the next sweep from, or (`Err`) the surfaces of a sweep that
+    // settled on none.
     let settled = match from_kept {
-        Some(settled) => Some(settled),
+        Some(settled) => Ok(settled),
         None => match s.joint(&own) {
             // Rejoined: the family the next sweep starts from.
             Some((family, None)) => {
                 let votes = s.votes(&family);
                 let planes = s.surfaces_of(&family, &votes);
-                Some(Settled { family, planes, votes: votes.list() })
+                Ok(Settled { family, planes, votes: votes.list() })
             }
             // The tie's family found nothing to rejoin for (or rejoining is off): the next
             // sweep ties afresh.
-            Some((_, Some(planes))) => {
-                memo.iter_mut().for_each(|m| m.joined = None);
-                return planes;
-            }
-            None => None,
+            Some((_, Some(planes))) => Err(planes),
+            None => Err(Vec::new()),
         },
     };
-    let Some(Settled { family, planes, votes }) = settled else {
-        memo.iter_mut().for_each(|m| m.joined = None);
-        return Vec::new();
-    };
-    let votes = Arc::new(votes);
-    for (v, m) in memo.iter_mut().enumerate() {
-        let member = family.epipoles[v].map(|e| (e, family.observed[v].clone()));
-        m.joined = Some(Place { member, votes: Arc::clone(&votes) });
+    match settled {
+        Ok(Settled { family, planes, votes }) => {
+            let votes = Arc::new(votes);
+            for (v, m) in memo.iter_mut().enumerate() {
+                let member = family.epipoles[v].map(|e| (e, family.observed[v].clone()));
+                m.joined = Some(Place { member, votes: Arc::clone(&votes) });
+            }
+            planes
+        }
+        Err(planes) => {
+            memo.iter_mut().for_each(|m| m.joined = None);
+            planes
+        }
     }
-    planes
 }
 
 /// A view's place in the family a sweep settled on ([`ViewMatches`]).
