@@ -179,8 +179,8 @@ pub struct SourceReport {
     /// Whether the result was made from this source; one the choice kept out is still a
     /// witness ([`FillParams::select_views`]).
     pub joined: bool,
-    /// The largest local shift ([`FillParams::local_shift`]) this source was moved by
-    /// around a hole, in keyframe pixels (0: none).
+    /// The most the local shift ([`FillParams::local_shift`], refined) moved a point of a
+    /// hole's part of this source, in keyframe pixels (0: none).
     pub shift_px: f64,
 }
 
@@ -331,9 +331,9 @@ pub struct FillParams {
     /// judged at 1000 × 750 for 2.5 s more and no better (BENCHMARKS.md, "The judge at a
     /// third of a megapixel").
     pub judge_max_pixels: usize,
-    /// Around each hole, each view moved by the shift that best brings it onto the
-    /// keyframe's own pixels there, when that shift makes them clearly more alike
-    /// ([`shift::local_shift`]): one homography cannot hold a curved or stepped facade.
+    /// Around each hole, each view moved by the shift, then the small homography, that best
+    /// brings it onto the keyframe's own pixels there, when that makes them clearly more
+    /// alike ([`shift::local_shift`]): one homography cannot hold a curved or stepped facade.
     pub local_shift: Option<ShiftParams>,
     /// After the views are chosen, each pixel copied from a view takes in the other views'
     /// colours there as far as the ring around its hole shows that their errors are
@@ -588,7 +588,7 @@ pub fn fill_with<P: RgbPixel>(
             .zip(&mut report.sources)
             .map(|((s, shift), r)| match shift {
                 Some(sh) => {
-                    r.shift_px = r.shift_px.max(sh.d.0.hypot(sh.d.1));
+                    r.shift_px = r.shift_px.max(sh.moved_px);
                     sh.apply(&s.homography)
                 }
                 None => s.homography,
