@@ -397,9 +397,10 @@ fn refine<P: RgbPixel>(
     let n = Matrix3::new(1.0 / s, 0.0, -c.x / s, 0.0, 1.0 / s, -c.y / s, 0.0, 0.0, 1.0);
     let hm = *source.homography.matrix();
     let m = hm * n_inv;
-    // The view's luminance over the band's footprint (and some room to move).
+    // The view's luminance over the band's footprint, with room to move (`reach` and the
+    // gradient's taps, in keyframe pixels, as the view's scale there makes them).
     let view = source.image;
-    let pad = rp.reach + 4.0;
+    let pad = (rp.reach + 4.0) * source.homography.area_scale(c).abs().sqrt().max(1.0);
     let (mut x0, mut y0, mut x1, mut y1) =
         (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
     for b in &band.pixels {
@@ -660,6 +661,25 @@ mod tests {
         // Without the rule, the right side's gain would move the whole view.
         let loose = ShiftParams { side_slack: 1.0, ..p };
         assert!(shift_of(&key, &view, None, &loose).is_some());
+    }
+
+    /// A step in depth across the hole (the right half of the band 3 px off: a pier) is not
+    /// bent into a ramp: the ramp would raise the band's correlation, and costs the flat
+    /// sides. Without the per-side rule the ramp is taken.
+    #[test]
+    fn a_step_in_depth_is_not_bent_into_a_ramp() {
+        let (w, h) = (160, 130);
+        let key = scene(w, h, 0.0, 0.0);
+        let off = scene(w, h, -3.0, 0.0);
+        let view = Plane::from_fn(w, h, |x, y| if x >= 80 { off.get(x, y) } else { key.get(x, y) });
+        let p = ShiftParams::default();
+        assert_eq!(shift_of(&key, &view, None, &p), None);
+        let rp = p.refine.clone().expect("refined by default");
+        let loose = ShiftParams { refine: Some(RefineParams { side_slack: 1.0, ..rp }), ..p };
+        let ramp = shift_of(&key, &view, None, &loose).expect("a ramp without the rule");
+        // A ramp: the map stretches the hole along x (a shift would not).
+        let m = ramp.correction.matrix();
+        assert!(m[(0, 0)] / m[(2, 2)] > 1.01, "{ramp:?}");
     }
 
     #[test]
