@@ -648,14 +648,21 @@ mod tests {
         assert_eq!(got, None);
     }
 
-    #[test]
-    fn a_hole_with_another_depth_on_one_side_is_not_shifted() {
+    /// A keyframe, and a view of it whose right half (x ≥ 80, through the hole) is `step` px
+    /// off: a pier standing out of the wall.
+    fn stepped(step: f64) -> (RgbF32, RgbF32) {
         let (w, h) = (160, 130);
         let key = scene(w, h, 0.0, 0.0);
+        let off = scene(w, h, -step, 0.0);
+        let view = Plane::from_fn(w, h, |x, y| if x >= 80 { off.get(x, y) } else { key.get(x, y) });
+        (key, view)
+    }
+
+    #[test]
+    fn a_hole_with_another_depth_on_one_side_is_not_shifted() {
         // Left of the hole the view is in place (the wall); right of it, 2 px off (a pier
         // standing out of the wall): no one shift holds both sides.
-        let off = scene(w, h, -2.0, 0.0);
-        let view = Plane::from_fn(w, h, |x, y| if x >= 80 { off.get(x, y) } else { key.get(x, y) });
+        let (key, view) = stepped(2.0);
         let p = ShiftParams::default();
         assert_eq!(shift_of(&key, &view, None, &p), None);
         // Without the rule, the right side's gain would move the whole view.
@@ -668,10 +675,7 @@ mod tests {
     /// sides. Without the per-side rule the ramp is taken.
     #[test]
     fn a_step_in_depth_is_not_bent_into_a_ramp() {
-        let (w, h) = (160, 130);
-        let key = scene(w, h, 0.0, 0.0);
-        let off = scene(w, h, -3.0, 0.0);
-        let view = Plane::from_fn(w, h, |x, y| if x >= 80 { off.get(x, y) } else { key.get(x, y) });
+        let (key, view) = stepped(3.0);
         let p = ShiftParams::default();
         assert_eq!(shift_of(&key, &view, None, &p), None);
         let rp = p.refine.clone().expect("refined by default");
