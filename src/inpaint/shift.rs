@@ -129,7 +129,7 @@ fn luma(p: [f32; 3]) -> f64 {
 /// outside every hole of `mask`, evenly thinned to at most `params.max_samples` pixels.
 fn band_pixels(mask: &Mask, hole: &Plane<bool>, rect: Rect, params: &ShiftParams) -> Vec<(usize, usize)> {
     let (w, h) = (mask.width(), mask.height());
-    let outer = grown(rect, params.gap + params.band, w, h);
+    let outer = rect.grown(params.gap + params.band, w, h);
     let (ox, oy) = (rect.x - outer.x, rect.y - outer.y);
     let own = Plane::from_fn(outer.width, outer.height, |x, y| {
         x >= ox && y >= oy && x - ox < rect.width && y - oy < rect.height && hole.get(x - ox, y - oy)
@@ -147,17 +147,6 @@ fn band_pixels(mask: &Mask, hole: &Plane<bool>, rect: Rect, params: &ShiftParams
     }
     let stride = out.len().div_ceil(params.max_samples.max(1)).max(1);
     out.into_iter().step_by(stride).collect()
-}
-
-/// `rect` grown by `by` on every side, clipped to a `w × h` image.
-fn grown(rect: Rect, by: usize, w: usize, h: usize) -> Rect {
-    let (x, y) = (rect.x.saturating_sub(by), rect.y.saturating_sub(by));
-    Rect {
-        x,
-        y,
-        width: (rect.x + rect.width + by).min(w) - x,
-        height: (rect.y + rect.height + by).min(h) - y,
-    }
 }
 
 /// Whether any of the 2×2 pixels a bilinear sample at `(x, y)` reads is marked.
@@ -194,13 +183,13 @@ pub struct ShiftBand {
 impl ShiftBand {
     /// The band around `hole` (a part's hole pixels, `rect`-sized) of keyframe `key`.
     pub fn new(key: &RgbF32, mask: &Mask, hole: &Plane<bool>, rect: Rect, params: &ShiftParams) -> Self {
-        let (cx, cy) = (rect.x as f64 + 0.5 * rect.width as f64, rect.y as f64 + 0.5 * rect.height as f64);
+        let c = centre(rect);
         let positions = band_pixels(mask, hole, rect, params);
         // The keyframe blurred as the refinement's first level sees the view (its own
         // neighbourhood: the blur reaches past the band, not into the hole's content, which
         // the band never nears by less than `gap`).
         let blurred = params.refine.as_ref().filter(|_| !positions.is_empty()).map(|rp| {
-            let outer = grown(rect, params.gap + params.band + 8, key.width(), key.height());
+            let outer = rect.grown(params.gap + params.band + 8, key.width(), key.height());
             let lum = GrayF32::from_fn(outer.width, outer.height, |x, y| {
                 luma(key.get(outer.x + x, outer.y + y)) as f32
             });
@@ -209,7 +198,7 @@ impl ShiftBand {
         let pixels = positions
             .into_iter()
             .map(|(x, y)| {
-                let side = usize::from(x as f64 >= cx) + 2 * usize::from(y as f64 >= cy);
+                let side = usize::from(x as f64 >= c.x) + 2 * usize::from(y as f64 >= c.y);
                 let k = luma(key.get(x, y));
                 let blurred = blurred.as_ref().map_or(k, |(o, b)| f64::from(b.get(x - o.x, y - o.y)));
                 BandPixel { x, y, side, k, blurred }
@@ -319,7 +308,7 @@ pub fn local_shift<P: RgbPixel>(
             ncc_after: after,
         });
     let refined = params.refine.as_ref().and_then(|rp| {
-        let correction = refine(band, source, occluders, (dx, dy), rp)?;
+        let correction = refine(band, source, occluders, (dx, dy), counts.0, rp)?;
         let h = source.homography.after(&correction);
         let (z, sides) = band_ncc(band, view, occluders, counts, |i| {
             h.matrix() * Vector3::new(band.pixels[i].x as f64, band.pixels[i].y as f64, 1.0)
@@ -380,13 +369,15 @@ fn farthest(a: &Homography, b: &Homography, r: Rect) -> f64 {
 /// The homography `A` (keyframe → keyframe, near the translation `start`) for which the
 /// view seen through `H·A` correlates best with the keyframe over the band: the enhanced
 /// correlation coefficient's iterations (Evangelidis and Psarakis, 2008), on the band and
-/// view blurred, then sharp. `None` when it cannot be fitted (too little seen, a flat band,
-/// or the fit running away).
+/// view blurred, then sharp. `None` when it cannot be fitted (fewer than `need` band
+/// pixels seen, a flat band, or the fit diverging); how far it may move is the caller's
+/// to judge.
 fn refine<P: RgbPixel>(
     band: &ShiftBand,
     source: &Source<'_, P>,
     occluders: Option<&Mask>,
     start: (f64, f64),
+    need: usize,
     rp: &RefineParams,
 ) -> Option<Homography> {
     let r = band.rect;
@@ -423,7 +414,6 @@ fn refine<P: RgbPixel>(
     let mut p = [0.0, 0.0, start.0 / s, 0.0, 0.0, start.1 / s, 0.0, 0.0];
     let correction =
         |p: &[f64; 8]| Matrix3::new(1.0 + p[0], p[1], p[2], p[3], 1.0 + p[4], p[5], p[6], p[7], 1.0);
-    let need = ((band.pixels.len() as f64 * 0.3).ceil() as usize).max(64);
     for (level, image) in [(0, &soft), (1, &sharp)] {
         for _ in 0..rp.iterations {
             let cm = correction(&p);
@@ -470,9 +460,7 @@ fn refine<P: RgbPixel>(
             }
         }
     }
-    let a = n_inv * correction(&p) * n;
-    let a = Homography::from_matrix(a)?;
-    (farthest(&a, &Homography::translation(start.0, start.1), r) <= 4.0 * rp.reach).then_some(a)
+    Homography::from_matrix(n_inv * correction(&p) * n)
 }
 
 /// One step of the enhanced correlation coefficient's maximisation: per sample the
