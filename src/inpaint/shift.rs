@@ -231,21 +231,11 @@ impl ShiftBand {
     }
 }
 
-/// The correlation of the keyframe's band with `view` seen through `map` (keyframe pixel →
-/// homogeneous view point), over the whole band and over each side (`None` for a side with
-/// fewer than `per_side` pixels seen); `None` when fewer than `need` pixels are seen.
+/// The correlation of the keyframe's band (the pixels `which` takes) with `view` seen
+/// through `map` (band pixel index → homogeneous view point), over those pixels and over
+/// each side (`None` for a side with fewer than `per_side` pixels seen); `None` when fewer
+/// than `need` pixels are seen.
 fn band_ncc<P: RgbPixel>(
-    band: &ShiftBand,
-    view: &Plane<P>,
-    occluders: Option<&Mask>,
-    (need, per_side): (usize, usize),
-    map: impl Fn(usize) -> Vector3<f64>,
-) -> Option<(f64, [Option<f64>; SIDES])> {
-    band_ncc_of(band, view, occluders, (need, per_side), map, |_| true)
-}
-
-/// [`band_ncc`] over the band pixels `which` takes.
-fn band_ncc_of<P: RgbPixel>(
     band: &ShiftBand,
     view: &Plane<P>,
     occluders: Option<&Mask>,
@@ -303,7 +293,8 @@ pub fn local_shift<P: RgbPixel>(
         band.pixels.iter().map(|b| m * Vector3::new(b.x as f64, b.y as f64, 1.0)).collect();
     let need = ((band.pixels.len() as f64 * params.min_seen).ceil() as usize).max(64);
     let counts = (need, (need / 8).max(32));
-    let ncc = |dx: f64, dy: f64| band_ncc(band, view, occluders, counts, |i| hx[i] + c0 * dx + c1 * dy);
+    let ncc =
+        |dx: f64, dy: f64| band_ncc(band, view, occluders, counts, |i| hx[i] + c0 * dx + c1 * dy, |_| true);
     let (before, sides_before) = ncc(0.0, 0.0)?;
     let mut best = (before, 0.0, 0.0);
     let steps = (params.reach / params.step).round() as i64;
@@ -348,9 +339,7 @@ pub fn local_shift<P: RgbPixel>(
     let refined = params.refine.as_ref().and_then(|rp| {
         let correction = refine(band, source, occluders, (dx, dy), counts.0, rp, &|_| true)?;
         let h = source.homography.after(&correction);
-        let (z, sides) = band_ncc(band, view, occluders, counts, |i| {
-            h.matrix() * Vector3::new(band.pixels[i].x as f64, band.pixels[i].y as f64, 1.0)
-        })?;
+        let (z, sides) = band_ncc(band, view, occluders, counts, through(band, &h), |_| true)?;
         let base = shifted.map_or(Homography::identity(), |s| s.correction);
         let (gained, moved) =
             (z - shifted.map_or(before, |s| s.ncc_after), farthest(&correction, &base, band.rect));
@@ -405,25 +394,28 @@ fn foretells_inner<P: RgbPixel>(
     rigid: &Homography,
     slack: f64,
 ) -> bool {
-    let through = |h: Homography| {
-        let m = *h.matrix();
-        move |i: usize| m * Vector3::new(band.pixels[i].x as f64, band.pixels[i].y as f64, 1.0)
-    };
     let inner = |b: &BandPixel| b.inner;
     let counts = (need / 4, per_side / 2);
-    let Some((_, before)) = band_ncc_of(band, source.image, occluders, counts, through(*rigid), inner) else {
+    let Some((_, before)) = band_ncc(band, source.image, occluders, counts, through(band, rigid), inner)
+    else {
         return true;
     };
     let outer = |b: &BandPixel| !b.inner;
     let Some(fitted) = refine(band, source, occluders, start, need / 2, rp, &outer) else { return false };
     let h = source.homography.after(&fitted);
-    let Some((_, after)) = band_ncc_of(band, source.image, occluders, counts, through(h), inner) else {
+    let Some((_, after)) = band_ncc(band, source.image, occluders, counts, through(band, &h), inner) else {
         return false;
     };
     before.iter().zip(&after).all(|(b, a)| match (b, a) {
         (Some(b), Some(a)) => *a >= b - slack,
         _ => true,
     })
+}
+
+/// Band pixel index → its homogeneous point in the view `h` maps the keyframe to.
+fn through<'a>(band: &'a ShiftBand, h: &Homography) -> impl Fn(usize) -> Vector3<f64> + 'a {
+    let m = *h.matrix();
+    move |i| m * Vector3::new(band.pixels[i].x as f64, band.pixels[i].y as f64, 1.0)
 }
 
 fn centre(r: Rect) -> Point2<f64> {
