@@ -337,7 +337,7 @@ pub fn local_shift<P: RgbPixel>(
             ncc_after: after,
         });
     let refined = params.refine.as_ref().and_then(|rp| {
-        let correction = refine(band, source, occluders, (dx, dy), counts.0, rp, &|_| true)?;
+        let correction = refine(band, source, occluders, (dx, dy), counts.0, rp, |_| true)?;
         let h = source.homography.after(&correction);
         let (z, sides) = band_ncc(band, view, occluders, counts, through(band, &h), |_| true)?;
         let base = shifted.map_or(Homography::identity(), |s| s.correction);
@@ -401,7 +401,7 @@ fn foretells_inner<P: RgbPixel>(
         return true;
     };
     let outer = |b: &BandPixel| !b.inner;
-    let Some(fitted) = refine(band, source, occluders, start, need / 2, rp, &outer) else { return false };
+    let Some(fitted) = refine(band, source, occluders, start, need / 2, rp, outer) else { return false };
     let h = source.homography.after(&fitted);
     let Some((_, after)) = band_ncc(band, source.image, occluders, counts, through(band, &h), inner) else {
         return false;
@@ -444,9 +444,9 @@ fn farthest(a: &Homography, b: &Homography, r: Rect) -> f64 {
 /// The homography `A` (keyframe → keyframe, near the translation `start`) for which the
 /// view seen through `H·A` correlates best with the keyframe over the band: the enhanced
 /// correlation coefficient's iterations (Evangelidis and Psarakis, 2008), on the band (the
-/// pixels `fit_on` takes) and view blurred, then sharp. `None` when it cannot be fitted (fewer than `need` band
-/// pixels seen, a flat band, or the fit diverging); how far it may move is the caller's
-/// to judge.
+/// pixels `fit_on` takes) and view blurred, then sharp. `None` when it cannot be fitted
+/// (fewer than `need` band pixels seen, a flat band, or the fit diverging); how far it may
+/// move is the caller's to judge.
 fn refine<P: RgbPixel>(
     band: &ShiftBand,
     source: &Source<'_, P>,
@@ -454,7 +454,7 @@ fn refine<P: RgbPixel>(
     start: (f64, f64),
     need: usize,
     rp: &RefineParams,
-    fit_on: &dyn Fn(&BandPixel) -> bool,
+    fit_on: impl Fn(&BandPixel) -> bool,
 ) -> Option<Homography> {
     let r = band.rect;
     // Keyframe pixels normalised over the part's box (a well-conditioned fit): u = (x − c)/s.
@@ -770,8 +770,7 @@ mod tests {
         let board = rect.grown(14, w, h);
         let c = centre(rect);
         let view = Plane::from_fn(w, h, |x, y| {
-            if (board.x..board.x + board.width).contains(&x) && (board.y..board.y + board.height).contains(&y)
-            {
+            if board.contains(x, y) {
                 key.get(x, y)
             } else {
                 // The wall: keyframe point p is seen at c + 1.04·(p − c).
