@@ -5,14 +5,18 @@ mean difference. A change to the fill is judged on the whole set, not on the cas
 for: the cases it loses more than 0.3 dB on are marked `<<`, those it gains on `>>`.
 
 Cases: folders with key.png, mask.png, truth.png and view-1.png.. (`service_cases`,
-`fill_cases`). A binary may be a wrapper script (to set an environment variable).
+`fill_cases`). A binary may be a wrapper script (to set an environment variable). The views
+are given in their numbers' order; `BIN@reversed` gives them to BIN the other way round, and
+`BIN@shuffled:K` in an order shuffled by seed K and the case's path (the same every run).
 Usage:
     bench/.venv/bin/python bench/fill_ab.py BIN1,BIN2[,...] CASE [CASE...] [--jobs 2]
 """
 import argparse
 import pathlib
+import random
 import subprocess
 import tempfile
+import zlib
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
@@ -27,6 +31,21 @@ def views_of(case):
     return sorted(case.glob("view-*.png"), key=lambda p: int(p.stem.split("-")[1]))
 
 
+def in_order(views, order):
+    """The views as `order` (a binary's `@` suffix) gives them: as numbered, reversed or
+    shuffled by a seed and the case's path."""
+    if order is None:
+        return views
+    if order == "reversed":
+        return views[::-1]
+    if order.startswith("shuffled:"):
+        out = list(views)
+        seed = int(order.split(":", 1)[1]) * 1000003 + zlib.crc32(str(views[0].parent).encode())
+        random.Random(seed).shuffle(out)
+        return out
+    raise SystemExit(f"unknown order {order!r}: reversed or shuffled:K")
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("binaries")
@@ -38,9 +57,11 @@ def main():
 
     def run(job):
         k, b, case = job
+        b, _, order = b.partition("@")
         out = work / f"{case.parent.name}_{case.name}_{k}.png"
         cmd = [b, "fill", "--keyframe", str(case / "key.png"), "--mask", str(case / "mask.png"), "--out", str(out)]
-        if subprocess.run(cmd + [str(v) for v in views_of(case)], capture_output=True).returncode != 0:
+        views = in_order(views_of(case), order or None)
+        if subprocess.run(cmd + [str(v) for v in views], capture_output=True).returncode != 0:
             return float("nan")
         mask = load(case / "mask.png", cv2.IMREAD_GRAYSCALE) > 127
         return masked_psnr(load(out), load(case / "truth.png"), mask)
