@@ -31,19 +31,26 @@ def views_of(case):
     return sorted(case.glob("view-*.png"), key=lambda p: int(p.stem.split("-")[1]))
 
 
-def in_order(views, order):
-    """The views as `order` (a binary's `@` suffix) gives them: as numbered, reversed or
-    shuffled by a seed and the case's path."""
-    if order is None:
-        return views
+def parse_order(spec):
+    """A binary's `@` suffix: None (as numbered), "reversed", or the seed K of "shuffled:K";
+    anything else stops the run before any case is filled."""
+    if spec in ("", "reversed"):
+        return spec or None
+    kind, _, seed = spec.partition(":")
+    if kind == "shuffled" and seed.isdigit():
+        return int(seed)
+    raise SystemExit(f"unknown order @{spec}: give @reversed or @shuffled:K (K a whole number)")
+
+
+def views_in(case, order):
+    """The case's views in `order` (`parse_order`): as numbered, reversed, or shuffled by
+    the seed and the case's path (the same every run)."""
+    views = views_of(case)
     if order == "reversed":
         return views[::-1]
-    if order.startswith("shuffled:"):
-        out = list(views)
-        seed = int(order.split(":", 1)[1]) * 1000003 + zlib.crc32(str(views[0].parent).encode())
-        random.Random(seed).shuffle(out)
-        return out
-    raise SystemExit(f"unknown order {order!r}: reversed or shuffled:K")
+    if isinstance(order, int):
+        random.Random(order * 1000003 + zlib.crc32(str(case).encode())).shuffle(views)
+    return views
 
 
 def main():
@@ -52,16 +59,14 @@ def main():
     ap.add_argument("cases", nargs="+", type=pathlib.Path)
     ap.add_argument("--jobs", type=int, default=2)
     args = ap.parse_args()
-    binaries = args.binaries.split(",")
+    binaries = [(b, parse_order(spec)) for b, _, spec in (x.partition("@") for x in args.binaries.split(","))]
     work = pathlib.Path(tempfile.mkdtemp(prefix="fill-ab-"))
 
     def run(job):
-        k, b, case = job
-        b, _, order = b.partition("@")
+        k, (b, order), case = job
         out = work / f"{case.parent.name}_{case.name}_{k}.png"
         cmd = [b, "fill", "--keyframe", str(case / "key.png"), "--mask", str(case / "mask.png"), "--out", str(out)]
-        views = in_order(views_of(case), order or None)
-        if subprocess.run(cmd + [str(v) for v in views], capture_output=True).returncode != 0:
+        if subprocess.run(cmd + [str(v) for v in views_in(case, order)], capture_output=True).returncode != 0:
             return float("nan")
         mask = load(case / "mask.png", cv2.IMREAD_GRAYSCALE) > 127
         return masked_psnr(load(out), load(case / "truth.png"), mask)
