@@ -5,7 +5,8 @@
 //!
 //! `cargo run --release --example automask_eval -- [--seeds N] [--first SEED] [--size WxH] [--views 2,3,4]
 //!  [--families planar,shared,nonplanar] [--align] [--dump DIR (masks, fills, keyframe, truth, views)] [--parallax N] [--colour X] [--background X]
-//!  [--sky GRADIENT (0: no sky looked for)] [--reach N (AutoMaskParams::unjudged_reach)]`
+//!  [--sky GRADIENT (0: no sky looked for)] [--reach N (AutoMaskParams::unjudged_reach)]
+//!  [--epipolar SHARE (AutoMaskParams::epipolar_reach; 0: not looked for)]`
 //!
 //! With `--align` the views are aligned as the fill command aligns them (otherwise the true
 //! homographies are used, so that only the mask is judged). The targets: mean IoU
@@ -39,6 +40,7 @@ fn main() {
             "--parallax" => am.parallax_radius = args[i + 1].parse().expect("--parallax N"),
             "--colour" => am.colour_ratio = args[i + 1].parse().expect("--colour X"),
             "--background" => am.background_ratio = args[i + 1].parse().expect("--background X"),
+            "--epipolar" => am.epipolar_reach = args[i + 1].parse().expect("--epipolar SHARE"),
             "--reach" => am.unjudged_reach = args[i + 1].parse().expect("--reach N"),
             "--sky" => am.sky_gradient = args[i + 1].parse().expect("--sky X"),
             "--families" => families = args[i + 1].split(',').map(str::to_owned).collect(),

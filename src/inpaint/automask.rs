@@ -8,14 +8,16 @@
 //! along sharp edges, noise) are opened away, gaps closed, and the result grown a little so
 //! that the fill also replaces the object's soft edge.
 
+use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use super::Source;
+use super::parallax::{SweepParams, parallax_family};
 use crate::geometry::Homography;
-use crate::imaging::convert::luminance;
+use crate::imaging::convert::{luma, luminance};
 use crate::imaging::photometric::{Gain, GainParams, fit_gain};
 use crate::imaging::warp::{Interpolation, Rect, warp};
-use crate::imaging::{Mask, Plane, RgbF32, RgbPixel};
+use crate::imaging::{GrayF32, Mask, Plane, RgbF32, RgbPixel};
 
 /// Parameters of [`auto_mask`].
 #[derive(Debug, Clone, PartialEq)]
@@ -78,6 +80,16 @@ pub struct AutoMaskParams {
     /// with parallax or a slightly imperfect alignment (a pier standing off the wall, the
     /// edge of a window), not an object in front of it.
     pub parallax_radius: usize,
+    /// What stands off the wall (a plinth, the pavement, a pier nearer than the facade) is
+    /// displaced in each view along the line through the view's epipole, by as much as its
+    /// depth says: tens of pixels for the ground in front of a building, far beyond
+    /// `parallax_radius`. Where each of enough views shows the keyframe's patch somewhere on
+    /// that line, within this share of the work image's diagonal (0: not looked for), the
+    /// keyframe shows the scene at another depth, not an occluder: at least `min_views` views,
+    /// and at least half of those that see the pixel. The epipoles come from the keyframe's
+    /// corners matched in the views ([`super::parallax::parallax_family`]); a view without
+    /// one explains nothing.
+    pub epipolar_reach: f32,
     /// The sky is never an occluder: clouds drift between the shots, and the views agree on
     /// a sky the keyframe does not show, but there is no building behind it to bring back
     /// (filled, it came out a patchwork of the views' skies). Sky here is what is smooth and
@@ -118,6 +130,7 @@ impl Default for AutoMaskParams {
             judged_colour_factor: 16.0,
             unjudged_reach: 2,
             parallax_radius: 3,
+            epipolar_reach: 0.12,
             sky_gradient: 0.015,
             sky_luma: 0.35,
             sky_edge: 0.02,
@@ -170,9 +183,10 @@ struct Evidence {
 ///
 /// Stages: (1) each view warped into a reduced keyframe and compensated; (2) per pixel, the
 /// consensus of the views that agree with each other, and the keyframe's distance to it
-/// (strong and weak evidence); (3) strong pixels where the keyframe looks like its own
-/// surroundings and the consensus does not are dropped (the views share an occluder there),
-/// and so is the sky ([`AutoMaskParams::sky_gradient`]), here and after every growth;
+/// (strong and weak evidence), less what the views show moved along their epipolar lines
+/// (the scene off the wall, [`AutoMaskParams::epipolar_reach`]); (3) strong pixels where
+/// the keyframe looks like its own surroundings and the consensus does not are dropped (the
+/// views share an occluder there), and so is the sky ([`AutoMaskParams::sky_gradient`]), here and after every growth;
 /// (4) seeds (strong, opened) grown by hysteresis through the weak pixels connected to them;
 /// (5) closed, holes inside objects filled; (6) back to full size and grown.
 pub fn auto_mask_report<P: RgbPixel>(
@@ -233,6 +247,10 @@ fn auto_mask_excluding<P: RgbPixel>(
         explain_by_own_occluders(&key_b, &warped, &mut ev, params);
     }
     explain_by_parallax(&key_b, &mut ev, params);
+    if params.epipolar_reach > 0.0 {
+        let epipoles = keyframe_epipoles(key, sources, &from_full);
+        explain_by_epipoles(&key_b, &warped, &epipoles, &mut ev, params);
+    }
 
     let sky = sky(&key_b, params);
     let shared = shared_occluders(&key_b, &ev, params);
@@ -599,6 +617,151 @@ fn explain_by_parallax(key: &RgbF32, ev: &mut Evidence, params: &AutoMaskParams)
     for i in explained {
         ev.strong.as_mut_slice()[i] = false;
         ev.weak.as_mut_slice()[i] = true;
+    }
+}
+
+/// Per source, the keyframe's epipole of its view (work resolution, homogeneous; `None`
+/// where the view gives none): in the view warped through its wall, a point off the wall at
+/// keyframe `x` shows at `x + γ·ê` (homogeneous), on the line through `x` and `ê`. With the
+/// view's wall `M` and its epipole `e` ([`crate::geometry::planes::ParallaxFamily`]), `ê = M⁻¹·e`.
+fn keyframe_epipoles<P: RgbPixel>(
+    key: &RgbF32,
+    sources: &[Source<'_, P>],
+    from_full: &Homography,
+) -> Vec<Option<Vector3<f64>>> {
+    let none = vec![None; sources.len()];
+    let gray = luminance(key);
+    let views: Vec<GrayF32> = sources
+        .par_iter()
+        .map(|s| GrayF32::from_fn(s.image.width(), s.image.height(), |x, y| luma(s.image.get(x, y).to_f32())))
+        .collect();
+    let refs: Vec<&GrayF32> = views.iter().collect();
+    let walls: Vec<Homography> = sources.iter().map(|s| s.homography).collect();
+    let nothing = Mask::new(key.width(), key.height(), 0);
+    let Some((family, guided)) =
+        parallax_family(&gray, &refs, &walls, &nothing, &SweepParams::default(), EPIPOLE_SEED)
+    else {
+        return none;
+    };
+    let Some(t_inv) = guided.t.inverse() else { return none };
+    let to_work = *from_full.after(&t_inv).matrix();
+    family.epipoles.iter().zip(&family.walls).map(|(e, m)| Some(to_work * m.try_inverse()? * (*e)?)).collect()
+}
+
+/// The seed of the epipoles' fit in [`keyframe_epipoles`].
+const EPIPOLE_SEED: u64 = 0x5eed_e919;
+
+/// Stage (2c): strong and weak pixels that enough views show moved along their epipolar
+/// lines are the scene at another depth (a plinth, the pavement, a pier standing off the
+/// wall, seen through the wall's homography), not an occluder: they are no evidence of one.
+///
+/// A view explains a pixel when the keyframe's 5×5 patch matches the view's (the views as
+/// warped and compensated) at exactly one run of offsets along the line through the pixel
+/// and the view's keyframe epipole, within [`AutoMaskParams::epipolar_reach`] on either
+/// side: a patch that passes at two places is a repeat (a window among windows, a dark coat
+/// against dark glass), not a position. The pixel is explained when at least
+/// [`AutoMaskParams::min_views`] views and half of those that see it explain it, and its
+/// colour is no likelier among the flagged pixels than among the rest of the keyframe: the
+/// scene off the wall looks like the scene, while a tree every view shows, displaced along
+/// the same lines, keeps its own colours.
+fn explain_by_epipoles(
+    key: &RgbF32,
+    warped: &[(RgbF32, Plane<bool>)],
+    epipoles: &[Option<Vector3<f64>>],
+    ev: &mut Evidence,
+    params: &AutoMaskParams,
+) {
+    let (w, h) = (key.width(), key.height());
+    let reach = (f64::from(params.epipolar_reach) * (w as f64).hypot(h as f64)).round() as isize;
+    if reach < 1 || epipoles.iter().all(Option::is_none) {
+        return;
+    }
+    const HALF: isize = 2;
+    const WINDOW: usize = ((2 * HALF + 1) * (2 * HALF + 1)) as usize;
+    let t2 = params.threshold * params.threshold;
+    let hopeless = t2 * WINDOW as f32;
+    let (wi, hi) = (w as isize, h as isize);
+    let ks = key.as_slice();
+    // The keyframe's window at `(x, y)` against the view's at `(qx, qy)`, over the pixels
+    // inside both where the view sees.
+    let matches = |img: &RgbF32, valid: &Plane<bool>, x: isize, y: isize, qx: isize, qy: isize| {
+        let (is, vs) = (img.as_slice(), valid.as_slice());
+        let (mut sum, mut n) = (0.0f32, 0usize);
+        for oy in -HALF..=HALF {
+            let (py, ry) = (y + oy, qy + oy);
+            if py < 0 || py >= hi || ry < 0 || ry >= hi {
+                continue;
+            }
+            for ox in -HALF..=HALF {
+                let (px, rx) = (x + ox, qx + ox);
+                if px < 0 || px >= wi || rx < 0 || rx >= wi {
+                    continue;
+                }
+                let q = (ry * wi + rx) as usize;
+                if !vs[q] {
+                    continue;
+                }
+                let (a, b) = (ks[(py * wi + px) as usize], is[q]);
+                sum += (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>();
+                n += 1;
+            }
+            if sum > hopeless {
+                return false;
+            }
+        }
+        n * 2 > WINDOW && sum <= t2 * n as f32
+    };
+    // Whether the view `img` shows the keyframe's patch at `(x, y)` at one run of offsets
+    // along the unit direction `(ux, uy)`, from the far end on one side to the far end on
+    // the other (the pixel itself left out: there the views disagree with the keyframe).
+    let unique = |img: &RgbF32, valid: &Plane<bool>, x: isize, y: isize, ux: f64, uy: f64| {
+        let (mut runs, mut previous) = (0usize, false);
+        let mut last = (x, y);
+        for s in -reach..=reach {
+            let q =
+                ((x as f64 + s as f64 * ux).round() as isize, (y as f64 + s as f64 * uy).round() as isize);
+            if q == last {
+                continue;
+            }
+            last = q;
+            let ok = q != (x, y) && matches(img, valid, x, y, q.0, q.1);
+            runs += usize::from(ok && !previous);
+            previous = ok;
+            if runs > 1 {
+                return false;
+            }
+        }
+        runs == 1
+    };
+    let seen: &Evidence = ev;
+    let flagged = dilate(&Plane::from_fn(w, h, |x, y| seen.strong.get(x, y) || seen.weak.get(x, y)), 2);
+    let scene = ColourHistogram::of(key, &flagged);
+    let objects = ColourHistogram::within(key, &Rect::full(w, h), |x, y| flagged.get(x, y));
+    let explained: Vec<usize> = (0..w * h)
+        .into_par_iter()
+        .filter(|&i| seen.strong.as_slice()[i] || seen.weak.as_slice()[i])
+        .filter(|&i| scene.density(ks[i]) >= objects.density(ks[i]))
+        .filter(|&i| {
+            let (x, y) = ((i % w) as isize, (i / w) as isize);
+            let (mut seeing, mut found) = (0usize, 0usize);
+            for ((img, valid), e) in warped.iter().zip(epipoles) {
+                if !valid.as_slice()[i] {
+                    continue;
+                }
+                seeing += 1;
+                let Some(e) = e else { continue };
+                let (dx, dy) = (e.x - e.z * x as f64, e.y - e.z * y as f64);
+                let norm = dx.hypot(dy);
+                if norm > 1e-9 && unique(img, valid, x, y, dx / norm, dy / norm) {
+                    found += 1;
+                }
+            }
+            found >= params.min_views && 2 * found >= seeing
+        })
+        .collect();
+    for i in explained {
+        ev.strong.as_mut_slice()[i] = false;
+        ev.weak.as_mut_slice()[i] = false;
     }
 }
 
@@ -1114,6 +1277,9 @@ pub fn own_occluders_memo<'m, P: RgbPixel>(
         // the fills of 2 of the 106 evaluation cases, both for the worse (photo-ece-2
         // −0.12 dB, shared-5 −0.19 dB), and improved none.
         auto.unjudged_reach = 0;
+        // Nor are the views' epipoles looked for: the views' own marks were measured
+        // without them.
+        auto.epipolar_reach = 0.0;
         let found: Vec<Option<Mask>> = stale
             .par_iter()
             .map(|&k| {
@@ -1497,6 +1663,33 @@ mod tests {
         let c = crate::synth::occlusion_case(crate::synth::CaseFamily::Shared, 320, 240, views, seed);
         let found = auto_mask_report(&c.key, &c.sources(), &AutoMaskParams::default());
         crate::imaging::metrics::mask_iou(&found.mask, &c.mask)
+    }
+
+    /// A facade with slabs standing off the wall (piers, sign boards) and the keyframe's own
+    /// tree and passer-by. Seen through the wall's homography, the slabs' edges disagree with
+    /// the views as an occluder does; each view shows them moved along its epipolar line.
+    /// Without that explanation 2 007 to 9 382 pixels away from the occluders are masked,
+    /// with it 261 to 4 247; every occluder pixel is found either way.
+    #[test]
+    fn what_stands_off_the_wall_is_explained_along_the_epipolar_lines() {
+        for (seed, views) in [(6003, 3), (6005, 4), (8005, 2)] {
+            let c = crate::synth::occlusion_case(crate::synth::CaseFamily::NonPlanar, 480, 360, views, seed);
+            let near = dilate(&c.mask.map(|&m| m > 127), 6);
+            let found = |reach: f32| {
+                let p = AutoMaskParams { epipolar_reach: reach, ..AutoMaskParams::default() };
+                let m = auto_mask_report(&c.key, &c.sources(), &p).mask;
+                let on = |i: usize| m.as_slice()[i] > 127;
+                let away = (0..m.as_slice().len()).filter(|&i| on(i) && !near.as_slice()[i]).count();
+                let hit = (0..m.as_slice().len()).filter(|&i| on(i) && c.mask.as_slice()[i] > 127).count();
+                (away, hit as f64 / c.mask.hole_count() as f64)
+            };
+            let (without, recall_without) = found(0.0);
+            let (with, recall) = found(AutoMaskParams::default().epipolar_reach);
+            println!("seed {seed}, {views} views: {without} → {with} pixels away from the occluders");
+            assert!(without > 1500, "seed {seed}: the case holds ({without} pixels off the occluders)");
+            assert!(2 * with < without, "seed {seed}: {with} pixels off the occluders, {without} without");
+            assert!(recall > 0.98 && recall >= recall_without - 0.01, "seed {seed}: recall {recall:.3}");
+        }
     }
 
     /// Views with occluders of their own over the keyframe's (so that they agree with it
