@@ -12,7 +12,7 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use super::Source;
-use super::parallax::{SweepParams, parallax_family};
+use super::parallax::{SweepParams, parallax_family_with};
 use crate::geometry::Homography;
 use crate::imaging::convert::{luma, luminance};
 use crate::imaging::photometric::{Gain, GainParams, fit_gain};
@@ -87,7 +87,7 @@ pub struct AutoMaskParams {
     /// that line, within this share of the work image's diagonal (0: not looked for), the
     /// keyframe shows the scene at another depth, not an occluder: at least `min_views` views,
     /// and at least half of those that see the pixel. The epipoles come from the keyframe's
-    /// corners matched in the views ([`super::parallax::parallax_family`]); a view without
+    /// corners matched in the views ([`super::parallax::parallax_family_with`]); a view without
     /// one explains nothing.
     pub epipolar_reach: f32,
     /// The sky is never an occluder: clouds drift between the shots, and the views agree on
@@ -631,15 +631,15 @@ fn keyframe_epipoles<P: RgbPixel>(
 ) -> Vec<Option<Vector3<f64>>> {
     let none = vec![None; sources.len()];
     let gray = luminance(key);
-    let views: Vec<GrayF32> = sources
-        .par_iter()
-        .map(|s| GrayF32::from_fn(s.image.width(), s.image.height(), |x, y| luma(s.image.get(x, y).to_f32())))
-        .collect();
-    let refs: Vec<&GrayF32> = views.iter().collect();
+    // Each view's luminance as it is matched: eight 12 MP views as floats are 384 MB.
+    let view = |v: usize| {
+        let image = sources[v].image;
+        GrayF32::from_fn(image.width(), image.height(), |x, y| luma(image.get(x, y).to_f32()))
+    };
     let walls: Vec<Homography> = sources.iter().map(|s| s.homography).collect();
     let nothing = Mask::new(key.width(), key.height(), 0);
     let Some((family, guided)) =
-        parallax_family(&gray, &refs, &walls, &nothing, &SweepParams::default(), EPIPOLE_SEED)
+        parallax_family_with(&gray, &view, &walls, &nothing, &SweepParams::default(), EPIPOLE_SEED)
     else {
         return none;
     };

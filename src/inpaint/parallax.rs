@@ -1305,8 +1305,21 @@ pub fn parallax_family(
     params: &SweepParams,
     seed: u64,
 ) -> Option<(ParallaxFamily, Guided)> {
-    let mut memo = vec![ViewMatches::default(); views.len()];
-    family_memo(key, &|v| views[v].clone(), walls, mask, params, seed, &mut memo, &|| false)
+    parallax_family_with(key, &|v| views[v].clone(), walls, mask, params, seed)
+}
+
+/// [`parallax_family`] with each view's luminance made only when it is matched (`view(v)`,
+/// for `v` below `walls.len()`): a dozen 12 MP views are not all held at once.
+pub fn parallax_family_with(
+    key: &GrayF32,
+    view: &(dyn Fn(usize) -> GrayF32 + Sync),
+    walls: &[Homography],
+    mask: &Mask,
+    params: &SweepParams,
+    seed: u64,
+) -> Option<(ParallaxFamily, Guided)> {
+    let mut memo = vec![ViewMatches::default(); walls.len()];
+    family_memo(key, view, walls, mask, params, seed, &mut memo, &|| false)
 }
 
 /// [`parallax_family`] with the views' matches taken from and kept in `memo`
