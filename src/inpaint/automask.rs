@@ -14,10 +14,10 @@ use rayon::prelude::*;
 use super::Source;
 use super::parallax::{SweepParams, parallax_family_with};
 use crate::geometry::Homography;
-use crate::imaging::convert::{luma, luminance};
+use crate::imaging::convert::{luminance, luminance_of};
 use crate::imaging::photometric::{Gain, GainParams, fit_gain};
 use crate::imaging::warp::{Interpolation, Rect, warp};
-use crate::imaging::{GrayF32, Mask, Plane, RgbF32, RgbPixel};
+use crate::imaging::{Mask, Plane, RgbF32, RgbPixel};
 
 /// Parameters of [`auto_mask`].
 #[derive(Debug, Clone, PartialEq)]
@@ -558,6 +558,49 @@ fn explain_by_own_occluders(
     }
 }
 
+/// Half the side of the windows [`window_matches`] compares.
+const HALF: isize = 2;
+/// The pixels of such a window.
+const WINDOW: usize = ((2 * HALF + 1) * (2 * HALF + 1)) as usize;
+
+/// Whether the keyframe's 5×5 window at `(x, y)` (`key`, an image of `size`) matches
+/// `other`'s moved by `(dx, dy)`: over the pixels inside both and `usable` at the moved
+/// place, more than half the window, with a mean squared RGB distance of at most `t2`.
+/// Row by row, taps in the order of a plain double loop (the sums are those of one); it
+/// stops once the sum is past what any count of the window's pixels would pass.
+fn window_matches(
+    key: &[[f32; 3]],
+    other: &[[f32; 3]],
+    usable: &[bool],
+    (wi, hi): (isize, isize),
+    (x, y): (isize, isize),
+    (dx, dy): (isize, isize),
+    t2: f32,
+) -> bool {
+    let hopeless = t2 * WINDOW as f32;
+    let (mut sum, mut n) = (0.0f32, 0usize);
+    let (lo, up) = ((x - HALF).max(0).max(-dx), (x + HALF).min(wi - 1).min(wi - 1 - dx));
+    for py in y - HALF..=y + HALF {
+        let qy = py + dy;
+        if py >= 0 && py < hi && qy >= 0 && qy < hi {
+            let (row, moved) = ((py * wi) as usize, qy * wi + dx);
+            for px in lo..=up {
+                let q = (moved + px) as usize;
+                if !usable[q] {
+                    continue;
+                }
+                let (a, b) = (key[row + px as usize], other[q]);
+                sum += (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>();
+                n += 1;
+            }
+        }
+        if sum > hopeless {
+            return false;
+        }
+    }
+    n * 2 > WINDOW && sum <= t2 * n as f32
+}
+
 /// Strong pixels whose 5×5 patch matches the consensus moved by at most `parallax_radius`
 /// become weak: the building, displaced.
 fn explain_by_parallax(key: &RgbF32, ev: &mut Evidence, params: &AutoMaskParams) {
@@ -566,11 +609,7 @@ fn explain_by_parallax(key: &RgbF32, ev: &mut Evidence, params: &AutoMaskParams)
     if r == 0 {
         return;
     }
-    const HALF: isize = 2;
-    const WINDOW: usize = ((2 * HALF + 1) * (2 * HALF + 1)) as usize;
     let t2 = params.threshold * params.threshold;
-    // The patch's sum can only grow: past this no count of its pixels would pass.
-    let hopeless = t2 * WINDOW as f32;
     // The nearest moves first: the building moved by a pixel or two is the usual answer,
     // and the search stops at the first move that explains the pixel.
     let mut moves: Vec<(isize, isize)> =
@@ -578,33 +617,9 @@ fn explain_by_parallax(key: &RgbF32, ev: &mut Evidence, params: &AutoMaskParams)
     moves.sort_by_key(|&(dx, dy)| dx * dx + dy * dy);
     let seen: &Evidence = ev;
     let (ks, judged, cs) = (key.as_slice(), seen.judged.as_slice(), seen.consensus.as_slice());
-    let (wi, hi) = (w as isize, h as isize);
-    // The window at `(x, y)` in the keyframe against the consensus moved by `(dx, dy)`, over
-    // the pixels inside both and judged there, row by row (taps in the order of a plain
-    // double loop: the sums are those of one).
-    let matches = |x: isize, y: isize, dx: isize, dy: isize| {
-        let (mut sum, mut n) = (0.0f32, 0usize);
-        let (lo, up) = ((x - HALF).max(0).max(-dx), (x + HALF).min(wi - 1).min(wi - 1 - dx));
-        for py in y - HALF..=y + HALF {
-            let qy = py + dy;
-            if py >= 0 && py < hi && qy >= 0 && qy < hi {
-                let (row, moved) = ((py * wi) as usize, qy * wi + dx);
-                for px in lo..=up {
-                    let q = (moved + px) as usize;
-                    if !judged[q] {
-                        continue;
-                    }
-                    let (a, b) = (ks[row + px as usize], cs[q]);
-                    sum += (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>();
-                    n += 1;
-                }
-            }
-            if sum > hopeless {
-                return false;
-            }
-        }
-        n * 2 > WINDOW && sum <= t2 * n as f32
-    };
+    let size = (w as isize, h as isize);
+    let matches =
+        |x: isize, y: isize, dx: isize, dy: isize| window_matches(ks, cs, judged, size, (x, y), (dx, dy), t2);
     // Each pixel is judged on its own: in parallel, the same pixels as one at a time.
     let explained: Vec<usize> = (0..w * h)
         .into_par_iter()
@@ -632,10 +647,7 @@ fn keyframe_epipoles<P: RgbPixel>(
     let none = vec![None; sources.len()];
     let gray = luminance(key);
     // Each view's luminance as it is matched: eight 12 MP views as floats are 384 MB.
-    let view = |v: usize| {
-        let image = sources[v].image;
-        GrayF32::from_fn(image.width(), image.height(), |x, y| luma(image.get(x, y).to_f32()))
-    };
+    let view = |v: usize| luminance_of(sources[v].image);
     let walls: Vec<Homography> = sources.iter().map(|s| s.homography).collect();
     let nothing = Mask::new(key.width(), key.height(), 0);
     let Some((family, guided)) =
@@ -676,40 +688,11 @@ fn explain_by_epipoles(
     if reach < 1 || epipoles.iter().all(Option::is_none) {
         return;
     }
-    const HALF: isize = 2;
-    const WINDOW: usize = ((2 * HALF + 1) * (2 * HALF + 1)) as usize;
     let t2 = params.threshold * params.threshold;
-    let hopeless = t2 * WINDOW as f32;
-    let (wi, hi) = (w as isize, h as isize);
     let ks = key.as_slice();
-    // The keyframe's window at `(x, y)` against the view's at `(qx, qy)`, over the pixels
-    // inside both where the view sees.
+    let size = (w as isize, h as isize);
     let matches = |img: &RgbF32, valid: &Plane<bool>, x: isize, y: isize, qx: isize, qy: isize| {
-        let (is, vs) = (img.as_slice(), valid.as_slice());
-        let (mut sum, mut n) = (0.0f32, 0usize);
-        for oy in -HALF..=HALF {
-            let (py, ry) = (y + oy, qy + oy);
-            if py < 0 || py >= hi || ry < 0 || ry >= hi {
-                continue;
-            }
-            for ox in -HALF..=HALF {
-                let (px, rx) = (x + ox, qx + ox);
-                if px < 0 || px >= wi || rx < 0 || rx >= wi {
-                    continue;
-                }
-                let q = (ry * wi + rx) as usize;
-                if !vs[q] {
-                    continue;
-                }
-                let (a, b) = (ks[(py * wi + px) as usize], is[q]);
-                sum += (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>();
-                n += 1;
-            }
-            if sum > hopeless {
-                return false;
-            }
-        }
-        n * 2 > WINDOW && sum <= t2 * n as f32
+        window_matches(ks, img.as_slice(), valid.as_slice(), size, (x, y), (qx - x, qy - y), t2)
     };
     // Whether the view `img` shows the keyframe's patch at `(x, y)` at one run of offsets
     // along the unit direction `(ux, uy)`, from the far end on one side to the far end on
