@@ -14,7 +14,7 @@ use rayon::prelude::*;
 use super::Source;
 use super::parallax::{SweepParams, parallax_family_with};
 use crate::geometry::Homography;
-use crate::imaging::convert::{luminance, luminance_of};
+use crate::imaging::convert::luminance;
 use crate::imaging::photometric::{Gain, GainParams, fit_gain};
 use crate::imaging::warp::{Interpolation, Rect, warp};
 use crate::imaging::{Mask, Plane, RgbF32, RgbPixel};
@@ -647,7 +647,7 @@ fn keyframe_epipoles<P: RgbPixel>(
     let none = vec![None; sources.len()];
     let gray = luminance(key);
     // Each view's luminance as it is matched: eight 12 MP views as floats are 384 MB.
-    let view = |v: usize| luminance_of(sources[v].image);
+    let view = |v: usize| luminance(sources[v].image);
     let walls: Vec<Homography> = sources.iter().map(|s| s.homography).collect();
     let nothing = Mask::new(key.width(), key.height(), 0);
     let Some((family, guided)) =

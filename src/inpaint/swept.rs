@@ -12,7 +12,7 @@ use serde::Serialize;
 use super::parallax::{SurfacePlane, SweepParams, ViewMatches, swept_planes_memo};
 use super::reduced::{Reduced, levels_for};
 use super::{FillExtras, FillParams, Filled, Observer, Quiet, Source, Stage, fill_with};
-use crate::imaging::convert::luminance_of;
+use crate::imaging::convert::luminance;
 use crate::imaging::{GrayF32, Mask, RgbF32, RgbPixel};
 
 /// A fill made by [`fill_swept`].
@@ -92,7 +92,7 @@ pub fn sweep_surfaces<P: RgbPixel>(
         return Vec::new();
     }
     observer.stage(Stage::Sweep);
-    let view = |v: usize| luminance_of(sources[v].image);
+    let view = |v: usize| luminance(sources[v].image);
     let walls: Vec<_> = sources.iter().map(|s| s.homography).collect();
     let observer: &dyn Observer = observer;
     swept_planes_memo(key, &view, &walls, mask, params, seed, memo, &|| observer.cancelled())
