@@ -38,7 +38,7 @@ pub use automask::{
     own_occluders_memo,
 };
 pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_guided, exemplar_fill_until};
-pub use swept::{SurfaceReport, SurfacesReport, Swept, fill_swept, sweep_surfaces};
+pub use swept::{SurfaceReport, SurfacesReport, Swept, fill_swept, judged_with_marks, sweep_surfaces};
 
 /// Where each pixel of a result came from: [`KEYFRAME`] outside the mask, [`FALLBACK`]
 /// for the single-image fallback, otherwise `1 + i` for `sources[i]`.
@@ -432,6 +432,11 @@ pub struct FillExtras<'a> {
     /// stay unless the walls' fill is clearly better, so that a near tie does not flip a
     /// session's result between the two from one view to the next.
     pub rival_swept: bool,
+    /// The views' own occluders ([`FillExtras::own`], else as [`FillParams::own`] finds
+    /// them) are marked through `planes` too. For a judgement ([`judged_with_marks`]), not
+    /// for a fill: a slab seen through the wall's homography is marked like an occluder,
+    /// and the marks take the pixels the surfaces fill from.
+    pub marks_through_planes: bool,
 }
 
 /// A filled keyframe: the image, where each pixel came from, how sure the fill is of it,
@@ -540,11 +545,14 @@ pub fn fill_with<P: RgbPixel>(
     // Each view's own occluders, where the caller found none by other means. Not with
     // surfaces off the wall: a slab seen through the wall's homography disagrees like an
     // occluder, and its marks took the pixels the surfaces fill from (the swept fill and
-    // its judgement were measured without them).
+    // its judgement were measured without them); unless a judgement asks for them
+    // ([`FillExtras::marks_through_planes`]).
     let found: Vec<Option<Mask>>;
     let own: Vec<Option<&Mask>> = match (&params.own, extras.own) {
         (Some(p), given)
-            if extras.occluders.is_empty() && extras.planes.is_empty() && sources.len() >= p.min_views =>
+            if extras.occluders.is_empty()
+                && (extras.planes.is_empty() || extras.marks_through_planes)
+                && sources.len() >= p.min_views =>
         {
             match given {
                 Some(given) => given.to_vec(),

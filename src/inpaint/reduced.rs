@@ -139,7 +139,7 @@ impl Reduced {
         own: Option<&'a [Option<&'a Mask>]>,
         choice: &'a [Option<bool>],
     ) -> FillExtras<'a> {
-        FillExtras { planes, occluders, rival: None, choice, whole: self.whole, own, rival_swept: false }
+        FillExtras { planes, occluders, choice, whole: self.whole, own, ..FillExtras::default() }
     }
 
     /// The reduced occluder marks and own marks as the extras take them (borrowed).

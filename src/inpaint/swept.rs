@@ -10,7 +10,7 @@
 use serde::Serialize;
 
 use super::parallax::{SurfacePlane, SweepParams, ViewMatches, swept_planes_memo};
-use super::reduced::{Reduced, levels_for};
+use super::reduced::{Reduced, levels_for, reduce_rgb};
 use super::{FillExtras, FillParams, Filled, Observer, Quiet, Source, Stage, fill_with};
 use crate::imaging::convert::luminance;
 use crate::imaging::{GrayF32, Mask, RgbF32, RgbPixel};
@@ -164,6 +164,51 @@ pub fn fill_swept<P: RgbPixel>(
     } else {
         Swept { filled: wall, planes, used: false }
     }
+}
+
+/// How well the views back each of `images` (results of this keyframe and mask, as
+/// [`Filled::judged_image`] gives them) through the surfaces `planes`, with each view's own
+/// occluders marked ([`FillExtras::own`] if given, else found as [`FillParams::own`] says):
+/// the share of the mask that the views showing the building back, as
+/// [`Filled::rival_quality`] says of a rival. Judged on the inputs reduced to
+/// [`FillParams::judge_max_pixels`], as [`fill_swept`] judges.
+///
+/// A fill through the surfaces marks no own occluders, because a slab seen through the
+/// wall's homography is marked like one; so its own judgement hears a view's own van,
+/// copied through a surface, as a witness. Judged here, two results that differ there are
+/// told apart by the views that show the building.
+#[allow(clippy::too_many_arguments)]
+pub fn judged_with_marks<P: RgbPixel>(
+    key: &RgbF32,
+    mask: &Mask,
+    sources: &[Source<'_, P>],
+    extras: &FillExtras<'_>,
+    params: &FillParams,
+    planes: &[SurfacePlane],
+    images: &[&RgbF32],
+    seed: u64,
+    observer: &dyn Observer,
+) -> Vec<f64> {
+    let levels = levels_for(key.width(), key.height(), params.judge_max_pixels);
+    let r = Reduced::new(key, mask, sources, extras, levels);
+    let (small, small_planes) = (r.sources(), r.planes(planes));
+    let (occluders, own) = r.marks();
+    // Only the rival's judgement is wanted: one composition over every view, no averaging.
+    let judging = FillParams { select_views: false, fuse: None, ..params.clone() };
+    images
+        .iter()
+        .map(|image| {
+            let image = reduce_rgb(image, levels);
+            let by = FillExtras {
+                rival: Some(&image),
+                marks_through_planes: true,
+                ..r.extras(&small_planes, &occluders, own.as_deref(), &[])
+            };
+            fill_with(&r.key, &r.mask, &small, &by, &judging, seed, &mut Quiet(observer))
+                .rival_quality
+                .unwrap_or(0.0)
+        })
+        .collect()
 }
 
 /// The gain by which the surfaces are kept ([`fill_swept`]): [`FillParams::select_margin`],
