@@ -1038,13 +1038,30 @@ impl Session {
             self.params.seed,
             observer,
         );
+        // The current result and the new fill judged on the same views (the new ones
+        // included): the current one's score was earned before they arrived. The new fill
+        // has the evidence as it is now, so the current result stays only when the views
+        // show it clearly better (see the module docs). Without the current image (a result
+        // from before a restart) the scores are compared.
+        let score = swept.filled.report.expected_quality();
+        let judged_better = match (previous, swept.filled.rival_quality) {
+            (None, _) => true,
+            (Some(_), Some(rival)) => {
+                swept.filled.report.witnessed_quality >= rival - self.params.fill.select_margin
+            }
+            // A near tie goes to the new fill here too: the marks of the views' own
+            // occluders, found again with each view, move the mean confidence a little
+            // either way (a fourth view after a restart: 0.6056 against 0.6091, its fill
+            // 0.19 dB closer to the truth).
+            (Some(b), None) => score >= b - self.params.fill.select_margin,
+        };
         // A fill through surfaces off the wall marks no view's own occluders, and so its
         // judge heard a view's own van or passer-by, copied through a surface, as a witness
         // for itself. Before such a fill replaces the current result, the two are judged
         // again through the same surfaces with the views' own occluders marked (see the
         // module docs).
         let with_marks = match (&rival, &own) {
-            (Some(rival), Some(_)) if swept.used && !observer.cancelled() => {
+            (Some(rival), Some(_)) if judged_better && swept.used && !observer.cancelled() => {
                 observer.stage(Stage::Judge);
                 let image = swept.filled.judged_image();
                 let backed = inpaint::judged_with_marks(
@@ -1082,24 +1099,8 @@ impl Session {
         }
         let joined: Vec<bool> = filled.report.sources.iter().map(|s| s.joined).collect();
         let views = used.iter().map(|&i| self.buffer[i].id.clone()).collect();
-        let score = filled.report.expected_quality();
-        // The current result and the new fill judged on the same views (the new ones
-        // included): the current one's score was earned before they arrived. The new fill
-        // has the evidence as it is now, so the current result stays only when the views
-        // show it clearly better (see the module docs). Without the current image (a result
-        // from before a restart) the scores are compared.
-        let better = match (previous, filled.rival_quality) {
-            (None, _) => true,
-            (Some(_), Some(rival)) => {
-                filled.report.witnessed_quality >= rival - self.params.fill.select_margin
-            }
-            // A near tie goes to the new fill here too: the marks of the views' own
-            // occluders, found again with each view, move the mean confidence a little
-            // either way (a fourth view after a restart: 0.6056 against 0.6091, its fill
-            // 0.19 dB closer to the truth).
-            (Some(b), None) => score >= b - self.params.fill.select_margin,
-        } && with_marks
-            .is_none_or(|(new, current)| new >= current - self.params.fill.select_margin);
+        let better = judged_better
+            && with_marks.is_none_or(|(new, current)| new >= current - self.params.fill.select_margin);
         let mut confidence = Confidence::new(key.rgb.width(), key.rgb.height(), 0);
         confidence.paste(&filled.confidence, region);
         // A view tried and not in the published result is kept out of the next fills (a
