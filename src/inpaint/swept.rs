@@ -193,22 +193,32 @@ pub fn judged_with_marks<P: RgbPixel>(
     let r = Reduced::new(key, mask, sources, extras, levels);
     let (small, small_planes) = (r.sources(), r.planes(planes));
     let (occluders, own) = r.marks();
-    // Only the rival's judgement is wanted: one composition over every view, no averaging.
-    let judging = FillParams { select_views: false, fuse: None, ..params.clone() };
+    let by =
+        FillExtras { marks_through_planes: true, ..r.extras(&small_planes, &occluders, own.as_deref(), &[]) };
+    let quiet = &mut Quiet(observer);
     images
         .iter()
-        .map(|image| {
-            let image = reduce_rgb(image, levels);
-            let by = FillExtras {
-                rival: Some(&image),
-                marks_through_planes: true,
-                ..r.extras(&small_planes, &occluders, own.as_deref(), &[])
-            };
-            fill_with(&r.key, &r.mask, &small, &by, &judging, seed, &mut Quiet(observer))
-                .rival_quality
-                .unwrap_or(0.0)
-        })
+        .map(|image| backed(&r.key, &r.mask, &small, &by, params, seed, quiet, &reduce_rgb(image, levels)))
         .collect()
+}
+
+/// How well the views back `image` (a result of this keyframe and mask) on the evidence
+/// `extras` and `params` give ([`Filled::rival_quality`]). Only that judgement is wanted of
+/// the fill: one composition over every view, no averaging.
+#[allow(clippy::too_many_arguments)]
+fn backed<P: RgbPixel>(
+    key: &RgbF32,
+    mask: &Mask,
+    sources: &[Source<'_, P>],
+    extras: &FillExtras<'_>,
+    params: &FillParams,
+    seed: u64,
+    quiet: &mut Quiet<'_>,
+    image: &RgbF32,
+) -> f64 {
+    let judging = FillParams { select_views: false, fuse: None, ..params.clone() };
+    let by = FillExtras { rival: Some(image), choice: &[], ..*extras };
+    fill_with(key, mask, sources, &by, &judging, seed, quiet).rival_quality.unwrap_or(0.0)
 }
 
 /// The gain by which the surfaces are kept ([`fill_swept`]): [`FillParams::select_margin`],
@@ -236,14 +246,11 @@ fn judge<P: RgbPixel>(
     wall: &Filled,
     planes: &[SurfacePlane],
 ) -> f64 {
-    // Only the rival's judgement is wanted of these: one composition over every view, no
-    // averaging, and, as through the surfaces (`fill_with` marks no view's occluders
-    // there), no marks.
-    let judging = FillParams { select_views: false, fuse: None, own: None, ..params.clone() };
+    // As through the surfaces (`fill_with` marks no view's occluders there), no marks.
+    let unmarked = FillParams { own: None, ..params.clone() };
     let mut judged = |rival: &Filled, planes: &[SurfacePlane]| {
-        let image = rival.judged_image();
-        let by = FillExtras { planes, rival: Some(&image), choice: &[], ..*extras };
-        fill_with(key, mask, sources, &by, &judging, seed, &mut *quiet).rival_quality.unwrap_or(0.0)
+        let by = FillExtras { planes, ..*extras };
+        backed(key, mask, sources, &by, &unmarked, seed, &mut *quiet, &rival.judged_image())
     };
     let through_by_walls = judged(through, &[]);
     let wall_by_planes = judged(wall, planes);
