@@ -1072,7 +1072,6 @@ impl Session {
                     &self.params.fill,
                     &swept.planes,
                     &[&image, rival],
-                    self.params.seed,
                     &*observer,
                 );
                 Some((backed[0], backed[1]))

@@ -513,6 +513,21 @@ pub fn fill_with<P: RgbPixel>(
     seed: u64,
     observer: &mut dyn Observer,
 ) -> Filled {
+    fill_gathered(key, mask, sources, extras, params, seed, observer).0
+}
+
+/// [`fill_with`], and the evidence the fill was made from, to judge other results of the
+/// same inputs on ([`Gathered::judge`]); `None` where no fill was made (an empty mask, a
+/// cancelled fill).
+fn fill_gathered<P: RgbPixel>(
+    key: &RgbF32,
+    mask: &Mask,
+    sources: &[Source<'_, P>],
+    extras: &FillExtras<'_>,
+    params: &FillParams,
+    seed: u64,
+    observer: &mut dyn Observer,
+) -> (Filled, Option<Gathered>) {
     let (w, h) = (key.width(), key.height());
     assert!(extras.occluders.is_empty() || extras.occluders.len() == sources.len(), "occluders per source");
     assert!(extras.own.is_none_or(|o| o.is_empty() || o.len() == sources.len()), "own occluders per source");
@@ -539,227 +554,19 @@ pub fn fill_with<P: RgbPixel>(
     };
     let mut surface = Plane::new(w, h, 0u16);
     if masked == 0 {
-        return unfinished(surface, report);
+        return (unfinished(surface, report), None);
     }
-    let parts = regions(mask, params.margin(), params.ring_gap, params.ring_width);
-    // Each view's own occluders, where the caller found none by other means. Not with
-    // surfaces off the wall: a slab seen through the wall's homography disagrees like an
-    // occluder, and its marks took the pixels the surfaces fill from (the swept fill and
-    // its judgement were measured without them); unless a judgement asks for them
-    // ([`FillExtras::marks_through_planes`]).
-    let found: Vec<Option<Mask>>;
-    let own: Vec<Option<&Mask>> = match (&params.own, extras.own) {
-        (Some(p), given)
-            if extras.occluders.is_empty()
-                && (extras.planes.is_empty() || extras.marks_through_planes)
-                && sources.len() >= p.min_views =>
-        {
-            match given {
-                Some(given) => given.to_vec(),
-                None => {
-                    observer.stage(Stage::Own);
-                    found = own_occluders(key, mask, sources, p, &AutoMaskParams::default());
-                    found.iter().map(Option::as_ref).collect()
-                }
-            }
-        }
-        _ => Vec::new(),
+    let Some(evidence) =
+        Gathered::gather(key, mask, sources, extras, params, observer, &mut report, &mut surface)
+    else {
+        return (unfinished(surface, report), None);
     };
+    let Gathered { parts, warps, lifted, maps, errors, diagonal } = &evidence;
+    let diagonal = *diagonal;
+    let judge = |img: &RgbF32| evidence.judge(key, mask, img);
+    let stage = Staged { key, mask, parts, warps, lifted, maps, errors, diagonal, params, seed };
     if observer.cancelled() {
-        return unfinished(surface, report);
-    }
-    let occluders: &[Option<&Mask>] = if own.is_empty() { extras.occluders } else { &own };
-
-    // Warp: every view over every region's needed pixels.
-    observer.stage(Stage::Warp);
-    let mut warps: Vec<Vec<Warped>> = Vec::with_capacity(parts.len());
-    // Per part, per plane off the wall, per source (empty where the plane is not near).
-    let mut plane_warps: Vec<Vec<Vec<Option<Warped>>>> = Vec::with_capacity(parts.len());
-    // Per part, per source: the pixels copied only under a soft mark ([`exclude_marked`]).
-    let mut lifted: Vec<Vec<Option<Plane<bool>>>> = Vec::with_capacity(parts.len());
-    for (k, part) in parts.iter().enumerate() {
-        // Each view's homography here: its own, or moved onto the keyframe around this hole.
-        let shifts: Vec<Option<Shift>> = match &params.local_shift {
-            Some(p) => {
-                let band = ShiftBand::new(key, mask, &part.hole, part.rect, p);
-                sources
-                    .par_iter()
-                    .enumerate()
-                    .map(|(v, s)| local_shift(&band, s, occluders.get(v).copied().flatten(), p))
-                    .collect()
-            }
-            None => vec![None; nv],
-        };
-        let hs: Vec<Homography> = sources
-            .iter()
-            .zip(&shifts)
-            .zip(&mut report.sources)
-            .map(|((s, shift), r)| match shift {
-                Some(sh) => {
-                    r.shift_px = r.shift_px.max(sh.moved_px);
-                    sh.apply(&s.homography)
-                }
-                None => s.homography,
-            })
-            .collect();
-        let mut ws: Vec<Warped> = sources
-            .par_iter()
-            .zip(&hs)
-            .map(|(s, hv)| warp(s.image, hv, part.rect, Some(&part.need), params.interpolation))
-            .collect();
-        let levels: Vec<Option<Plane<u8>>> = ws
-            .par_iter()
-            .zip(hs.par_iter())
-            .enumerate()
-            .map(|(v, (wv, hv))| mark_levels(wv, hv, occluders.get(v).copied().flatten()))
-            .collect();
-        lifted.push(exclude_marked(&mut ws, &levels, key, mask));
-        for (v, wv) in ws.iter().enumerate() {
-            report.sources[v].covered +=
-                part.hole.as_slice().iter().zip(wv.valid.as_slice()).filter(|&(&hh, &ok)| hh && ok).count();
-        }
-        warps.push(ws);
-        // The same views through each surface off the wall that may show in this part.
-        plane_warps.push(
-            extras
-                .planes
-                .iter()
-                .map(|pl| {
-                    if !overlap(pl.region, part.rect) {
-                        return Vec::new();
-                    }
-                    sources
-                        .par_iter()
-                        .zip(&pl.views)
-                        .enumerate()
-                        .map(|(v, (s, hp))| {
-                            hp.map(|hp| {
-                                let mut wv =
-                                    warp(s.image, &hp, part.rect, Some(&part.need), params.interpolation);
-                                exclude(&mut wv, &hp, occluders.get(v).copied().flatten());
-                                wv
-                            })
-                        })
-                        .collect()
-                })
-                .collect(),
-        );
-        observer.progress(k + 1, parts.len());
-    }
-
-    // Photometric: one gain per view from the rings around all regions.
-    if observer.cancelled() {
-        return unfinished(surface, report);
-    }
-    observer.stage(Stage::Photometric);
-    if params.photometric {
-        // Per view (each on its own, in parallel): the tone curve from the whole overlap,
-        // then the gain from the rings around the regions as the curve leaves them.
-        let fits: Vec<(Option<ToneCurve>, Gain)> = (0..nv)
-            .into_par_iter()
-            .map(|v| {
-                let tone = if params.tone {
-                    let occluders = occluders.get(v).copied().flatten();
-                    let overlap = overlap_pairs(key, mask, &sources[v], occluders);
-                    fit_tone(&overlap, &params.tone_params).curve
-                } else {
-                    None
-                };
-                let mut pairs = Vec::new();
-                for (part, ws) in parts.iter().zip(&warps) {
-                    let rw = part.rect.width;
-                    for (i, &ring) in part.ring.as_slice().iter().enumerate() {
-                        if ring && ws[v].valid.as_slice()[i] {
-                            let (x, y) = (part.rect.x + i % rw, part.rect.y + i / rw);
-                            let p = ws[v].image.as_slice()[i];
-                            pairs.push((tone.as_ref().map_or(p, |c| c.apply(p)), key.get(x, y)));
-                        }
-                    }
-                }
-                let step = (pairs.len() / GAIN_SAMPLES).max(1);
-                let sample: Vec<_> = pairs.into_iter().step_by(step).collect();
-                (tone, fit_gain(&sample, &params.gain))
-            })
-            .collect();
-        for (v, (tone, gain)) in fits.into_iter().enumerate() {
-            report.sources[v].tone = tone.is_some();
-            report.sources[v].gain = gain.gain;
-            report.sources[v].offset = gain.offset;
-            match tone {
-                Some(curve) => map_view(&mut warps, &mut plane_warps, v, |p| gain.apply(curve.apply(p))),
-                None => map_view(&mut warps, &mut plane_warps, v, |p| gain.apply(p)),
-            }
-            observer.progress(v + 1, nv);
-        }
-    }
-
-    // Planes: which surface each pixel shows; each view's warp composed accordingly.
-    if observer.cancelled() {
-        return unfinished(surface, report);
-    }
-    let (ww, wh) = extras.whole.unwrap_or((w, h));
-    let diagonal = (ww as f32).hypot(wh as f32);
-    if !extras.planes.is_empty() {
-        observer.stage(Stage::Planes);
-        let choice = params.parallax.at_diagonal(diagonal);
-        let labels: Vec<Vec<u16>> = parts
-            .par_iter()
-            .zip(warps.par_iter_mut())
-            .zip(plane_warps.par_iter())
-            .map(|((part, ws), pw)| compose_planes(key, part, ws, pw, extras.planes, &choice))
-            .collect();
-        for (part, l) in parts.iter().zip(&labels) {
-            let rw = part.rect.width;
-            for (i, &hh) in part.hole.as_slice().iter().enumerate() {
-                if hh {
-                    surface.set(part.rect.x + i % rw, part.rect.y + i / rw, l[i]);
-                }
-            }
-        }
-    }
-    drop(plane_warps);
-
-    // Occlusion: who sees what, per region, view and pixel, with every view as evidence.
-    if observer.cancelled() {
-        return unfinished(surface, report);
-    }
-    observer.stage(Stage::Occlusion);
-    let all: Vec<usize> = (0..nv).collect();
-    let maps: Vec<OcclusionMap> = parts
-        .par_iter()
-        .zip(warps.par_iter())
-        .map(|(part, ws)| region_model(key, part, &pick_views(ws, &all), diagonal, params))
-        .collect();
-
-    let errors: Vec<Vec<f32>> =
-        parts.par_iter().zip(warps.par_iter()).map(|(part, ws)| view_errors(key, part, ws)).collect();
-
-    // The judge: a result against what every view shows, each view a witness as far as the
-    // model (fitted on all of them) trusts it.
-    let judge = |img: &RgbF32| {
-        let sum: f64 = parts
-            .par_iter()
-            .zip(warps.par_iter())
-            .zip(maps.par_iter())
-            .zip(errors.par_iter())
-            .map(|(((part, ws), map), errs)| witnessed(img, part, ws, map, errs))
-            .sum();
-        sum / masked as f64
-    };
-    let stage = Staged {
-        key,
-        mask,
-        parts: &parts,
-        warps: &warps,
-        lifted: &lifted,
-        maps: &maps,
-        errors: &errors,
-        diagonal,
-        params,
-        seed,
-    };
-    if observer.cancelled() {
-        return unfinished(surface, report);
+        return (unfinished(surface, report), None);
     }
     // Which sources may make the fill: those already in it, then the candidates (in the
     // order given); a source kept out is a witness only.
@@ -819,7 +626,7 @@ pub fn fill_with<P: RgbPixel>(
         }
         match best.or(refused) {
             Some(b) => b,
-            None => return unfinished(surface, report),
+            None => return (unfinished(surface, report), None),
         }
     } else {
         let mut views = fixed.clone();
@@ -831,7 +638,7 @@ pub fn fill_with<P: RgbPixel>(
         (made, q)
     };
     if observer.cancelled() {
-        return unfinished(surface, report);
+        return (unfinished(surface, report), None);
     }
     // The views were chosen on their copies; the chosen fill now averages them where the
     // rings say their errors are independent.
@@ -844,7 +651,7 @@ pub fn fill_with<P: RgbPixel>(
         _ => Vec::new(),
     };
     if observer.cancelled() {
-        return unfinished(surface, report);
+        return (unfinished(surface, report), None);
     }
     report.fused = unfused.len();
     for (s, &f) in report.sources.iter_mut().zip(&made.filled) {
@@ -861,7 +668,7 @@ pub fn fill_with<P: RgbPixel>(
         }
     }
     report.witnessed_quality = quality;
-    Filled {
+    let filled = Filled {
         image: made.image,
         provenance: made.provenance,
         surface,
@@ -870,7 +677,295 @@ pub fn fill_with<P: RgbPixel>(
         report,
         rival_quality,
         unfused,
+    };
+    (filled, Some(evidence))
+}
+
+/// What a fill is made from and judged on: every view warped over the mask's parts (and
+/// through the surfaces off the wall, composed where they show), compensated, and the
+/// occlusion model fitted on all of them. [`fill_with`] makes its fill from it;
+/// [`backed_by`] only judges results with it.
+struct Gathered {
+    parts: Vec<Part>,
+    /// Per part, per source.
+    warps: Vec<Vec<Warped>>,
+    /// Per part, per source: where the source's pixel is there only under a soft mark.
+    lifted: Vec<Vec<Option<Plane<bool>>>>,
+    /// Per part, the occlusion model fitted on every source.
+    maps: Vec<OcclusionMap>,
+    /// Per part, per source ([`view_errors`]).
+    errors: Vec<Vec<f32>>,
+    /// The whole keyframe's diagonal ([`FillExtras::whole`]).
+    diagonal: f32,
+}
+
+impl Gathered {
+    /// The evidence of `sources` for a fill of `key`'s `mask`, as [`fill_with`] gathers it
+    /// (each source's coverage and compensation written into `report`, the surface each
+    /// masked pixel shows into `surface`); `None` for an empty mask or when `observer` is
+    /// cancelled.
+    #[allow(clippy::too_many_arguments)]
+    fn gather<P: RgbPixel>(
+        key: &RgbF32,
+        mask: &Mask,
+        sources: &[Source<'_, P>],
+        extras: &FillExtras<'_>,
+        params: &FillParams,
+        observer: &mut dyn Observer,
+        report: &mut FillReport,
+        surface: &mut Plane<u16>,
+    ) -> Option<Self> {
+        let (w, h) = (key.width(), key.height());
+        let nv = sources.len();
+        if mask.hole_count() == 0 {
+            return None;
+        }
+        let parts = regions(mask, params.margin(), params.ring_gap, params.ring_width);
+        // Each view's own occluders, where the caller found none by other means. Not with
+        // surfaces off the wall: a slab seen through the wall's homography disagrees like an
+        // occluder, and its marks took the pixels the surfaces fill from (the swept fill and
+        // its judgement were measured without them); unless a judgement asks for them
+        // ([`FillExtras::marks_through_planes`]).
+        let found: Vec<Option<Mask>>;
+        let own: Vec<Option<&Mask>> = match (&params.own, extras.own) {
+            (Some(p), given)
+                if extras.occluders.is_empty()
+                    && (extras.planes.is_empty() || extras.marks_through_planes)
+                    && sources.len() >= p.min_views =>
+            {
+                match given {
+                    Some(given) => given.to_vec(),
+                    None => {
+                        observer.stage(Stage::Own);
+                        found = own_occluders(key, mask, sources, p, &AutoMaskParams::default());
+                        found.iter().map(Option::as_ref).collect()
+                    }
+                }
+            }
+            _ => Vec::new(),
+        };
+        if observer.cancelled() {
+            return None;
+        }
+        let occluders: &[Option<&Mask>] = if own.is_empty() { extras.occluders } else { &own };
+
+        // Warp: every view over every region's needed pixels.
+        observer.stage(Stage::Warp);
+        let mut warps: Vec<Vec<Warped>> = Vec::with_capacity(parts.len());
+        // Per part, per plane off the wall, per source (empty where the plane is not near).
+        let mut plane_warps: Vec<Vec<Vec<Option<Warped>>>> = Vec::with_capacity(parts.len());
+        // Per part, per source: the pixels copied only under a soft mark ([`exclude_marked`]).
+        let mut lifted: Vec<Vec<Option<Plane<bool>>>> = Vec::with_capacity(parts.len());
+        for (k, part) in parts.iter().enumerate() {
+            // Each view's homography here: its own, or moved onto the keyframe around this hole.
+            let shifts: Vec<Option<Shift>> = match &params.local_shift {
+                Some(p) => {
+                    let band = ShiftBand::new(key, mask, &part.hole, part.rect, p);
+                    sources
+                        .par_iter()
+                        .enumerate()
+                        .map(|(v, s)| local_shift(&band, s, occluders.get(v).copied().flatten(), p))
+                        .collect()
+                }
+                None => vec![None; nv],
+            };
+            let hs: Vec<Homography> = sources
+                .iter()
+                .zip(&shifts)
+                .zip(&mut report.sources)
+                .map(|((s, shift), r)| match shift {
+                    Some(sh) => {
+                        r.shift_px = r.shift_px.max(sh.moved_px);
+                        sh.apply(&s.homography)
+                    }
+                    None => s.homography,
+                })
+                .collect();
+            let mut ws: Vec<Warped> = sources
+                .par_iter()
+                .zip(&hs)
+                .map(|(s, hv)| warp(s.image, hv, part.rect, Some(&part.need), params.interpolation))
+                .collect();
+            let levels: Vec<Option<Plane<u8>>> = ws
+                .par_iter()
+                .zip(hs.par_iter())
+                .enumerate()
+                .map(|(v, (wv, hv))| mark_levels(wv, hv, occluders.get(v).copied().flatten()))
+                .collect();
+            lifted.push(exclude_marked(&mut ws, &levels, key, mask));
+            for (v, wv) in ws.iter().enumerate() {
+                report.sources[v].covered += part
+                    .hole
+                    .as_slice()
+                    .iter()
+                    .zip(wv.valid.as_slice())
+                    .filter(|&(&hh, &ok)| hh && ok)
+                    .count();
+            }
+            warps.push(ws);
+            // The same views through each surface off the wall that may show in this part.
+            plane_warps.push(
+                extras
+                    .planes
+                    .iter()
+                    .map(|pl| {
+                        if !overlap(pl.region, part.rect) {
+                            return Vec::new();
+                        }
+                        sources
+                            .par_iter()
+                            .zip(&pl.views)
+                            .enumerate()
+                            .map(|(v, (s, hp))| {
+                                hp.map(|hp| {
+                                    let mut wv =
+                                        warp(s.image, &hp, part.rect, Some(&part.need), params.interpolation);
+                                    exclude(&mut wv, &hp, occluders.get(v).copied().flatten());
+                                    wv
+                                })
+                            })
+                            .collect()
+                    })
+                    .collect(),
+            );
+            observer.progress(k + 1, parts.len());
+        }
+
+        // Photometric: one gain per view from the rings around all regions.
+        if observer.cancelled() {
+            return None;
+        }
+        observer.stage(Stage::Photometric);
+        if params.photometric {
+            // Per view (each on its own, in parallel): the tone curve from the whole overlap,
+            // then the gain from the rings around the regions as the curve leaves them.
+            let fits: Vec<(Option<ToneCurve>, Gain)> = (0..nv)
+                .into_par_iter()
+                .map(|v| {
+                    let tone = if params.tone {
+                        let occluders = occluders.get(v).copied().flatten();
+                        let overlap = overlap_pairs(key, mask, &sources[v], occluders);
+                        fit_tone(&overlap, &params.tone_params).curve
+                    } else {
+                        None
+                    };
+                    let mut pairs = Vec::new();
+                    for (part, ws) in parts.iter().zip(&warps) {
+                        let rw = part.rect.width;
+                        for (i, &ring) in part.ring.as_slice().iter().enumerate() {
+                            if ring && ws[v].valid.as_slice()[i] {
+                                let (x, y) = (part.rect.x + i % rw, part.rect.y + i / rw);
+                                let p = ws[v].image.as_slice()[i];
+                                pairs.push((tone.as_ref().map_or(p, |c| c.apply(p)), key.get(x, y)));
+                            }
+                        }
+                    }
+                    let step = (pairs.len() / GAIN_SAMPLES).max(1);
+                    let sample: Vec<_> = pairs.into_iter().step_by(step).collect();
+                    (tone, fit_gain(&sample, &params.gain))
+                })
+                .collect();
+            for (v, (tone, gain)) in fits.into_iter().enumerate() {
+                report.sources[v].tone = tone.is_some();
+                report.sources[v].gain = gain.gain;
+                report.sources[v].offset = gain.offset;
+                match tone {
+                    Some(curve) => map_view(&mut warps, &mut plane_warps, v, |p| gain.apply(curve.apply(p))),
+                    None => map_view(&mut warps, &mut plane_warps, v, |p| gain.apply(p)),
+                }
+                observer.progress(v + 1, nv);
+            }
+        }
+
+        // Planes: which surface each pixel shows; each view's warp composed accordingly.
+        if observer.cancelled() {
+            return None;
+        }
+        let (ww, wh) = extras.whole.unwrap_or((w, h));
+        let diagonal = (ww as f32).hypot(wh as f32);
+        if !extras.planes.is_empty() {
+            observer.stage(Stage::Planes);
+            let choice = params.parallax.at_diagonal(diagonal);
+            let labels: Vec<Vec<u16>> = parts
+                .par_iter()
+                .zip(warps.par_iter_mut())
+                .zip(plane_warps.par_iter())
+                .map(|((part, ws), pw)| compose_planes(key, part, ws, pw, extras.planes, &choice))
+                .collect();
+            for (part, l) in parts.iter().zip(&labels) {
+                let rw = part.rect.width;
+                for (i, &hh) in part.hole.as_slice().iter().enumerate() {
+                    if hh {
+                        surface.set(part.rect.x + i % rw, part.rect.y + i / rw, l[i]);
+                    }
+                }
+            }
+        }
+        drop(plane_warps);
+
+        // Occlusion: who sees what, per region, view and pixel, with every view as evidence.
+        if observer.cancelled() {
+            return None;
+        }
+        observer.stage(Stage::Occlusion);
+        let all: Vec<usize> = (0..nv).collect();
+        let maps: Vec<OcclusionMap> = parts
+            .par_iter()
+            .zip(warps.par_iter())
+            .map(|(part, ws)| region_model(key, part, &pick_views(ws, &all), diagonal, params))
+            .collect();
+
+        let errors: Vec<Vec<f32>> =
+            parts.par_iter().zip(warps.par_iter()).map(|(part, ws)| view_errors(key, part, ws)).collect();
+        Some(Gathered { parts, warps, lifted, maps, errors, diagonal })
     }
+
+    /// A result against what every view shows, each view a witness as far as the model
+    /// (fitted on all of them) trusts it: the share of the mask they back
+    /// ([`FillReport::witnessed_quality`]).
+    fn judge(&self, key: &RgbF32, mask: &Mask, img: &RgbF32) -> f64 {
+        debug_assert_eq!((img.width(), img.height()), (key.width(), key.height()));
+        let sum: f64 = self
+            .parts
+            .par_iter()
+            .zip(self.warps.par_iter())
+            .zip(self.maps.par_iter())
+            .zip(self.errors.par_iter())
+            .map(|(((part, ws), map), errs)| witnessed(img, part, ws, map, errs))
+            .sum();
+        sum / mask.hole_count() as f64
+    }
+}
+
+/// How well the views back each of `images` (results of `key`'s `mask`, keyframe-sized) on
+/// the evidence `sources`, `extras` and `params` give: the share of the mask the views
+/// that show the building back, as [`Filled::rival_quality`] says of a rival. The
+/// evidence is gathered once, as [`fill_with`] gathers it, and no fill is made from it.
+/// 0 for an image of another size, and for every image when the mask is empty or
+/// `observer` is cancelled.
+pub fn backed_by<P: RgbPixel>(
+    key: &RgbF32,
+    mask: &Mask,
+    sources: &[Source<'_, P>],
+    extras: &FillExtras<'_>,
+    params: &FillParams,
+    images: &[&RgbF32],
+    observer: &mut dyn Observer,
+) -> Vec<f64> {
+    let (w, h) = (key.width(), key.height());
+    let mut report = FillReport {
+        sources: vec![SourceReport { gain: [1.0; 3], ..SourceReport::default() }; sources.len()],
+        ..FillReport::default()
+    };
+    let mut surface = Plane::new(w, h, 0u16);
+    let gathered = Gathered::gather(key, mask, sources, extras, params, observer, &mut report, &mut surface);
+    images
+        .iter()
+        .map(|image| match &gathered {
+            Some(g) if (image.width(), image.height()) == (w, h) => g.judge(key, mask, image),
+            _ => 0.0,
+        })
+        .collect()
 }
 
 /// An observer for a trial fill: it is told nothing, but a cancellation still stops it.

@@ -11,7 +11,10 @@ use serde::Serialize;
 
 use super::parallax::{SurfacePlane, SweepParams, ViewMatches, swept_planes_memo};
 use super::reduced::{Reduced, levels_for, reduce_rgb};
-use super::{FillExtras, FillParams, Filled, Observer, Quiet, Source, Stage, fill_with};
+use super::{
+    FillExtras, FillParams, Filled, Gathered, Observer, Quiet, Source, Stage, backed_by, fill_gathered,
+    fill_with,
+};
 use crate::imaging::convert::luminance;
 use crate::imaging::{GrayF32, Mask, RgbF32, RgbPixel};
 
@@ -140,17 +143,18 @@ pub fn fill_swept<P: RgbPixel>(
         let (occluders, own) = r.marks();
         let quiet = &mut Quiet(&*observer);
         let with = |planes| r.extras(planes, &occluders, own.as_deref(), extras.choice);
-        let through = fill_with(&r.key, &r.mask, &small, &with(&small_planes), params, seed, quiet);
+        let (through, seen) =
+            fill_gathered(&r.key, &r.mask, &small, &with(&small_planes), params, seed, quiet);
         let wall = fill_with(&r.key, &r.mask, &small, &with(&[]), params, seed, quiet);
-        let gain =
-            judge(&r.key, &r.mask, &small, &with(&[]), params, seed, quiet, &through, &wall, &small_planes);
+        let through = (&through, seen.as_ref());
+        let gain = judge(&r.key, &r.mask, &small, &with(&[]), params, quiet, through, &wall, &small_planes);
         let used = gain > margin(extras, params) && !observer.cancelled();
         let chosen = FillExtras { planes: if used { &planes } else { &[] }, ..*extras };
         let filled = fill_with(key, mask, sources, &chosen, params, seed, observer);
         return Swept { filled, planes, used };
     }
-    let through =
-        fill_with(key, mask, sources, &FillExtras { planes: &planes, ..*extras }, params, seed, observer);
+    let (through, seen) =
+        fill_gathered(key, mask, sources, &FillExtras { planes: &planes, ..*extras }, params, seed, observer);
     if observer.cancelled() {
         return Swept { filled: through, planes, used: false };
     }
@@ -158,7 +162,8 @@ pub fn fill_swept<P: RgbPixel>(
     let quiet = &mut Quiet(&*observer);
     // The walls' fill is the one made without the surfaces, the views' own occluders marked.
     let wall = fill_with(key, mask, sources, extras, params, seed, quiet);
-    let gain = judge(key, mask, sources, extras, params, seed, quiet, &through, &wall, &planes);
+    let gain = judge(key, mask, sources, extras, params, quiet, (&through, seen.as_ref()), &wall, &planes);
+    drop(seen);
     if gain > margin(extras, params) {
         Swept { filled: through, planes, used: true }
     } else {
@@ -186,7 +191,6 @@ pub fn judged_with_marks<P: RgbPixel>(
     params: &FillParams,
     planes: &[SurfacePlane],
     images: &[&RgbF32],
-    seed: u64,
     observer: &dyn Observer,
 ) -> Vec<f64> {
     let levels = levels_for(key.width(), key.height(), params.judge_max_pixels);
@@ -195,30 +199,9 @@ pub fn judged_with_marks<P: RgbPixel>(
     let (occluders, own) = r.marks();
     let by =
         FillExtras { marks_through_planes: true, ..r.extras(&small_planes, &occluders, own.as_deref(), &[]) };
-    let quiet = &mut Quiet(observer);
-    images
-        .iter()
-        .map(|image| backed(&r.key, &r.mask, &small, &by, params, seed, quiet, &reduce_rgb(image, levels)))
-        .collect()
-}
-
-/// How well the views back `image` (a result of this keyframe and mask) on the evidence
-/// `extras` and `params` give ([`Filled::rival_quality`]). Only that judgement is wanted of
-/// the fill: one composition over every view, no averaging.
-#[allow(clippy::too_many_arguments)]
-fn backed<P: RgbPixel>(
-    key: &RgbF32,
-    mask: &Mask,
-    sources: &[Source<'_, P>],
-    extras: &FillExtras<'_>,
-    params: &FillParams,
-    seed: u64,
-    quiet: &mut Quiet<'_>,
-    image: &RgbF32,
-) -> f64 {
-    let judging = FillParams { select_views: false, fuse: None, ..params.clone() };
-    let by = FillExtras { rival: Some(image), choice: &[], ..*extras };
-    fill_with(key, mask, sources, &by, &judging, seed, quiet).rival_quality.unwrap_or(0.0)
+    let reduced: Vec<RgbF32> = images.iter().map(|image| reduce_rgb(image, levels)).collect();
+    let reduced: Vec<&RgbF32> = reduced.iter().collect();
+    backed_by(&r.key, &r.mask, &small, &by, params, &reduced, &mut Quiet(observer))
 }
 
 /// The gain by which the surfaces are kept ([`fill_swept`]): [`FillParams::select_margin`],
@@ -240,20 +223,18 @@ fn judge<P: RgbPixel>(
     sources: &[Source<'_, P>],
     extras: &FillExtras<'_>,
     params: &FillParams,
-    seed: u64,
     quiet: &mut Quiet<'_>,
-    through: &Filled,
+    (through, seen): (&Filled, Option<&Gathered>),
     wall: &Filled,
     planes: &[SurfacePlane],
 ) -> f64 {
-    // As through the surfaces (`fill_with` marks no view's occluders there), no marks.
+    // Through the walls with no view's own occluders marked, as through the surfaces
+    // (`fill_with` marks none there), which is the evidence `through` was made from.
     let unmarked = FillParams { own: None, ..params.clone() };
-    let mut judged = |rival: &Filled, planes: &[SurfacePlane]| {
-        let by = FillExtras { planes, ..*extras };
-        backed(key, mask, sources, &by, &unmarked, seed, &mut *quiet, &rival.judged_image())
-    };
-    let through_by_walls = judged(through, &[]);
-    let wall_by_planes = judged(wall, planes);
+    let by_walls = FillExtras { planes: &[], ..*extras };
+    let through_by_walls =
+        backed_by(key, mask, sources, &by_walls, &unmarked, &[&through.judged_image()], quiet)[0];
+    let wall_by_planes = seen.map_or(0.0, |g| g.judge(key, mask, &wall.judged_image()));
     let gain = (through.report.witnessed_quality - wall_by_planes)
         + (through_by_walls - wall.report.witnessed_quality);
     tracing::debug!(
@@ -308,10 +289,11 @@ mod tests {
             c.views.iter().zip(&walls).map(|(image, &homography)| Source { image, homography }).collect();
         let none = FillExtras::default();
         let params = FillParams::default();
-        let through = through_planes(&c, &sources, &planes, &params);
+        let through_extras = FillExtras { planes: &planes, ..none };
+        let (through, seen) = fill_gathered(&c.key, &c.mask, &sources, &through_extras, &params, 7, &mut ());
         let wall = fill_with(&c.key, &c.mask, &sources, &none, &params, 7, &mut ());
-        let gain =
-            judge(&c.key, &c.mask, &sources, &none, &params, 7, &mut Quiet(&()), &through, &wall, &planes);
+        let through = (&through, seen.as_ref());
+        let gain = judge(&c.key, &c.mask, &sources, &none, &params, &mut Quiet(&()), through, &wall, &planes);
         assert!(gain > params.select_margin, "the true surfaces gain {gain:.4}");
         let near = FillParams { select_margin: 2.0 * gain, ..params };
         let rival = wall.judged_image();
@@ -323,6 +305,38 @@ mod tests {
         assert!(!used(Some(&rival), false), "a rival through the walls: the walls");
         assert!(used(Some(&rival), true), "a rival through the surfaces: the surfaces");
         assert!(!used(None, true), "no rival to keep");
+    }
+
+    /// The judge's shortcuts judge as a fill would: [`backed_by`] gives an image the figure
+    /// a fill with that image as its rival gives it (none made), and the evidence a fill
+    /// through the surfaces was made from ([`fill_gathered`]) judges another result as
+    /// [`backed_by`] does through the same surfaces with no view's occluders marked.
+    #[test]
+    fn a_result_is_judged_without_a_fill_as_a_fill_judges_it() {
+        let c = parallax_case(320, 240, 3, 3, false);
+        let planes = c.true_surfaces(12);
+        let walls = c.wall();
+        let sources: Vec<Source<'_>> =
+            c.views.iter().zip(&walls).map(|(image, &homography)| Source { image, homography }).collect();
+        let params = FillParams::default();
+        let none = FillExtras::default();
+        let surfaces = FillExtras { planes: &planes, ..none };
+        let wall = fill_with(&c.key, &c.mask, &sources, &none, &params, 7, &mut ()).judged_image();
+        let (through, seen) = fill_gathered(&c.key, &c.mask, &sources, &surfaces, &params, 7, &mut ());
+        let through = through.judged_image();
+        let judging = FillParams { select_views: false, fuse: None, ..params.clone() };
+        for (extras, image, other) in [(&none, &through, &wall), (&surfaces, &wall, &through)] {
+            let as_rival = FillExtras { rival: Some(image), ..*extras };
+            let rival = fill_with(&c.key, &c.mask, &sources, &as_rival, &judging, 7, &mut ()).rival_quality;
+            let rival = rival.expect("judged");
+            let both = backed_by(&c.key, &c.mask, &sources, extras, &params, &[image, other], &mut ());
+            assert!((both[0] - rival).abs() < 1e-9, "{} against {rival}", both[0]);
+            assert!((both[0] - both[1]).abs() > 1e-3, "the two results are told apart: {both:?}");
+        }
+        let unmarked = FillParams { own: None, ..params.clone() };
+        let by = backed_by(&c.key, &c.mask, &sources, &surfaces, &unmarked, &[&wall], &mut ())[0];
+        let seen = seen.expect("a fill was made").judge(&c.key, &c.mask, &wall);
+        assert!((seen - by).abs() < 1e-9, "{seen} against {by}");
     }
 
     /// A keyframe over the judge's budget is judged on its inputs halved, and the result is
