@@ -1070,7 +1070,7 @@ impl Session {
                     &sources,
                     &extras,
                     &self.params.fill,
-                    &swept.planes,
+                    &swept,
                     &[&image, rival],
                     &*observer,
                 );

@@ -70,6 +70,7 @@ fn reduce_rect(r: Rect, levels: u32, w: usize, h: usize) -> Rect {
 
 /// A fill's keyframe, mask, sources and extras halved `levels` times ([`Reduced::sources`],
 /// [`Reduced::extras`] give them as the fill takes them).
+#[derive(Debug, Clone)]
 pub struct Reduced {
     pub key: RgbF32,
     pub mask: Mask,
@@ -105,6 +106,11 @@ impl Reduced {
             whole: extras.whole.map(|(w, h)| (w >> levels, h >> levels)),
             levels,
         }
+    }
+
+    /// How many times the inputs were halved.
+    pub fn levels(&self) -> u32 {
+        self.levels
     }
 
     /// The sources at the reduced size.

@@ -26,6 +26,9 @@ pub struct Swept {
     pub planes: Vec<SurfacePlane>,
     /// Whether `filled` was made through `planes` ([`Filled::surface`] says where).
     pub used: bool,
+    /// The inputs as the judge saw them, reduced ([`FillParams::judge_max_pixels`]): a
+    /// later judgement of the same inputs ([`judged_with_marks`]) takes them from here.
+    judged_on: Option<Reduced>,
 }
 
 impl Swept {
@@ -132,7 +135,7 @@ pub fn fill_swept<P: RgbPixel>(
     assert!(extras.planes.is_empty(), "the surfaces are given as `planes`");
     if planes.is_empty() {
         let filled = fill_with(key, mask, sources, extras, params, seed, observer);
-        return Swept { filled, planes, used: false };
+        return Swept { filled, planes, used: false, judged_on: None };
     }
     let levels = levels_for(key.width(), key.height(), params.judge_max_pixels);
     if levels > 0 {
@@ -151,12 +154,12 @@ pub fn fill_swept<P: RgbPixel>(
         let used = gain > margin(extras, params) && !observer.cancelled();
         let chosen = FillExtras { planes: if used { &planes } else { &[] }, ..*extras };
         let filled = fill_with(key, mask, sources, &chosen, params, seed, observer);
-        return Swept { filled, planes, used };
+        return Swept { filled, planes, used, judged_on: Some(r) };
     }
     let (through, seen) =
         fill_gathered(key, mask, sources, &FillExtras { planes: &planes, ..*extras }, params, seed, observer);
     if observer.cancelled() {
-        return Swept { filled: through, planes, used: false };
+        return Swept { filled: through, planes, used: false, judged_on: None };
     }
     observer.stage(Stage::Judge);
     let quiet = &mut Quiet(&*observer);
@@ -165,14 +168,15 @@ pub fn fill_swept<P: RgbPixel>(
     let gain = judge(key, mask, sources, extras, params, quiet, (&through, seen.as_ref()), &wall, &planes);
     drop(seen);
     if gain > margin(extras, params) {
-        Swept { filled: through, planes, used: true }
+        Swept { filled: through, planes, used: true, judged_on: None }
     } else {
-        Swept { filled: wall, planes, used: false }
+        Swept { filled: wall, planes, used: false, judged_on: None }
     }
 }
 
 /// How well the views back each of `images` (results of this keyframe and mask, as
-/// [`Filled::judged_image`] gives them) through the surfaces `planes`, with each view's own
+/// [`Filled::judged_image`] gives them) through the surfaces of `swept` (the
+/// [`fill_swept`] of these inputs; its reduced inputs are judged on), with each view's own
 /// occluders marked ([`FillExtras::own`] if given, else found as [`FillParams::own`] says):
 /// the share of the mask that the views showing the building back, as
 /// [`Filled::rival_quality`] says of a rival. Judged on the inputs reduced to
@@ -189,13 +193,20 @@ pub fn judged_with_marks<P: RgbPixel>(
     sources: &[Source<'_, P>],
     extras: &FillExtras<'_>,
     params: &FillParams,
-    planes: &[SurfacePlane],
+    swept: &Swept,
     images: &[&RgbF32],
     observer: &dyn Observer,
 ) -> Vec<f64> {
     let levels = levels_for(key.width(), key.height(), params.judge_max_pixels);
-    let r = Reduced::new(key, mask, sources, extras, levels);
-    let (small, small_planes) = (r.sources(), r.planes(planes));
+    let reduced;
+    let r = match &swept.judged_on {
+        Some(r) if r.levels() == levels => r,
+        _ => {
+            reduced = Reduced::new(key, mask, sources, extras, levels);
+            &reduced
+        }
+    };
+    let (small, small_planes) = (r.sources(), r.planes(&swept.planes));
     let (occluders, own) = r.marks();
     let by =
         FillExtras { marks_through_planes: true, ..r.extras(&small_planes, &occluders, own.as_deref(), &[]) };
@@ -337,6 +348,32 @@ mod tests {
         let by = backed_by(&c.key, &c.mask, &sources, &surfaces, &unmarked, &[&wall], &mut ())[0];
         let seen = seen.expect("a fill was made").judge(&c.key, &c.mask, &wall);
         assert!((seen - by).abs() < 1e-9, "{seen} against {by}");
+    }
+
+    /// A judgement with the marks after a fill through the surfaces reads the inputs the
+    /// fill's judge reduced, and judges as on inputs reduced afresh.
+    #[test]
+    fn the_judgement_with_the_marks_reads_the_inputs_the_judge_reduced() {
+        let c = parallax_case(640, 480, 3, 3, false);
+        let planes = c.true_surfaces(24);
+        let walls = c.wall();
+        let sources: Vec<Source<'_>> =
+            c.views.iter().zip(&walls).map(|(image, &homography)| Source { image, homography }).collect();
+        let none = FillExtras::default();
+        let params = FillParams { judge_max_pixels: 640 * 480 / 4, ..FillParams::default() };
+        let swept = fill_swept(&c.key, &c.mask, &sources, &none, &params, planes, 7, &mut ());
+        assert_eq!(swept.judged_on.as_ref().map(Reduced::levels), Some(1), "judged halved");
+        let wall = fill_with(&c.key, &c.mask, &sources, &none, &params, 7, &mut ()).judged_image();
+        let images = [&swept.filled.judged_image(), &wall];
+        let kept = judged_with_marks(&c.key, &c.mask, &sources, &none, &params, &swept, &images, &());
+        let afresh = Swept { judged_on: None, ..swept.clone() };
+        let fresh = judged_with_marks(&c.key, &c.mask, &sources, &none, &params, &afresh, &images, &());
+        assert_eq!(kept, fresh);
+        assert!((kept[0] - kept[1]).abs() > 1e-3, "the two results are told apart: {kept:?}");
+        let other =
+            Swept { judged_on: Some(Reduced::new(&c.key, &c.mask, &sources, &none, 2)), ..swept.clone() };
+        let at_two = judged_with_marks(&c.key, &c.mask, &sources, &none, &params, &other, &images, &());
+        assert_eq!(at_two, fresh, "inputs reduced otherwise are reduced again");
     }
 
     /// A keyframe over the judge's budget is judged on its inputs halved, and the result is
