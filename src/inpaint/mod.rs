@@ -516,6 +516,14 @@ pub fn fill_with<P: RgbPixel>(
     fill_gathered(key, mask, sources, extras, params, seed, observer).0
 }
 
+/// Panics unless `extras` gives one entry per source and `mask` is the keyframe's size.
+fn check_inputs<P: RgbPixel>(key: &RgbF32, mask: &Mask, sources: &[Source<'_, P>], extras: &FillExtras<'_>) {
+    assert!(extras.occluders.is_empty() || extras.occluders.len() == sources.len(), "occluders per source");
+    assert!(extras.own.is_none_or(|o| o.is_empty() || o.len() == sources.len()), "own occluders per source");
+    assert!(extras.planes.iter().all(|p| p.views.len() == sources.len()), "plane homographies per source");
+    assert_eq!((mask.width(), mask.height()), (key.width(), key.height()), "mask size");
+}
+
 /// [`fill_with`], and the evidence the fill was made from, to judge other results of the
 /// same inputs on ([`Gathered::judge`]); `None` where no fill was made (an empty mask, a
 /// cancelled fill).
@@ -529,10 +537,7 @@ fn fill_gathered<P: RgbPixel>(
     observer: &mut dyn Observer,
 ) -> (Filled, Option<Gathered>) {
     let (w, h) = (key.width(), key.height());
-    assert!(extras.occluders.is_empty() || extras.occluders.len() == sources.len(), "occluders per source");
-    assert!(extras.own.is_none_or(|o| o.is_empty() || o.len() == sources.len()), "own occluders per source");
-    assert!(extras.planes.iter().all(|p| p.views.len() == sources.len()), "plane homographies per source");
-    assert_eq!((mask.width(), mask.height()), (w, h), "mask size");
+    check_inputs(key, mask, sources, extras);
     let nv = sources.len();
     let masked = mask.hole_count();
     let mut report = FillReport {
@@ -943,6 +948,9 @@ impl Gathered {
 /// evidence is gathered once, as [`fill_with`] gathers it, and no fill is made from it.
 /// 0 for an image of another size, and for every image when the mask is empty or
 /// `observer` is cancelled.
+///
+/// # Panics
+/// As [`fill_with`].
 pub fn backed_by<P: RgbPixel>(
     key: &RgbF32,
     mask: &Mask,
@@ -952,6 +960,7 @@ pub fn backed_by<P: RgbPixel>(
     images: &[&RgbF32],
     observer: &mut dyn Observer,
 ) -> Vec<f64> {
+    check_inputs(key, mask, sources, extras);
     let (w, h) = (key.width(), key.height());
     let mut report = FillReport {
         sources: vec![SourceReport { gain: [1.0; 3], ..SourceReport::default() }; sources.len()],
