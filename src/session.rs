@@ -412,6 +412,10 @@ pub struct FillOutcome {
     /// With [`SessionParams::sweep`]: the surfaces off the wall this fill's sweep found,
     /// whether the fill was made through them and what each filled (keyframe coordinates).
     pub surfaces: Option<inpaint::SurfacesReport>,
+    /// With [`SessionParams::sweep`]: keyframe-sized, which of those surfaces filled each
+    /// pixel ([`inpaint::Swept::surface_map`]: 0 outside the mask, 1 the wall, `2 + s`
+    /// surface `s` of `surfaces`).
+    pub surface_map: Option<Plane<u8>>,
 }
 
 struct Key {
@@ -939,6 +943,11 @@ impl Session {
                 digest,
                 confidence: None,
                 surfaces: None,
+                surface_map: self
+                    .params
+                    .sweep
+                    .is_some()
+                    .then(|| Plane::new(key.rgb.width(), key.rgb.height(), 0)),
             });
         };
         let key_region = key.rgb.crop(region);
@@ -1079,6 +1088,11 @@ impl Session {
             _ => None,
         };
         let surfaces = self.params.sweep.is_some().then(|| swept.report(&mask_region, (region.x, region.y)));
+        let surface_map = self.params.sweep.is_some().then(|| {
+            let mut map = Plane::new(key.rgb.width(), key.rgb.height(), 0);
+            map.paste(&swept.surface_map(&mask_region), region);
+            map
+        });
         let through_surfaces = swept.used;
         let filled = swept.filled;
         drop((sources, own));
@@ -1139,6 +1153,7 @@ impl Session {
             digest,
             confidence: Some(confidence),
             surfaces,
+            surface_map,
         })
     }
 

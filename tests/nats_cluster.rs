@@ -286,7 +286,10 @@ fn a_three_server_cluster_survives_a_dead_worker_and_a_dead_server() {
         // `clearview fill` on all its files (the publish rule's near tie goes to the fill
         // with all the evidence: `session::KEEP_MARGIN`).
         assert!(ours >= theirs - 0.5, "{s}: {ours:.2} dB against fill's {theirs:.2} dB\n{report:#}");
-        assert!(res.join("history").is_dir() && res.join("confidence.png").is_file(), "{s}: run's layout");
+        for file in ["confidence.png", "surfaces.png", "provenance.png"] {
+            assert!(res.join(file).is_file(), "{s}: run's layout, no {file}");
+        }
+        assert!(res.join("history").is_dir(), "{s}: run's layout, no history");
     }
     println!("kills at {killed_at:.1?}, every session finished at {finished:.1?}");
     if let Some(s) = busy {

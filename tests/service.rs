@@ -516,9 +516,10 @@ fn idle_sessions_sleep_beyond_the_memory_budget_and_wake_without_realigning() {
 }
 
 /// The service says what its sweep for surfaces off the wall did, as `clearview fill
-/// --report` does: on a facade with slabs standing off it (three views), `result.json` lists
-/// the surfaces found, in the keyframe's coordinates, that the result was filled through
-/// them, and the masked pixels each filled.
+/// --report` and `--surfaces` do: on a facade with slabs standing off it (three views),
+/// `result.json` lists the surfaces found, in the keyframe's coordinates, that the result
+/// was filled through them, and the masked pixels each filled; `surfaces.png` says which
+/// filled each pixel.
 #[test]
 fn result_json_lists_the_surfaces_off_the_wall_it_filled_through() {
     let f = folders("");
@@ -548,4 +549,23 @@ fn result_json_lists_the_surfaces_off_the_wall_it_filled_through() {
         assert!(p["views"].as_u64().unwrap() >= 2, "a surface seen by one view: {p}");
     }
     assert_eq!(service.terminate(), 0);
+    // `surfaces.png` beside the result says it pixel by pixel, as `clearview fill --surfaces`
+    // does: nothing outside the mask, 1 through the wall, 2 + s through surface s (read once
+    // the service has stopped: the last result's map, which the last result.json describes).
+    let report = read().unwrap();
+    assert_eq!(report["surfaces"], "surfaces.png", "{report}");
+    let map = image::open(f.outbox.join("slabs/surfaces.png")).unwrap().into_luma8();
+    assert_eq!(map.dimensions(), (640, 480));
+    let mut n = [0u64; 256];
+    for (&v, &m) in map.as_raw().iter().zip(c.mask.as_slice()) {
+        assert_eq!(m > 127, v > 0, "surface {v} where the mask is {m}");
+        n[usize::from(v)] += 1;
+    }
+    let surfaces = report["planes"]["surfaces"].as_array().unwrap();
+    let filled: u64 = surfaces.iter().map(|p| p["filled_pixels"].as_u64().unwrap()).sum();
+    assert_eq!(n[1], report["masked"].as_u64().unwrap() - filled, "through the wall");
+    for (k, p) in surfaces.iter().enumerate() {
+        assert_eq!(n[2 + k], p["filled_pixels"].as_u64().unwrap(), "surface {k}: {p}");
+    }
+    assert_eq!(n[2 + surfaces.len()..].iter().sum::<u64>(), 0, "a surface the report does not list");
 }

@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use clap::Args;
-use image::{DynamicImage, GrayImage};
+use image::DynamicImage;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
@@ -485,6 +485,7 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         &mut progress,
     );
     let planes = swept.report(&mask, (0, 0));
+    let surface_map = args.surfaces.is_some().then(|| swept.surface_map(&mask));
     let filled = swept.filled;
     for (a, s) in aligned.iter().zip(&filled.report.sources) {
         let r = &mut reports[a.report];
@@ -515,13 +516,8 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         save_image(p, &DynamicImage::ImageLuma8(plane_to_luma8(&filled.confidence)))
             .map_err(|e| failure(e.to_string()))?;
     }
-    if let Some(p) = &args.surfaces {
-        let map = GrayImage::from_fn(mask.width() as u32, mask.height() as u32, |x, y| {
-            let (x, y) = (x as usize, y as usize);
-            let s = filled.surface.get(x, y).saturating_add(1).min(255);
-            image::Luma([if mask.is_hole(x, y) { s as u8 } else { 0 }])
-        });
-        save_image(p, &DynamicImage::ImageLuma8(map)).map_err(|e| failure(e.to_string()))?;
+    if let (Some(p), Some(map)) = (&args.surfaces, &surface_map) {
+        save_image(p, &DynamicImage::ImageLuma8(plane_to_luma8(map))).map_err(|e| failure(e.to_string()))?;
     }
     let timings = progress.finish();
 

@@ -16,7 +16,7 @@ use super::{
     fill_with,
 };
 use crate::imaging::convert::luminance;
-use crate::imaging::{GrayF32, Mask, RgbF32, RgbPixel};
+use crate::imaging::{GrayF32, Mask, Plane, RgbF32, RgbPixel};
 
 /// A fill made by [`fill_swept`].
 #[derive(Debug, Clone)]
@@ -53,6 +53,17 @@ impl Swept {
             })
             .collect();
         SurfacesReport { surfaces, used: self.used }
+    }
+
+    /// Which surface filled each pixel, as a picture can hold it (`mask`'s size): 0 outside
+    /// the mask, inside 1 where the pixel was filled through its view's wall and `2 + s`
+    /// where through surface `s` ([`Swept::report`]'s `surfaces[s]`; 255 from surface 253
+    /// on). `clearview fill --surfaces` writes it, and the service as `surfaces.png`.
+    pub fn surface_map(&self, mask: &Mask) -> Plane<u8> {
+        let surface = &self.filled.surface;
+        Plane::from_fn(mask.width(), mask.height(), |x, y| {
+            if mask.is_hole(x, y) { surface.get(x, y).saturating_add(1).min(255) as u8 } else { 0 }
+        })
     }
 }
 

@@ -1,7 +1,7 @@
 //! `clearview collect` (shell layer): mirrors the cluster's results and events into a
 //! folder with `clearview run`'s layout — `DIR/<session>/result.<ext>`, `result.json`,
-//! `history/`, `confidence.png`, `provenance.png`, `mask.png`, and `DIR/events.jsonl` —
-//! so the preview page and the user's scripts work on it unchanged.
+//! `history/`, `confidence.png`, `surfaces.png`, `provenance.png`, `mask.png`, and
+//! `DIR/events.jsonl` — so the preview page and the user's scripts work on it unchanged.
 //!
 //! A durable consumer of the OUT stream, in stream order, acknowledged after each write:
 //! a collector that restarts goes on where it stopped. Each file is written atomically

@@ -57,7 +57,7 @@
 //!
 //!   **Results** are keyed by the digest of their inputs (the session's inputs digest):
 //!   `result/<session>/<inputs>/{result.<ext>, result.json, history/…, confidence.png,
-//!   provenance.png, mask.png}` (not uploaded again when there), and a [`ResultMsg`] on
+//!   surfaces.png, provenance.png, mask.png}` (not uploaded again when there), and a [`ResultMsg`] on
 //!   `clearview.out.<session>` with `Nats-Msg-Id` = session + inputs.
 //!
 //!   **Events** are the service's own ([`super::event::Event`]) on

@@ -28,7 +28,7 @@ use super::{
     Nats, OUT_PREFIX, OpError, Record, ResultMsg, ResultRef, SessionMsg,
 };
 use crate::config::Config;
-use crate::daemon::engine::publish::FillStep;
+use crate::daemon::engine::publish::{FillStep, SURFACES};
 use crate::daemon::engine::{Ctx, Slot};
 use crate::daemon::event::{Event, FileSkipped};
 use crate::daemon::job::FileId;
@@ -612,9 +612,15 @@ impl Worker {
         let ext = self.ctx.emitter.result_name();
         let mut files: Vec<String> = Vec::new();
         let hist = format!("history/result-{number:04}.{}", ext.trim_start_matches("result."));
-        for rel in
-            [hist.as_str(), "confidence.png", "provenance.png", "mask.png", ext.as_str(), "result.json"]
-        {
+        for rel in [
+            hist.as_str(),
+            "confidence.png",
+            SURFACES,
+            "provenance.png",
+            "mask.png",
+            ext.as_str(),
+            "result.json",
+        ] {
             if out.join(rel).is_file() {
                 files.push(rel.to_owned());
             }

@@ -317,6 +317,9 @@ fn result_json(
     if let Some(surfaces) = &outcome.surfaces {
         report["planes"] = json!(surfaces);
     }
+    if outcome.surface_map.is_some() {
+        report["surfaces"] = json!(SURFACES);
+    }
     report
 }
 
@@ -356,17 +359,21 @@ pub(super) fn write_mask(ctx: &Ctx, slot: &Slot) {
     }
 }
 
-/// The result's confidence map as `confidence.png` beside it (8-bit, the keyframe's size,
-/// 0 outside the mask, >= 128 where the fill is sure the pixel shows the building).
-fn write_confidence(ctx: &Ctx, slot: &Slot, conf: &crate::inpaint::Confidence) {
-    let path = ctx.emitter.session_dir(&slot.name).join("confidence.png");
+/// The file beside a result that says which surface filled each pixel
+/// ([`crate::session::FillOutcome::surface_map`]), named in `result.json` as `surfaces`.
+pub(crate) const SURFACES: &str = "surfaces.png";
+
+/// An 8-bit map beside the result (`name`: `confidence.png`, [`SURFACES`]), written
+/// atomically.
+fn write_map(ctx: &Ctx, slot: &Slot, name: &str, map: &crate::imaging::Plane<u8>) {
+    let path = ctx.emitter.session_dir(&slot.name).join(name);
     let mut png = std::io::Cursor::new(Vec::new());
-    let r = crate::imaging::convert::plane_to_luma8(conf)
+    let r = crate::imaging::convert::plane_to_luma8(map)
         .write_to(&mut png, image::ImageFormat::Png)
         .map_err(std::io::Error::other)
         .and_then(|()| crate::fsio::atomic_write(&path, png.get_ref()));
     if let Err(e) = r {
-        tracing::warn!(error = %e, "cannot write confidence.png");
+        tracing::warn!(error = %e, file = name, "cannot write a map beside the result");
     }
 }
 
@@ -390,8 +397,23 @@ fn after_result(
             Err(e) => tracing::warn!(error = %e, "cannot write provenance.png"),
         }
     }
+    // The result's confidence (0 outside the mask, >= 128 where the fill is sure the pixel
+    // shows the building) and, when the session sweeps for surfaces off the wall, which one
+    // filled each pixel. A surface map left by an earlier run that swept would describe
+    // another result: it goes.
     if let Some(conf) = &outcome.confidence {
-        write_confidence(ctx, slot, conf);
+        write_map(ctx, slot, "confidence.png", conf);
+    }
+    match &outcome.surface_map {
+        Some(map) => write_map(ctx, slot, SURFACES, map),
+        None => {
+            let stale = ctx.emitter.session_dir(&slot.name).join(SURFACES);
+            if let Err(e) = std::fs::remove_file(&stale)
+                && e.kind() != std::io::ErrorKind::NotFound
+            {
+                tracing::warn!(error = %e, "cannot remove the surface map of an earlier result");
+            }
+        }
     }
     slot.filled_by =
         outcome.views.iter().cloned().zip(outcome.report.sources.iter().map(|s| s.filled)).collect();
