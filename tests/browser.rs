@@ -235,7 +235,7 @@ fn paint_a_mask_on_the_page_and_see_the_new_result_arrive() {
     // The new result shows up by itself.
     b.wait("the result on the page", 90, "return document.getElementById('viewer').dataset.result !== ''");
     assert_eq!(b.js("return window.notReloaded === true", json!([])), true, "no reload");
-    let shown = "return ['paint', 'paint-controls', 'prov', 'legend'].filter((id) => \
+    let shown = "return ['paint', 'paint-controls', 'prov', 'legend', 'surf', 'surf-legend'].filter((id) => \
         getComputedStyle(document.getElementById(id)).display !== 'none')";
     assert_eq!(b.js(shown, json!([])), json!([]), "painting tools and overlay are put away");
     b.wait(
@@ -260,6 +260,22 @@ fn paint_a_mask_on_the_page_and_see_the_new_result_arrive() {
         "const s = document.getElementById('slider'); s.value = 60; s.dispatchEvent(new Event('input'));",
         json!([]),
     );
+    // The surfaces the fill copied through, over it: here a flat wall, all of it the wall's.
+    b.click("#show-surf");
+    b.wait(
+        "the surface overlay",
+        10,
+        "const s = document.getElementById('surf'); return !document.getElementById('surf-legend').hidden && \
+        s.complete && s.naturalWidth > 0",
+    );
+    let surf_legend = b.js("return document.getElementById('surf-legend').innerText", json!([]));
+    assert!(surf_legend.as_str().is_some_and(|t| t.contains("the wall (")), "{surf_legend}");
+    let size = b.js(
+        "const s = document.getElementById('surf'), k = document.getElementById('before'); \
+         return [s.naturalWidth === k.naturalWidth, s.naturalHeight === k.naturalHeight]",
+        json!([]),
+    );
+    assert_eq!(size, json!([true, true]), "the overlay is the keyframe's size");
     // Left of the divider the keyframe, right of it the result.
     let clip = b.js("return document.getElementById('after').style.clipPath", json!([]));
     assert_eq!(clip, "inset(0px 0px 0px 60%)", "the result shows right of the divider");

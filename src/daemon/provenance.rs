@@ -1,6 +1,7 @@
 //! The provenance map as a picture (shell layer): which view filled each masked pixel of
 //! a result, colour-coded into a transparent PNG with a legend, for the preview page; pixels
-//! a view filled but the occlusion model is not sure of are shown apart, as doubtful.
+//! a view filled but the occlusion model is not sure of are shown apart, as doubtful; and the
+//! surface map (`surfaces.png`: which surface off the wall filled each pixel) as an overlay.
 
 use image::ImageEncoder;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
@@ -90,9 +91,61 @@ pub fn render(
     Ok((png, legend))
 }
 
+/// Colours of the surfaces off the wall 0, 1, ... (cycled) in the surface overlay: apart
+/// from each other, and from the wall's grey. The page's legend (`app.js`) has the same.
+pub const SURFACE_PALETTE: [[u8; 3]; 6] = [
+    [0xe6, 0x19, 0x4b],
+    [0x3c, 0xb4, 0x4b],
+    [0x43, 0x63, 0xd8],
+    [0xf5, 0x82, 0x31],
+    [0x91, 0x1e, 0xb4],
+    [0x42, 0xd4, 0xf4],
+];
+
+/// The wall's colour in the surface overlay, see-through: a pixel copied through its view's
+/// wall (the paper's one homography).
+pub const WALL_COLOUR: [u8; 4] = [0x80, 0x80, 0x80, 0x60];
+
+/// The colour of surface-map value `v` (`surfaces.png`: 0 outside the mask, 1 the wall,
+/// `2 + s` surface `s`) in the overlay.
+pub fn surface_colour(v: u8) -> [u8; 4] {
+    match v {
+        0 => [0, 0, 0, 0],
+        1 => WALL_COLOUR,
+        s => {
+            let c = SURFACE_PALETTE[usize::from(s - 2) % SURFACE_PALETTE.len()];
+            [c[0], c[1], c[2], 255]
+        }
+    }
+}
+
+/// An RGBA PNG of a surface map (`surfaces.png`), for the preview page: outside the mask
+/// transparent, the wall's pixels a see-through grey, each surface off the wall opaque in
+/// its colour ([`surface_colour`]).
+pub fn render_surfaces(map: &image::GrayImage) -> std::io::Result<Vec<u8>> {
+    let rgba: Vec<u8> = map.as_raw().iter().flat_map(|&v| surface_colour(v)).collect();
+    let mut png = Vec::new();
+    PngEncoder::new_with_quality(&mut png, CompressionType::Fast, FilterType::Adaptive)
+        .write_image(&rgba, map.width(), map.height(), image::ExtendedColorType::Rgba8)
+        .map_err(std::io::Error::other)?;
+    Ok(png)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_surface_overlay_shows_the_wall_see_through_and_each_surface_in_its_colour() {
+        let map = image::GrayImage::from_raw(4, 2, vec![0, 1, 2, 3, 8, 1, 0, 2]).unwrap();
+        let img = image::load_from_memory(&render_surfaces(&map).unwrap()).unwrap().to_rgba8();
+        assert_eq!(img.get_pixel(0, 0).0[3], 0, "outside the mask: transparent");
+        assert_eq!(img.get_pixel(1, 0).0, WALL_COLOUR);
+        assert_eq!(img.get_pixel(2, 0).0, [0xe6, 0x19, 0x4b, 255], "surface 0");
+        assert_eq!(img.get_pixel(3, 0).0, [0x3c, 0xb4, 0x4b, 255], "surface 1");
+        assert_eq!(img.get_pixel(0, 1).0, img.get_pixel(2, 0).0, "surface 6 cycles to surface 0's colour");
+        assert_eq!(img.get_pixel(3, 1).0, img.get_pixel(2, 0).0);
+    }
 
     #[test]
     fn colours_and_legend_follow_the_values() {

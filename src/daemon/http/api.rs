@@ -224,6 +224,35 @@ pub async fn provenance(State(s): AppState, UrlPath(id): UrlPath<String>) -> Res
     file(s.emitter.session_dir(&x.id).join("provenance.png"), "provenance map").await
 }
 
+/// `GET /api/sessions/{id}/surfaces`: the current result's surface map (`surfaces.png`)
+/// as an overlay ([`crate::daemon::provenance::render_surfaces`]); 404 before a result, and
+/// when the session does not sweep for surfaces off the wall.
+pub async fn surfaces(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
+    let x = session(&s, &id)?;
+    let path = s.emitter.session_dir(&x.id).join(crate::daemon::engine::publish::SURFACES);
+    let bytes = match tokio::fs::read(&path).await {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(err(
+                StatusCode::NOT_FOUND,
+                "no surface map: no result yet, or the session does not sweep",
+            ));
+        }
+        Err(e) => return Err(io_error(&path, "surface map", e)),
+    };
+    let limits = DecodeLimits { max_pixels: s.config.max_pixels };
+    let _turn = s.limits.decode().await;
+    let png = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, ApiError> {
+        let map = decode(&bytes, &limits)
+            .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, format!("the surface map: {e}")))?
+            .into_luma8();
+        crate::daemon::provenance::render_surfaces(&map).map_err(|e| io_error(&path, "surface map", e))
+    })
+    .await
+    .map_err(|_| err(StatusCode::INTERNAL_SERVER_ERROR, "surface overlay task failed"))??;
+    Ok(([(header::CONTENT_TYPE, "image/png"), (header::CACHE_CONTROL, "no-cache")], png).into_response())
+}
+
 pub async fn legend(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
     let x = session(&s, &id)?;
     let number = x.result.as_ref().and_then(|r| r.get("number")).cloned();

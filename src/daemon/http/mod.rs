@@ -193,6 +193,7 @@ fn router(shared: Arc<Shared>, max_body: usize) -> Router {
         .route("/api/sessions/{id}/mask", get(api::mask).put(api::put_mask))
         .route("/api/sessions/{id}/provenance", get(api::provenance))
         .route("/api/sessions/{id}/provenance.json", get(api::legend))
+        .route("/api/sessions/{id}/surfaces", get(api::surfaces))
         .route("/api/sessions/{id}/views/{file}/thumb", get(api::thumb))
         .layer(axum::middleware::from_fn_with_state(shared.clone(), body_slots))
         .layer(axum::middleware::from_fn_with_state(shared.clone(), guard))

@@ -101,7 +101,34 @@ async function loadSession() {
     li.append(sw, l.source + ' (' + l.pixels + ' px)');
     return li;
   }));
+  renderSurfaces(s, n);
   renderViews(s);
+}
+
+// The surface overlay's colours, as `daemon::provenance::SURFACE_PALETTE` paints them.
+const SURFACE_PALETTE = ['#e6194b', '#3cb44b', '#4363d8', '#f58231', '#911eb4', '#42d4f4'];
+
+// Which surface each masked pixel was copied through (the result's `surfaces.png`, drawn
+// by the API), with a legend from the result's `planes`: the wall, and each surface off it.
+function renderSurfaces(s, n) {
+  const surf = $('surf');
+  const r = s.result;
+  const planes = r && r.surfaces && r.planes ? r.planes : null;
+  if (planes) surf.src = url(sessionPath(s.id) + '/surfaces', { n: n });
+  surf.hidden = !($('show-surf').checked && planes);
+  const legend = $('surf-legend');
+  legend.hidden = surf.hidden;
+  if (!planes) { legend.replaceChildren(); return; }
+  const through = planes.surfaces.map((p) => p.filled_pixels);
+  const entries = [['#80808060', 'the wall', r.masked - through.reduce((a, b) => a + b, 0)]];
+  through.forEach((px, k) => entries.push([SURFACE_PALETTE[k % SURFACE_PALETTE.length], 'surface ' + (k + 1) + ' off the wall', px]));
+  legend.replaceChildren(...entries.map(([colour, what, px]) => {
+    const li = document.createElement('li');
+    const sw = document.createElement('i');
+    sw.style.background = colour;
+    li.append(sw, what + ' (' + px + ' px)');
+    return li;
+  }));
 }
 
 function renderViews(s) {
@@ -261,6 +288,7 @@ function listen() {
 
 $('slider').addEventListener('input', slide);
 $('show-prov').addEventListener('change', () => loadSession());
+$('show-surf').addEventListener('change', () => loadSession());
 $('paint-toggle').addEventListener('click', () => togglePaint(!painting));
 $('clear').addEventListener('click', () => ctx.clearRect(0, 0, canvas.width, canvas.height));
 $('save').addEventListener('click', saveMask);
@@ -269,7 +297,7 @@ loadSessions().catch((e) => say(e.message));
 listen();
 
 // ---- 1:1 zoom with panning (mouse and touch) ----
-// Every layer (keyframe, result, provenance, paint canvas) is shown at its natural size and
+// Every layer (keyframe, result, provenance, surfaces, paint canvas) is shown at its natural size and
 // moved by the same offset inside the viewer, whose height is kept; the before/after
 // divider stays where the slider puts it. Self-contained: it only adds listeners.
 const zoom = { on: false, x: 0, y: 0, drag: null };
@@ -277,7 +305,7 @@ const zoom = { on: false, x: 0, y: 0, drag: null };
 function zoomApply() {
   const viewer = $('viewer');
   const key = $('before');
-  const layers = ['before', 'after', 'prov', 'paint'].map($);
+  const layers = ['before', 'after', 'prov', 'surf', 'paint'].map($);
   if (!zoom.on || !key.naturalWidth) {
     viewer.classList.remove('zoomed');
     viewer.style.height = '';
