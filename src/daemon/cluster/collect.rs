@@ -73,20 +73,23 @@ pub async fn run(
         what: format!("consumer {consumer} on {}", c.results_stream),
         reason: e.to_string(),
     };
-    let stream = nats.js.get_stream(&c.results_stream).await.map_err(|e| setup(&e))?;
-    let consumer = stream
-        .get_or_create_consumer(
-            consumer,
-            pull::Config {
-                durable_name: Some(consumer.to_owned()),
-                ack_policy: jetstream::consumer::AckPolicy::Explicit,
-                ack_wait: c.ack_wait,
-                num_replicas: c.replicas,
-                ..Default::default()
-            },
-        )
-        .await
-        .map_err(|e| setup(&e))?;
+    let consumer = super::settled("the collector's consumer", || async {
+        let stream = nats.js.get_stream(&c.results_stream).await.map_err(|e| setup(&e))?;
+        stream
+            .get_or_create_consumer(
+                consumer,
+                pull::Config {
+                    durable_name: Some(consumer.to_owned()),
+                    ack_policy: jetstream::consumer::AckPolicy::Explicit,
+                    ack_wait: c.ack_wait,
+                    num_replicas: c.replicas,
+                    ..Default::default()
+                },
+            )
+            .await
+            .map_err(|e| setup(&e))
+    })
+    .await?;
     let cancel = CancellationToken::new();
     {
         let cancel = cancel.clone();

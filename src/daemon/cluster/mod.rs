@@ -364,26 +364,7 @@ impl Nats {
             .map_err(|_| fail("no server answered within 30 s".into()))?
             .map_err(|e| fail(e.to_string()))?;
         let js = jetstream::new(client.clone());
-        let mut tries = 0;
-        let (objects, sessions, leases) = loop {
-            // Each try is bounded: a request can wait on a cluster without a leader.
-            match tokio::time::timeout(Duration::from_secs(20), ensure(&js, config)).await {
-                Ok(Ok(v)) => break v,
-                Ok(Err(e)) if tries >= 10 => return Err(e),
-                Err(_) if tries >= 10 => {
-                    return Err(ClusterError::Setup { what: "streams".into(), reason: "timed out".into() });
-                }
-                other => {
-                    let reason = match other {
-                        Ok(Err(e)) => e.to_string(),
-                        _ => "timed out".into(),
-                    };
-                    tracing::warn!(%reason, tries, "JetStream not ready: trying again");
-                    tries += 1;
-                    tokio::time::sleep(Duration::from_secs(1)).await;
-                }
-            }
-        };
+        let (objects, sessions, leases) = settled("streams", || ensure(&js, config)).await?;
         let object_stream = js.get_stream(format!("OBJ_{}", config.objects)).await.map_err(|e| {
             ClusterError::Setup { what: format!("object store {}", config.objects), reason: e.to_string() }
         })?;
@@ -509,6 +490,41 @@ type Buckets = (object_store::ObjectStore, kv::Store, kv::Store);
 
 /// Makes the streams and buckets that are missing (creation is idempotent, so roles that
 /// start together do not fight).
+/// Tries after the first that [`settled`] makes before it gives up.
+const SETUP_RETRIES: u32 = 10;
+
+/// `op`, a set-up request to JetStream (streams, buckets, a durable consumer), tried until
+/// it succeeds: each try bounded, since a request can wait on a cluster without a leader,
+/// and [`SETUP_RETRIES`] more a second apart. Servers started together elect their leaders
+/// within seconds, and a role started among them must wait for that, not die: a worker
+/// whose streams were made while its consumer's request timed out exited (`what`: what is
+/// set up, for the error and the log).
+pub(crate) async fn settled<T, F, Fut>(what: &str, mut op: F) -> Result<T, ClusterError>
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = Result<T, ClusterError>>,
+{
+    let mut tries = 0;
+    loop {
+        match tokio::time::timeout(Duration::from_secs(20), op()).await {
+            Ok(Ok(v)) => return Ok(v),
+            Ok(Err(e)) if tries >= SETUP_RETRIES => return Err(e),
+            Err(_) if tries >= SETUP_RETRIES => {
+                return Err(ClusterError::Setup { what: what.into(), reason: "timed out".into() });
+            }
+            other => {
+                let reason = match other {
+                    Ok(Err(e)) => e.to_string(),
+                    _ => "timed out".into(),
+                };
+                tracing::warn!(%reason, tries, what, "JetStream not ready: trying again");
+                tries += 1;
+                tokio::time::sleep(Duration::from_secs(1)).await;
+            }
+        }
+    }
+}
+
 async fn ensure(js: &jetstream::Context, config: &NatsConfig) -> Result<Buckets, ClusterError> {
     let setup = |what: String, e: &dyn std::fmt::Display| ClusterError::Setup { what, reason: e.to_string() };
     let replicas = config.replicas;
@@ -584,6 +600,22 @@ async fn kv_bucket(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A set-up request that fails while the servers elect their leaders is tried again, and
+    /// the role goes on once it succeeds (a worker used to exit when its consumer's request
+    /// timed out after its streams were made).
+    #[test]
+    fn a_set_up_request_is_tried_again_until_jetstream_answers() {
+        let rt = tokio::runtime::Builder::new_current_thread().enable_time().build().unwrap();
+        let calls = std::sync::atomic::AtomicU32::new(0);
+        let got = rt.block_on(settled("a consumer", || async {
+            match calls.fetch_add(1, std::sync::atomic::Ordering::Relaxed) {
+                0 | 1 => Err(ClusterError::Setup { what: "a consumer".into(), reason: "timed out".into() }),
+                n => Ok(n),
+            }
+        }));
+        assert_eq!(got.unwrap(), 2, "answered at the third try");
+    }
 
     #[test]
     fn session_tokens_are_plain_names_or_marked_hex_and_never_meet() {

@@ -234,7 +234,7 @@ pub async fn run(
         stats: Arc::new(Stats::default()),
         registry: Arc::default(),
     };
-    let consumer = consumer(&nats).await?;
+    let consumer = super::settled("the workers' consumer", || consumer(&nats)).await?;
     let metrics = Arc::new(Metrics::default());
     if let Some(addr) = opts.metrics {
         let listener = tokio::net::TcpListener::bind(addr)
