@@ -266,7 +266,8 @@ fn everything_visible_is_whole(f: &Folders, session: &str) {
         let _: Value = serde_json::from_slice(&std::fs::read(out.join("result.json")).unwrap())
             .expect("result.json is whole");
     }
-    for p in [out.join("result.png"), out.join("mask.png"), out.join("provenance.png")] {
+    for name in ["result.png", "mask.png", "provenance.png", "confidence.png", "surfaces.png"] {
+        let p = out.join(name);
         if p.exists() {
             image::open(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
         }
