@@ -114,8 +114,9 @@ function renderSurfaces(s, n) {
   const surf = $('surf');
   const r = s.result;
   const planes = r && r.surfaces && r.planes ? r.planes : null;
-  if (planes) surf.src = url(sessionPath(s.id) + '/surfaces', { n: n });
   surf.hidden = !($('show-surf').checked && planes);
+  // Drawn by the server from the map at each request: asked for only when shown.
+  if (!surf.hidden) surf.src = url(sessionPath(s.id) + '/surfaces', { n: n });
   const legend = $('surf-legend');
   legend.hidden = surf.hidden;
   if (!planes) { legend.replaceChildren(); return; }
