@@ -488,8 +488,6 @@ impl Nats {
 
 type Buckets = (object_store::ObjectStore, kv::Store, kv::Store);
 
-/// Makes the streams and buckets that are missing (creation is idempotent, so roles that
-/// start together do not fight).
 /// Tries after the first that [`settled`] makes before it gives up.
 const SETUP_RETRIES: u32 = 10;
 
@@ -525,6 +523,8 @@ where
     }
 }
 
+/// Makes the streams and buckets that are missing (creation is idempotent, so roles that
+/// start together do not fight).
 async fn ensure(js: &jetstream::Context, config: &NatsConfig) -> Result<Buckets, ClusterError> {
     let setup = |what: String, e: &dyn std::fmt::Display| ClusterError::Setup { what, reason: e.to_string() };
     let replicas = config.replicas;
