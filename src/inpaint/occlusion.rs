@@ -2,7 +2,7 @@
 //! shows something standing in front of the building there, and from it how sure the fill
 //! can be of each pixel it fills (pure layer).
 //!
-//! Four kinds of evidence, each measured on the region's warped, compensated views and
+//! Five kinds of evidence, each measured on the region's warped, compensated views and
 //! combined as log-odds (none is enough alone):
 //! - **consensus**: the share of the *other* views that agree with this one at the pixel,
 //!   each view weighted by how independent it is (two shots from the same spot agree on
@@ -20,7 +20,11 @@
 //!   suspected (the disagreement is explained by the object that reaches it);
 //! - **the building's own colours**: the keyframe's unmasked surroundings say what the
 //!   building looks like; a view's pixel unlike all of it is suspect (what carries one or
-//!   two views, where a consensus cannot be had).
+//!   two views, where a consensus cannot be had);
+//! - **outlines**, where two views disagree and no third sees the pixel: something standing
+//!   in front has an outline, across which the view showing it steps from the building's
+//!   colours to its own, while the view that sees past it continues what is around (see
+//!   [`outlines`]).
 //!
 //! Last, inside the hole, a view that agrees with views sure they show the keyframe's
 //! occluder there shows it too (a shared occluder: agreement among views is not always the
@@ -61,6 +65,7 @@ pub struct OcclusionParams {
     pub w_resemblance: f32,
     pub w_own: f32,
     pub w_foreign: f32,
+    pub w_outline: f32,
     /// Log-odds before any evidence (negative: a view shows the building unless told).
     pub prior: f32,
     /// A view's pixel with an occlusion probability above this is not copied while another
@@ -85,6 +90,7 @@ impl Default for OcclusionParams {
             w_resemblance: 4.0,
             w_own: 4.0,
             w_foreign: 1.5,
+            w_outline: 4.0,
             prior: -0.75,
             cut: 0.85,
             sure: 0.95,
@@ -290,7 +296,13 @@ fn independence(blurred: &[Vec<[f32; 3]>], valid: &[&[bool]], need: &[bool], agr
 }
 
 /// 4-connected components of `seed` with at least `min` pixels that `keep` keeps.
-fn objects(seed: &[bool], w: usize, h: usize, min: usize, keep: impl Fn(&[usize]) -> bool) -> Vec<bool> {
+fn objects(
+    seed: &[bool],
+    w: usize,
+    h: usize,
+    min: usize,
+    mut keep: impl FnMut(&[usize]) -> bool,
+) -> Vec<bool> {
     let mut out = vec![false; seed.len()];
     let mut seen = vec![false; seed.len()];
     let mut stack = Vec::new();
@@ -403,6 +415,226 @@ fn grow(from: &[bool], allowed: &[bool], w: usize, h: usize) -> Vec<bool> {
     out
 }
 
+/// Two views differ grossly, at the core of an area of disagreement, where their box
+/// averages are further apart than this share of `seed_distance` (a passer-by's shirt a
+/// little unlike the bricks behind him still makes a core)...
+const OUTLINE_CORE: f32 = 0.6;
+/// ...and the area takes in the pixels where they differ at all (more than `agree`) up to
+/// this many steps from its core: the parts of the object nearer the building's colours.
+const OUTLINE_GROW: usize = 6;
+/// Outer layers (4-connected steps from an area of disagreement) whose agreed colours an
+/// outline is measured from: the first is left out (the box average spreads the area by
+/// about the blur radius, so the views there are mixed with what is inside).
+const OUTLINE_OUTSIDE: std::ops::RangeInclusive<usize> = 2..=4;
+/// Depths inside the area (steps from its edge) where each view's step is measured.
+const OUTLINE_INSIDE: std::ops::RangeInclusive<usize> = 3..=6;
+/// Added to the larger step before the two steps' difference is divided by it: two small
+/// steps (both views continue the outside, as where one is a little misregistered) say
+/// little.
+const OUTLINE_SOFT: f32 = 0.05;
+/// An inner pixel's colour is looked for among the agreed outside pixels within this many
+/// pixels of it.
+const OUTLINE_REACH: usize = 16;
+/// Fewer pixels than this on either side of an outline: it says nothing.
+const OUTLINE_MIN: usize = 12;
+
+/// Evidence from the outlines of what two lone views disagree on (no third view sees the
+/// pixel to say which is right): per view, region-sized, from -1 (it surely sees the building
+/// there) to +1 (it surely shows something in front). Something standing in front of the
+/// building has an outline: across it, the view that shows it steps from the building's
+/// colours to the object's, while the view that sees past it shows the building continuing
+/// from just outside, where the two agree. So, per connected area where two lone views
+/// disagree, each view's step from the agreed colours just outside to its own just inside:
+/// the larger step is the occluder's. (The keyframe's colours cannot say: a passer-by wholly
+/// inside the mask, in front of a window whose glass the ring does not show, is as foreign
+/// to the ring as the glass.)
+#[allow(clippy::too_many_arguments)]
+fn outlines(
+    views: &[Vec<[f32; 3]>],
+    raw: &[(&[[f32; 3]], &[bool])],
+    valid: &[&[bool]],
+    hole: &[bool],
+    witnesses: &[f32],
+    ind: &[f32],
+    w: usize,
+    h: usize,
+    max_shift: usize,
+    params: &OcclusionParams,
+) -> Vec<Vec<f32>> {
+    let nv = views.len();
+    let n = w * h;
+    let mut out = vec![vec![0.0f32; n]; nv];
+    if params.w_outline == 0.0 {
+        return out;
+    }
+    for u in 0..nv {
+        for v in u + 1..nv {
+            let seen: Vec<bool> = (0..n).map(|i| valid[u][i] && valid[v][i]).collect();
+            // Where the two disagree: grossly (the cores of areas), or at all (what an area
+            // takes in around its core).
+            let lone = |i: usize| hole[i] && seen[i] && witnesses[i] - ind[u] - ind[v] < 0.5;
+            let differ: Vec<bool> =
+                (0..n).map(|i| lone(i) && dist(views[u][i], views[v][i]) > params.agree).collect();
+            let gross: Vec<bool> = (0..n)
+                .map(|i| differ[i] && dist(views[u][i], views[v][i]) > OUTLINE_CORE * params.seed_distance)
+                .collect();
+            let core = super::automask::erode(&crate::imaging::Plane::from_vec(w, h, gross), 1);
+            let mut areas = Vec::new();
+            objects(core.as_slice(), w, h, params.min_object, |members| {
+                areas.push(members.to_vec());
+                false
+            });
+            for members in areas {
+                let e = outline_step(
+                    &members,
+                    &differ,
+                    [&views[u], &views[v]],
+                    [raw[u].0, raw[v].0],
+                    &seen,
+                    w,
+                    h,
+                    max_shift,
+                    params,
+                );
+                let Some((area, e)) = e else { continue };
+                for i in area {
+                    out[v][i] += e;
+                    out[u][i] -= e;
+                }
+            }
+        }
+    }
+    for o in &mut out {
+        o.iter_mut().for_each(|e| *e = e.clamp(-1.0, 1.0));
+    }
+    out
+}
+
+/// For one area where two views disagree (the eroded core `members`, taken back to
+/// `differ`), the area's pixels and the evidence that the second view, not the first, shows
+/// something in front there (see [`outlines`]); `None` when its outline is too short to say.
+#[allow(clippy::too_many_arguments)]
+fn outline_step(
+    members: &[usize],
+    differ: &[bool],
+    pair: [&[[f32; 3]]; 2],
+    raw: [&[[f32; 3]]; 2],
+    seen: &[bool],
+    w: usize,
+    h: usize,
+    max_shift: usize,
+    params: &OcclusionParams,
+) -> Option<(Vec<usize>, f32)> {
+    // A box around the area with room for the outside layers.
+    let pad = OUTLINE_GROW + *OUTLINE_OUTSIDE.end() + OUTLINE_REACH;
+    let (mut x0, mut y0, mut x1, mut y1) = (w, h, 0, 0);
+    for &i in members {
+        let (x, y) = (i % w, i / w);
+        (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
+    }
+    let (x0, y0) = (x0.saturating_sub(pad), y0.saturating_sub(pad));
+    let (x1, y1) = ((x1 + pad).min(w - 1), (y1 + pad).min(h - 1));
+    let (bw, bh) = (x1 - x0 + 1, y1 - y0 + 1);
+    let global = |j: usize| (y0 + j / bw) * w + x0 + j % bw;
+    // The area: the core and the disagreeing pixels connected to it, up to a few steps out.
+    let mut inside = vec![false; bw * bh];
+    let mut queue: std::collections::VecDeque<(usize, usize)> = members
+        .iter()
+        .map(|&i| {
+            let j = (i / w - y0) * bw + i % w - x0;
+            inside[j] = true;
+            (j, 0)
+        })
+        .collect();
+    while let Some((j, d)) = queue.pop_front() {
+        if d < OUTLINE_GROW {
+            neighbours4(j, bw, bh, |k| {
+                if !inside[k] && differ[global(k)] {
+                    inside[k] = true;
+                    queue.push_back((k, d + 1));
+                }
+            });
+        }
+    }
+    // Steps from the area's edge: outwards (over everything), and inwards.
+    let layers = |from: &dyn Fn(usize) -> bool, through: &dyn Fn(usize) -> bool| -> Vec<usize> {
+        let mut depth = vec![usize::MAX; bw * bh];
+        let mut queue = std::collections::VecDeque::new();
+        for (j, d) in depth.iter_mut().enumerate() {
+            if from(j) {
+                *d = 0;
+                queue.push_back(j);
+            }
+        }
+        while let Some(j) = queue.pop_front() {
+            let next = depth[j] + 1;
+            neighbours4(j, bw, bh, |k| {
+                if depth[k] == usize::MAX && through(k) {
+                    depth[k] = next;
+                    queue.push_back(k);
+                }
+            });
+        }
+        depth
+    };
+    let out_depth = layers(&|j| inside[j], &|j| !inside[j]);
+    let in_depth = layers(&|j| !inside[j], &|j| inside[j]);
+    let agreed = |j: usize| {
+        let i = global(j);
+        seen[i] && dist(pair[0][i], pair[1][i]) < params.agree
+    };
+    // The agreed colour (the two views' mean) of each outside pixel.
+    let outside: Vec<Option<[f32; 3]>> = (0..bw * bh)
+        .map(|j| {
+            let s = global(j);
+            (OUTLINE_OUTSIDE.contains(&out_depth[j]) && agreed(j))
+                .then(|| std::array::from_fn(|c| 0.5 * (raw[0][s][c] + raw[1][s][c])))
+        })
+        .collect();
+    if outside.iter().flatten().count() < OUTLINE_MIN {
+        return None;
+    }
+    // Each inner pixel's closest colour among the agreed outside pixels near it: what the
+    // building shows around the area continues into it in the view that sees past the
+    // object (a muntin hidden by legs meets itself where it leaves the area), while the
+    // object's colours are not there.
+    let reach = OUTLINE_REACH as isize;
+    let (mut steps, mut count) = ([0.0f32; 2], 0usize);
+    for j in 0..bw * bh {
+        if !inside[j] || !OUTLINE_INSIDE.contains(&in_depth[j]) {
+            continue;
+        }
+        let (jx, jy) = ((j % bw) as isize, (j / bw) as isize);
+        let i = global(j);
+        let mut best = [f32::INFINITY; 2];
+        for yy in (jy - reach).max(0)..=(jy + reach).min(bh as isize - 1) {
+            for xx in (jx - reach).max(0)..=(jx + reach).min(bw as isize - 1) {
+                let Some(agreed) = outside[yy as usize * bw + xx as usize] else { continue };
+                for (b, view) in best.iter_mut().zip(raw) {
+                    *b = b.min(dist(view[i], agreed));
+                }
+            }
+        }
+        if best[0].is_finite() {
+            steps[0] += best[0];
+            steps[1] += best[1];
+            count += 1;
+        }
+    }
+    if count < OUTLINE_MIN {
+        return None;
+    }
+    let [a, b] = steps.map(|s| s / count as f32);
+    // The view that steps further may show the other's building moved (a corner or a
+    // muntin seen with parallax, the two a few pixels apart): that is no object in front.
+    let (stepped, other) = if b > a { (1, 0) } else { (0, 1) };
+    let area: Vec<usize> = (0..bw * bh).filter(|&j| inside[j]).map(global).collect();
+    if displaced(&area, pair[stepped], pair[other], seen, w, h, max_shift, params.agree) {
+        return None;
+    }
+    Some((area, (b - a) / (a.max(b) + OUTLINE_SOFT)))
+}
+
 /// The model over one region (see the module docs).
 pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> OcclusionMap {
     let (w, h) = (input.region.width, input.region.height);
@@ -446,6 +678,8 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
         (0..n).map(|i| (0..nv).filter(|&u| valid[u][i]).map(|u| ind[u]).sum::<f32>()).collect();
     let best: Vec<f32> = (0..n).map(|i| (0..nv).map(|v| support[v][i]).fold(0.0, f32::max)).collect();
 
+    let outline =
+        outlines(&views_b, input.views, &valid, input.region.hole, &witnesses, &ind, w, h, max_shift, params);
     // The building: the keyframe around the hole. The occluder: the keyframe inside it.
     let around: Vec<bool> =
         (0..n).map(|i| input.region.need[i] && !input.region.hole[i] && !input.region.blocked[i]).collect();
@@ -553,6 +787,7 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
                     let same = (1.0 - dist(c, key_b[i]) / params.agree).clamp(0.0, 1.0);
                     let kind = (2.0 * occluder_like(c) - 1.0).max(0.0);
                     l += params.w_resemblance * (same * occluder_like(key_b[i])).max(kind);
+                    l += params.w_outline * outline[v][i];
                 }
                 if own[i] {
                     l += params.w_own;
@@ -895,6 +1130,103 @@ mod tests {
         assert_eq!(raised([0.98, 0.98, 0.3, 0.6], [green, green, bluer, bluer], true, heavy), 0.6);
         // Outside the hole nothing is raised.
         assert_eq!(raised(three_sure, [green, green, green, bluer], false, [1.0; 4]), 0.6);
+    }
+
+    /// A passer-by wholly inside the mask, in front of a window whose glass the keyframe's
+    /// ring does not show, seen by one of two views (the daemon's `Scene::new(710)`: the
+    /// second view's fill copied him into the window, 24.98 → 21.65 dB, and was published).
+    /// His colours are as foreign to the ring as the glass, no third view can outvote him,
+    /// and he does not cross the mask's edge to be followed in: only his outline tells, the
+    /// glass and the muntin continuing past it in the other view.
+    #[test]
+    fn of_two_views_the_one_whose_disagreement_has_an_outline_shows_the_occluder() {
+        let (w, h) = (120, 100);
+        let window = |x: usize, y: usize| (35..85).contains(&x) && (25..80).contains(&y);
+        let wall = |x: usize, y: usize| {
+            if window(x, y) {
+                let frame = !(38..82).contains(&x) || !(28..77).contains(&y) || (59..62).contains(&x);
+                if frame { [0.9, 0.88, 0.8] } else { [0.15, 0.2, 0.35] }
+            } else if (y / 4 + x / 12).is_multiple_of(2) {
+                [0.65, 0.4, 0.3]
+            } else {
+                [0.55, 0.35, 0.28]
+            }
+        };
+        let in_hole = |x: usize, y: usize| (20..100).contains(&x) && (15..90).contains(&y);
+        // The keyframe's own occluder, a tree, fills the hole.
+        let key: Vec<[f32; 3]> = (0..w * h)
+            .map(|i| if in_hole(i % w, i / w) { [0.1, 0.5, 0.15] } else { wall(i % w, i / w) })
+            .collect();
+        let (hole, need, blocked) = region(w, h, in_hole);
+        let person = |x: usize, y: usize| -> Option<[f32; 3]> {
+            if (52..66).contains(&x) && (35..55).contains(&y) {
+                Some([0.55, 0.55, 0.3])
+            } else if (54..64).contains(&x) && (55..75).contains(&y) {
+                Some([0.12, 0.14, 0.3])
+            } else {
+                None
+            }
+        };
+        let clean: Vec<[f32; 3]> = (0..w * h).map(|i| wall(i % w, i / w)).collect();
+        let passer_by: Vec<[f32; 3]> =
+            (0..w * h).map(|i| person(i % w, i / w).unwrap_or_else(|| wall(i % w, i / w))).collect();
+        let ok = vec![true; w * h];
+        let on_him: Vec<usize> = (0..w * h).filter(|&i| person(i % w, i / w).is_some()).collect();
+        let region =
+            KeyRegion { width: w, height: h, key: &key, hole: &hole, need: &need, blocked: &blocked };
+        let mean = |m: &OcclusionMap, v: usize| {
+            on_him.iter().map(|&i| m.occluded[v][i]).sum::<f32>() / on_him.len() as f32
+        };
+        for (clean_view, views) in [
+            (0, [(clean.as_slice(), ok.as_slice()), (passer_by.as_slice(), ok.as_slice())]),
+            (1, [(passer_by.as_slice(), ok.as_slice()), (clean.as_slice(), ok.as_slice())]),
+        ] {
+            let input = RegionInput { region, views: &views, diagonal: 156.0 };
+            let params = OcclusionParams::default();
+            let m = occlusion_map(&input, &params);
+            let (his, past) = (mean(&m, 1 - clean_view), mean(&m, clean_view));
+            assert!(his > params.cut, "the passer-by's view at {his:.2} where he stands");
+            assert!(past < 0.2, "the view past him at {past:.2}");
+            // The case tests the outline: without it the two are not told apart.
+            let blind = occlusion_map(&input, &OcclusionParams { w_outline: 0.0, ..params.clone() });
+            let (his, past) = (mean(&blind, 1 - clean_view), mean(&blind, clean_view));
+            assert!(
+                his < params.cut && his - past < 0.3,
+                "told apart without the outline: {his:.2} against {past:.2}"
+            );
+        }
+    }
+
+    /// Two clean views of a wall with dark panels, one six pixels off (parallax, a poor
+    /// registration): they disagree grossly where a panel moved, and in each such area both
+    /// show a panel's edge and the wall, so neither is made an occluder by an outline.
+    #[test]
+    fn a_misregistered_view_has_no_outline() {
+        let (w, h) = (100, 80);
+        let wall = |x: f32, y: f32| {
+            if x.rem_euclid(30.0) < 12.0 && y.rem_euclid(30.0) < 12.0 {
+                [0.2, 0.22, 0.3]
+            } else {
+                [0.7, 0.6, 0.5]
+            }
+        };
+        let in_hole = |x: usize, y: usize| (20..80).contains(&x) && (15..65).contains(&y);
+        let (hole, _, _) = region(w, h, in_hole);
+        let a: Vec<[f32; 3]> = (0..w * h).map(|i| wall((i % w) as f32, (i / w) as f32)).collect();
+        let b: Vec<[f32; 3]> = (0..w * h).map(|i| wall((i % w) as f32 + 6.0, (i / w) as f32 + 4.0)).collect();
+        let ok = vec![true; w * h];
+        let params = OcclusionParams::default();
+        let blurred: Vec<Vec<[f32; 3]>> =
+            [&a, &b].iter().map(|v| box_blur(v, &ok, w, h, params.blur_radius)).collect();
+        let gross = (0..w * h)
+            .filter(|&i| hole[i] && dist(blurred[0][i], blurred[1][i]) > params.seed_distance)
+            .count();
+        assert!(gross > 500, "the views hardly disagree ({gross} pixels): the case tests nothing");
+        let raw = [(a.as_slice(), ok.as_slice()), (b.as_slice(), ok.as_slice())];
+        let valid = [ok.as_slice(), ok.as_slice()];
+        let e = outlines(&blurred, &raw, &valid, &hole, &vec![2.0; w * h], &[1.0, 1.0], w, h, 0, &params);
+        let most = e.iter().flatten().fold(0.0f32, |m, x| m.max(x.abs()));
+        assert!(most < 0.3, "an outline found in a misregistration: evidence {most:.2}");
     }
 
     #[test]
