@@ -56,6 +56,42 @@ impl Scene {
         v
     }
 
+    /// A view from elsewhere with a passer-by of `size` who stands where the keyframe's
+    /// `(kx, ky)` is, and where he stands, in keyframe pixels.
+    pub fn view_and_footprint(&mut self, i: u64, kx: f32, ky: f32, size: f32) -> (RgbF32, Mask) {
+        let key_to_view = synth::random_homography(&mut self.rng, W, H, 0.1, 0.2, (0.9, 1.1));
+        let view_to_scene = self.centre.after(&key_to_view.inverse().unwrap());
+        let mut v = synth::render_view(&self.scene, &view_to_scene, W, H, [0.5; 3]);
+        let mut his = Mask::new(W, H, 0);
+        let at = key_to_view.apply(nalgebra::Point2::new(kx as f64, ky as f64)).unwrap();
+        synth::paint_occluder(
+            &mut v,
+            Some(&mut his),
+            Occluder::Person,
+            at.x as f32,
+            at.y as f32,
+            size,
+            100 + i,
+        );
+        synth::expose(&mut v, 0.9 + 0.03 * i as f32, 0.01);
+        let mut footprint = Mask::new(W, H, 0);
+        for y in 0..H {
+            for x in 0..W {
+                let Some(at) = key_to_view.apply(nalgebra::Point2::new(x as f64, y as f64)) else { continue };
+                let (vx, vy) = (at.x.round(), at.y.round());
+                if vx >= 0.0
+                    && vy >= 0.0
+                    && (vx as usize) < W
+                    && (vy as usize) < H
+                    && his.is_hole(vx as usize, vy as usize)
+                {
+                    footprint.set(x, y, 255);
+                }
+            }
+        }
+        (v, footprint)
+    }
+
     /// A view from elsewhere showing the passer-by that the keyframe shows at `(kx, ky)`
     /// (keyframe coordinates; `seed` as the keyframe's was painted), where he stood: he had
     /// not moved.
