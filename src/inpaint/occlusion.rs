@@ -1020,6 +1020,41 @@ mod tests {
         (hole, vec![true; w * h], vec![false; w * h])
     }
 
+    /// The outline tests' scene: a brick wall with a dark window (its frame and mullion
+    /// drawn when `frame`), the hole over the window, and the keyframe with its own occluder,
+    /// a tree, filling the hole.
+    struct WindowScene {
+        w: usize,
+        h: usize,
+        wall: Vec<[f32; 3]>,
+        key: Vec<[f32; 3]>,
+        hole: Vec<bool>,
+        need: Vec<bool>,
+        blocked: Vec<bool>,
+    }
+
+    fn window_scene(frame: bool) -> WindowScene {
+        let (w, h) = (120usize, 100usize);
+        let wall: Vec<[f32; 3]> = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                if (35..85).contains(&x) && (25..80).contains(&y) {
+                    let on_frame = !(38..82).contains(&x) || !(28..77).contains(&y) || (59..62).contains(&x);
+                    if frame && on_frame { [0.9, 0.88, 0.8] } else { [0.15, 0.2, 0.35] }
+                } else if (y / 4 + x / 12).is_multiple_of(2) {
+                    [0.65, 0.4, 0.3]
+                } else {
+                    [0.55, 0.35, 0.28]
+                }
+            })
+            .collect();
+        let in_hole = |x: usize, y: usize| (20..100).contains(&x) && (15..90).contains(&y);
+        let key =
+            (0..w * h).map(|i| if in_hole(i % w, i / w) { [0.1, 0.5, 0.15] } else { wall[i] }).collect();
+        let (hole, need, blocked) = region(w, h, in_hole);
+        WindowScene { w, h, wall, key, hole, need, blocked }
+    }
+
     #[test]
     fn blur_averages_only_valid_pixels() {
         let img = vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 1.0]];
@@ -1148,24 +1183,7 @@ mod tests {
     /// glass and the muntin continuing past it in the other view.
     #[test]
     fn of_two_views_the_one_whose_disagreement_has_an_outline_shows_the_occluder() {
-        let (w, h) = (120, 100);
-        let window = |x: usize, y: usize| (35..85).contains(&x) && (25..80).contains(&y);
-        let wall = |x: usize, y: usize| {
-            if window(x, y) {
-                let frame = !(38..82).contains(&x) || !(28..77).contains(&y) || (59..62).contains(&x);
-                if frame { [0.9, 0.88, 0.8] } else { [0.15, 0.2, 0.35] }
-            } else if (y / 4 + x / 12).is_multiple_of(2) {
-                [0.65, 0.4, 0.3]
-            } else {
-                [0.55, 0.35, 0.28]
-            }
-        };
-        let in_hole = |x: usize, y: usize| (20..100).contains(&x) && (15..90).contains(&y);
-        // The keyframe's own occluder, a tree, fills the hole.
-        let key: Vec<[f32; 3]> = (0..w * h)
-            .map(|i| if in_hole(i % w, i / w) { [0.1, 0.5, 0.15] } else { wall(i % w, i / w) })
-            .collect();
-        let (hole, need, blocked) = region(w, h, in_hole);
+        let WindowScene { w, h, wall, key, hole, need, blocked } = window_scene(true);
         let person = |x: usize, y: usize| -> Option<[f32; 3]> {
             if (52..66).contains(&x) && (35..55).contains(&y) {
                 Some([0.55, 0.55, 0.3])
@@ -1175,9 +1193,8 @@ mod tests {
                 None
             }
         };
-        let clean: Vec<[f32; 3]> = (0..w * h).map(|i| wall(i % w, i / w)).collect();
-        let passer_by: Vec<[f32; 3]> =
-            (0..w * h).map(|i| person(i % w, i / w).unwrap_or_else(|| wall(i % w, i / w))).collect();
+        let clean = wall;
+        let passer_by: Vec<[f32; 3]> = (0..w * h).map(|i| person(i % w, i / w).unwrap_or(clean[i])).collect();
         let ok = vec![true; w * h];
         let on_him: Vec<usize> = (0..w * h).filter(|&i| person(i % w, i / w).is_some()).collect();
         let region =
@@ -1210,27 +1227,11 @@ mod tests {
     /// to mark him past the cut, and his outline still tells (`OUTLINE_WITNESSES`).
     #[test]
     fn a_third_view_that_sees_past_the_passer_by_leaves_his_outline_its_say() {
-        let (w, h) = (120, 100);
-        let wall = |x: usize, y: usize| {
-            if (35..85).contains(&x) && (25..80).contains(&y) {
-                [0.15, 0.2, 0.35]
-            } else if (y / 4 + x / 12).is_multiple_of(2) {
-                [0.65, 0.4, 0.3]
-            } else {
-                [0.55, 0.35, 0.28]
-            }
-        };
-        let in_hole = |x: usize, y: usize| (20..100).contains(&x) && (15..90).contains(&y);
-        let key: Vec<[f32; 3]> = (0..w * h)
-            .map(|i| if in_hole(i % w, i / w) { [0.1, 0.5, 0.15] } else { wall(i % w, i / w) })
-            .collect();
-        let (hole, need, blocked) = region(w, h, in_hole);
+        let WindowScene { w, h, wall: clean, key, hole, need, blocked } = window_scene(false);
         let him = |x: usize, y: usize| (52..66).contains(&x) && (35..75).contains(&y);
-        let clean: Vec<[f32; 3]> = (0..w * h).map(|i| wall(i % w, i / w)).collect();
         let brighter: Vec<[f32; 3]> = clean.iter().map(|p| p.map(|c| c + 0.04)).collect();
-        let passer_by: Vec<[f32; 3]> = (0..w * h)
-            .map(|i| if him(i % w, i / w) { [0.55, 0.55, 0.3] } else { wall(i % w, i / w) })
-            .collect();
+        let passer_by: Vec<[f32; 3]> =
+            (0..w * h).map(|i| if him(i % w, i / w) { [0.55, 0.55, 0.3] } else { clean[i] }).collect();
         let ok = vec![true; w * h];
         let on_him: Vec<usize> = (0..w * h).filter(|&i| him(i % w, i / w)).collect();
         let region =
