@@ -22,10 +22,9 @@
 //!   building looks like; a view's pixel unlike all of it is suspect (what carries one or
 //!   two views, where a consensus cannot be had);
 //! - **outlines**, where two views disagree and at most one other sees the pixel (too few
-//!   for a consensus to carry its weight): something standing
-//!   in front has an outline, across which the view showing it steps from the building's
-//!   colours to its own, while the view that sees past it continues what is around (see
-//!   [`outlines`]).
+//!   for a consensus to carry its weight): something standing in front has an outline,
+//!   across which the view showing it steps from the building's colours to its own, while
+//!   the view that sees past it continues what is around (see [`outlines`]).
 //!
 //! Last, inside the hole, a view that agrees with views sure they show the keyframe's
 //! occluder there shows it too (a shared occluder: agreement among views is not always the
@@ -450,12 +449,12 @@ const OUTLINE_WITNESSES: f32 = 1.5;
 /// pixel to say which is right (fewer than [`OUTLINE_WITNESSES`]): per view, region-sized,
 /// from -1 (it surely sees the building there) to +1 (it surely shows something in front).
 /// Something standing in front of the building has an outline: across it, the view that
-/// shows it steps from the building's colours to the object's, while the view that sees past it shows the building continuing
-/// from just outside, where the two agree. So, per connected area where two such views
-/// disagree, each view's step from the agreed colours just outside to its own just inside:
-/// the larger step is the occluder's. (The keyframe's colours cannot say: a passer-by wholly
-/// inside the mask, in front of a window whose glass the ring does not show, is as foreign
-/// to the ring as the glass.)
+/// shows it steps from the building's colours to the object's, while the view that sees
+/// past it shows the building continuing from just outside, where the two agree. So, per
+/// connected area where two such views disagree, each view's step from the agreed colours
+/// just outside to its own just inside: the larger step is the occluder's. (The keyframe's
+/// colours cannot say: a passer-by wholly inside the mask, in front of a window whose glass
+/// the ring does not show, is as foreign to the ring as the glass.)
 #[allow(clippy::too_many_arguments)]
 fn outlines(
     views: &[Vec<[f32; 3]>],
@@ -480,9 +479,10 @@ fn outlines(
             let seen: Vec<bool> = (0..n).map(|i| valid[u][i] && valid[v][i]).collect();
             // Where the two disagree: grossly (the cores of areas), or at all (what an area
             // takes in around its core).
-            let lone = |i: usize| hole[i] && seen[i] && witnesses[i] - ind[u] - ind[v] < OUTLINE_WITNESSES;
+            let unsettled =
+                |i: usize| hole[i] && seen[i] && witnesses[i] - ind[u] - ind[v] < OUTLINE_WITNESSES;
             let differ: Vec<bool> =
-                (0..n).map(|i| lone(i) && dist(views[u][i], views[v][i]) > params.agree).collect();
+                (0..n).map(|i| unsettled(i) && dist(views[u][i], views[v][i]) > params.agree).collect();
             let gross: Vec<bool> = (0..n)
                 .map(|i| differ[i] && dist(views[u][i], views[v][i]) > OUTLINE_CORE * params.seed_distance)
                 .collect();
