@@ -234,7 +234,7 @@ fn session_bench(c: &mut Criterion, name: &str, shoot: &Shoot) {
     let t_fill = t.elapsed();
     let t = Instant::now();
     emitter
-        .write_result("probe", 1, outcome.image.as_ref().unwrap(), None, &mut serde_json::json!({}))
+        .write_result("probe", 1, outcome.image.as_ref().unwrap(), None, &mut serde_json::json!({}), &[])
         .unwrap();
     let t_write = t.elapsed();
     eprintln!(
@@ -278,7 +278,9 @@ fn session_bench(c: &mut Criterion, name: &str, shoot: &Shoot) {
             offer(&mut session, format!("new{n}"), bytes);
             let outcome = session.fill(&mut ()).unwrap();
             let image = outcome.image.as_ref().unwrap_or_else(|| panic!("score fell: {}", outcome.score));
-            emitter.write_result("bench", n, image, None, &mut serde_json::json!({ "number": n })).unwrap();
+            emitter
+                .write_result("bench", n, image, None, &mut serde_json::json!({ "number": n }), &[])
+                .unwrap();
         })
     });
     g.finish();

@@ -73,10 +73,13 @@ fn at(path: &Path) -> impl FnOnce(std::io::Error) -> WriteError + '_ {
     move |source| WriteError { path: path.to_owned(), source }
 }
 
-/// Checks that a session's `result.json` describes the image beside it (the size and
-/// digest it records for it); returns the result's number. Both are replaced one after
-/// the other, so a crash between the two renames can leave them disagreeing: the service
-/// then writes both again rather than trust either.
+/// The maps a result may have beside it, written with it (see [`Emitter::write_result`]).
+pub const MAPS: [&str; 3] = ["confidence.png", "surfaces.png", "provenance.png"];
+
+/// Checks that a session's `result.json` describes the image beside it, and every map it
+/// names (the size and digest it records for each); returns the result's number. They
+/// are replaced one after the other, so a crash between two renames can leave them
+/// disagreeing: the service then writes them all again rather than trust any.
 pub fn check_result(dir: &Path) -> Result<u64, String> {
     let json = std::fs::read(dir.join("result.json")).map_err(|e| format!("result.json: {e}"))?;
     let report: serde_json::Value =
@@ -94,6 +97,25 @@ pub fn check_result(dir: &Path) -> Result<u64, String> {
     let bytes = std::fs::read(dir.join(file)).map_err(|e| format!("{file}: {e}"))?;
     if bytes.len() as u64 != size || fnv64_hex(&bytes) != digest {
         return Err(format!("{file} is not the image result.json describes (result {number})"));
+    }
+    // A result written before its maps were listed (an older clearview) is taken as it is.
+    let Some(maps) = report["maps"].as_object() else { return Ok(number) };
+    for name in MAPS {
+        let path = dir.join(name);
+        match &maps.get(name).unwrap_or(&serde_json::Value::Null) {
+            serde_json::Value::Null if path.exists() => {
+                return Err(format!("{name} is there, and result {number} has none"));
+            }
+            serde_json::Value::Null => {}
+            map => {
+                let bytes = std::fs::read(&path).map_err(|e| format!("{name}: {e}"))?;
+                if Some(bytes.len() as u64) != map["bytes"].as_u64()
+                    || map["fnv64"].as_str() != Some(fnv64_hex(&bytes).as_str())
+                {
+                    return Err(format!("{name} is not the map result.json describes (result {number})"));
+                }
+            }
+        }
     }
     Ok(number)
 }
@@ -310,8 +332,13 @@ impl Emitter {
     }
 
     /// Writes result number `number` of `session`: the history copy, then `result.<ext>`,
-    /// then `result.json` (to which the image's size and digest are added, see
-    /// [`check_result`]), each atomically; prunes the history. Returns the result's path.
+    /// then its maps (each of [`MAPS`]: `Some`, the PNG to write; `None`, the result has
+    /// none and one left by an earlier result goes), then `result.json` (to which the
+    /// image's and the maps' sizes and digests are added, see [`check_result`]), each
+    /// atomically; prunes the history. The image goes first (the largest: where a full disk
+    /// stops the write, nothing has changed); `result.json` last, naming only what was
+    /// written for it, so it never describes a map of another result. Returns the result's
+    /// path.
     /// The image is written in the keyframe's colour space with its metadata (`key`; none:
     /// sRGB, and only clearview's own XMP), its XMP naming `result.json` and the views the
     /// report says filled it. On failure the files already there are left whole and the
@@ -323,6 +350,7 @@ impl Emitter {
         image: &RgbF32,
         key: Option<&Metadata>,
         report: &mut serde_json::Value,
+        maps: &[(&str, Option<Vec<u8>>)],
     ) -> Result<PathBuf, WriteError> {
         let dir = self.session_dir(session);
         let closed = self.closed.read().expect("emitter gate");
@@ -348,11 +376,28 @@ impl Emitter {
         if let Some(hist) = &history {
             prune_history(hist, self.history);
         }
+        let mut written = serde_json::Map::new();
+        for (name, png) in maps {
+            debug_assert!(MAPS.contains(name), "{name} is not a result's map");
+            let map_path = dir.join(name);
+            match png {
+                Some(png) => {
+                    atomic_write(&map_path, png).map_err(at(&map_path))?;
+                    let entry = serde_json::json!({ "bytes": png.len(), "fnv64": fnv64_hex(png) });
+                    written.insert((*name).to_owned(), entry);
+                }
+                None => match std::fs::remove_file(&map_path) {
+                    Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(at(&map_path)(e)),
+                    _ => {}
+                },
+            }
+        }
         if let serde_json::Value::Object(m) = report {
             m.insert(
                 "image".into(),
                 serde_json::json!({ "file": self.result_name(), "bytes": bytes.len(), "fnv64": fnv64_hex(&bytes) }),
             );
+            m.insert("maps".into(), serde_json::Value::Object(written));
         }
         let json_path = dir.join("result.json");
         let mut json =

@@ -555,6 +555,84 @@ mod tests {
         assert!(matches!(slot.fill(&ctx), FillStep::Written(_)));
     }
 
+    /// `result.json` is the last file of a result written, and it names only the maps
+    /// written for it, each with its size and digest: a map an earlier result left (a
+    /// surface map, when this result has none) goes before it, and a map that is not the
+    /// one it names makes the result on disk untrusted at the next start (it is made again).
+    #[test]
+    fn result_json_names_only_its_own_maps_and_a_restart_checks_them() {
+        let tmp = tempfile::tempdir().unwrap();
+        // No sweep for surfaces off the wall: its results have no surface map.
+        let mut config = ctx(tmp.path()).config.as_ref().clone();
+        config.session.sweep = None;
+        let ctx = Ctx::for_test(config);
+        let dir = ctx.config.watch_dir.join("s");
+        std::fs::create_dir_all(&dir).unwrap();
+        let scene = crate::synth::tree_scene(320, 240, 5, 3);
+        to_rgb8(&scene.key).save(dir.join("key.png")).unwrap();
+        mask_to_luma8(&scene.mask).save(dir.join("key.mask.png")).unwrap();
+        for (i, v) in scene.views.iter().enumerate() {
+            to_rgb8(v).save(dir.join(format!("v{}.png", i + 1))).unwrap();
+        }
+        let out = ctx.config.out_dir.join("s");
+        let own_maps = |number: u64| {
+            let report: serde_json::Value =
+                serde_json::from_slice(&std::fs::read(out.join("result.json")).unwrap()).unwrap();
+            assert_eq!(report["number"], number);
+            let maps = report["maps"].as_object().expect("result.json lists its maps");
+            for name in crate::daemon::emit::MAPS {
+                let path = out.join(name);
+                match maps.get(name) {
+                    Some(m) => {
+                        let bytes = std::fs::read(&path).unwrap();
+                        assert_eq!(m["bytes"], bytes.len(), "{name}");
+                        assert_eq!(m["fnv64"], crate::daemon::emit::fnv64_hex(&bytes), "{name}");
+                    }
+                    None => assert!(!path.exists(), "{name} is there and result {number} has none"),
+                }
+            }
+            assert!(maps.contains_key("confidence.png") && maps.contains_key("provenance.png"), "{report}");
+            maps.contains_key(crate::daemon::engine::publish::SURFACES)
+        };
+        let mut slot = Slot::new(&ctx, "s", dir.clone());
+        for name in ["key.png", "key.mask.png", "v1.png"] {
+            give(&ctx, &mut slot, name);
+        }
+        let FillStep::Written(first) = slot.fill(&ctx) else { panic!("no first result") };
+        assert!(!own_maps(first));
+        assert_eq!(crate::daemon::emit::check_result(&out), Ok(first));
+        // A surface map of an earlier result (one that swept), which the next one has not.
+        let surfaces = out.join(crate::daemon::engine::publish::SURFACES);
+        std::fs::write(&surfaces, std::fs::read(out.join("confidence.png")).unwrap()).unwrap();
+        for name in ["v2.png", "v3.png"] {
+            give(&ctx, &mut slot, name);
+        }
+        let second = match slot.fill(&ctx) {
+            FillStep::Written(n) => n,
+            other => panic!("no second result: {other:?}"),
+        };
+        assert!(!own_maps(second));
+        assert_eq!(crate::daemon::emit::check_result(&out), Ok(second));
+        slot.save_state(&ctx);
+        // Another map where result.json names its own: not trusted at the next start.
+        let conf = out.join("confidence.png");
+        let own = std::fs::read(&conf).unwrap();
+        let mut bytes = own.clone();
+        bytes.push(0);
+        std::fs::write(&conf, &bytes).unwrap();
+        let reason = crate::daemon::emit::check_result(&out).unwrap_err();
+        assert!(reason.contains("confidence.png"), "{reason}");
+        assert!(Slot::new(&ctx, "s", dir.clone()).state.result.is_none());
+        std::fs::remove_file(&conf).unwrap();
+        assert!(crate::daemon::emit::check_result(&out).unwrap_err().contains("confidence.png"));
+        std::fs::write(&conf, &own).unwrap();
+        assert_eq!(crate::daemon::emit::check_result(&out), Ok(second));
+        // A map the result has none of, left beside it.
+        std::fs::write(&surfaces, b"stale").unwrap();
+        let reason = crate::daemon::emit::check_result(&out).unwrap_err();
+        assert!(reason.contains("surfaces.png"), "{reason}");
+    }
+
     /// After a restart the intake brings a session's files again, in any order and not
     /// all at once. The keyframe takes back every view whose alignment is saved before the
     /// session can fill, so the first fill has the saved result's inputs (unchanged, not

@@ -256,6 +256,20 @@ impl Collector {
                 .get_object(&name)
                 .await?
                 .ok_or_else(|| OpError::lasting(format!("{name} is not in the object store")))?;
+            if rel == "result.json" {
+                // A map an earlier result left, which this one has not: it goes before the
+                // result.json that does not name it.
+                for map in
+                    crate::daemon::emit::MAPS.iter().filter(|m| !r.result.files.iter().any(|f| f == *m))
+                {
+                    match std::fs::remove_file(dir.join(map)) {
+                        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                            return Err::<(), _>(e).ctx(map);
+                        }
+                        _ => {}
+                    }
+                }
+            }
             let path = dir.join(rel);
             if let Some(parent) = path.parent() {
                 std::fs::create_dir_all(parent).ctx("create folder")?;

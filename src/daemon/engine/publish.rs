@@ -175,7 +175,7 @@ pub(super) struct Pending {
     retry: Backoff,
 }
 
-/// Writes a result (image, history, `result.json`, then provenance and confidence maps);
+/// Writes a result (its maps, image, history, then `result.json`);
 /// on failure keeps it as the slot's pending result. The only place result files are
 /// written.
 fn write_result(ctx: &Ctx, slot: &mut Slot, mut p: Pending) -> FillStep {
@@ -187,8 +187,10 @@ fn write_result(ctx: &Ctx, slot: &mut Slot, mut p: Pending) -> FillStep {
     // The keyframe's own pixels at its precision (16-bit, or another colour space).
     let precise = full.flatten().and_then(|k| slot.session.with_key_pixels(image, &k));
     let image = precise.as_ref().unwrap_or(image);
-    match ctx.emitter.write_result(&slot.name, number, image, key.as_ref(), &mut p.report) {
+    let (maps, legend) = encode_maps(slot, &p.outcome);
+    match ctx.emitter.write_result(&slot.name, number, image, key.as_ref(), &mut p.report, &maps) {
         Ok(path) => {
+            slot.legend = legend;
             let write_ms = write_start.elapsed().as_secs_f64() * 1e3;
             let Pending { outcome, report, digest, fill_ms, stages, retry, .. } = p;
             let r = &outcome.report;
@@ -363,22 +365,46 @@ pub(super) fn write_mask(ctx: &Ctx, slot: &Slot) {
 /// ([`crate::session::FillOutcome::surface_map`]), named in `result.json` as `surfaces`.
 pub(crate) const SURFACES: &str = "surfaces.png";
 
-/// An 8-bit map beside the result (`name`: `confidence.png`, [`SURFACES`]), written
-/// atomically.
-fn write_map(ctx: &Ctx, slot: &Slot, name: &str, map: &crate::imaging::Plane<u8>) {
-    let path = ctx.emitter.session_dir(&slot.name).join(name);
-    let mut png = std::io::Cursor::new(Vec::new());
-    let r = crate::imaging::convert::plane_to_luma8(map)
-        .write_to(&mut png, image::ImageFormat::Png)
-        .map_err(std::io::Error::other)
-        .and_then(|()| crate::fsio::atomic_write(&path, png.get_ref()));
-    if let Err(e) = r {
-        tracing::warn!(error = %e, file = name, "cannot write a map beside the result");
-    }
+/// A result's maps, encoded: per name, its PNG, or `None` where the result has none.
+type Maps = Vec<(&'static str, Option<Vec<u8>>)>;
+
+/// The maps beside a result (each of [`crate::daemon::emit::MAPS`]), encoded, and the
+/// provenance map's legend: the confidence (0 outside the mask, at least 128 where the fill
+/// is sure the pixel shows the building), which surface off the wall filled each pixel when
+/// the session sweeps for them, and where each pixel came from. A map that cannot be
+/// encoded is not claimed (and one an earlier result left goes).
+fn encode_maps(
+    slot: &Slot,
+    outcome: &crate::session::FillOutcome,
+) -> (Maps, Vec<crate::daemon::registry::LegendEntry>) {
+    let png = |name: &str, map: &crate::imaging::Plane<u8>| {
+        let mut png = std::io::Cursor::new(Vec::new());
+        match crate::imaging::convert::plane_to_luma8(map).write_to(&mut png, image::ImageFormat::Png) {
+            Ok(()) => Some(png.into_inner()),
+            Err(e) => {
+                tracing::warn!(error = %e, file = name, "cannot encode a map beside the result: it has none");
+                None
+            }
+        }
+    };
+    let confidence = outcome.confidence.as_ref().and_then(|c| png("confidence.png", c));
+    let surfaces = outcome.surface_map.as_ref().and_then(|m| png(SURFACES, m));
+    let names: Vec<String> = outcome.views.iter().map(|id| name_of(id).to_owned()).collect();
+    let (provenance, legend) = match slot.session.provenance() {
+        Some(map) => match crate::daemon::provenance::render(&map, outcome.confidence.as_ref(), &names) {
+            Ok((png, legend)) => (Some(png), legend),
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot encode provenance.png: the result has none");
+                (None, Vec::new())
+            }
+        },
+        None => (None, Vec::new()),
+    };
+    (vec![("confidence.png", confidence), (SURFACES, surfaces), ("provenance.png", provenance)], legend)
 }
 
-/// After result `number` is written: its provenance map and legend, the bookkeeping of
-/// the status API, and the update latency.
+/// After result `number` is written: the bookkeeping of the status API, and the update
+/// latency.
 fn after_result(
     ctx: &Ctx,
     slot: &mut Slot,
@@ -386,35 +412,6 @@ fn after_result(
     number: u64,
     report: serde_json::Value,
 ) {
-    let names: Vec<String> = outcome.views.iter().map(|id| name_of(id).to_owned()).collect();
-    slot.legend.clear();
-    if let Some(map) = slot.session.provenance() {
-        let path = ctx.emitter.session_dir(&slot.name).join("provenance.png");
-        match crate::daemon::provenance::render(&map, outcome.confidence.as_ref(), &names)
-            .and_then(|(png, legend)| crate::fsio::atomic_write(&path, &png).map(|()| legend))
-        {
-            Ok(legend) => slot.legend = legend,
-            Err(e) => tracing::warn!(error = %e, "cannot write provenance.png"),
-        }
-    }
-    // The result's confidence (0 outside the mask, >= 128 where the fill is sure the pixel
-    // shows the building) and, when the session sweeps for surfaces off the wall, which one
-    // filled each pixel. A surface map left by an earlier run that swept would describe
-    // another result: it goes.
-    if let Some(conf) = &outcome.confidence {
-        write_map(ctx, slot, "confidence.png", conf);
-    }
-    match &outcome.surface_map {
-        Some(map) => write_map(ctx, slot, SURFACES, map),
-        None => {
-            let stale = ctx.emitter.session_dir(&slot.name).join(SURFACES);
-            if let Err(e) = std::fs::remove_file(&stale)
-                && e.kind() != std::io::ErrorKind::NotFound
-            {
-                tracing::warn!(error = %e, "cannot remove the surface map of an earlier result");
-            }
-        }
-    }
     slot.filled_by =
         outcome.views.iter().cloned().zip(outcome.report.sources.iter().map(|s| s.filled)).collect();
     slot.last_report = Some(report);
