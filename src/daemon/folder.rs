@@ -429,6 +429,20 @@ mod tests {
         Ctx::for_test(config)
     }
 
+    /// Session `s` in the watched folder: a generated tree scene's keyframe (`key.png`), its
+    /// mask (`key.mask.png`) and three views (`v1.png`..`v3.png`). Returns its folder.
+    fn tree_session(ctx: &Ctx) -> PathBuf {
+        let dir = ctx.config.watch_dir.join("s");
+        std::fs::create_dir_all(&dir).unwrap();
+        let scene = crate::synth::tree_scene(320, 240, 5, 3);
+        to_rgb8(&scene.key).save(dir.join("key.png")).unwrap();
+        mask_to_luma8(&scene.mask).save(dir.join("key.mask.png")).unwrap();
+        for (i, v) in scene.views.iter().enumerate() {
+            to_rgb8(v).save(dir.join(format!("v{}.png", i + 1))).unwrap();
+        }
+        dir
+    }
+
     fn give(ctx: &Ctx, slot: &mut Slot, name: &str) {
         let path = slot.dir.join(name);
         let role = watch::classify(&ctx.config.watch_dir, &path, &ctx.config.extensions).unwrap().role;
@@ -566,14 +580,7 @@ mod tests {
         let mut config = ctx(tmp.path()).config.as_ref().clone();
         config.session.sweep = None;
         let ctx = Ctx::for_test(config);
-        let dir = ctx.config.watch_dir.join("s");
-        std::fs::create_dir_all(&dir).unwrap();
-        let scene = crate::synth::tree_scene(320, 240, 5, 3);
-        to_rgb8(&scene.key).save(dir.join("key.png")).unwrap();
-        mask_to_luma8(&scene.mask).save(dir.join("key.mask.png")).unwrap();
-        for (i, v) in scene.views.iter().enumerate() {
-            to_rgb8(v).save(dir.join(format!("v{}.png", i + 1))).unwrap();
-        }
+        let dir = tree_session(&ctx);
         let out = ctx.config.out_dir.join("s");
         let own_maps = |number: u64| {
             let report: serde_json::Value =
@@ -642,14 +649,7 @@ mod tests {
     fn a_restored_session_takes_back_its_saved_views_before_it_fills() {
         let tmp = tempfile::tempdir().unwrap();
         let ctx = ctx(tmp.path());
-        let dir = ctx.config.watch_dir.join("s");
-        std::fs::create_dir_all(&dir).unwrap();
-        let scene = crate::synth::tree_scene(320, 240, 5, 3);
-        to_rgb8(&scene.key).save(dir.join("key.png")).unwrap();
-        mask_to_luma8(&scene.mask).save(dir.join("key.mask.png")).unwrap();
-        for (i, v) in scene.views.iter().enumerate() {
-            to_rgb8(v).save(dir.join(format!("v{}.png", i + 1))).unwrap();
-        }
+        let dir = tree_session(&ctx);
         let first = {
             let mut slot = Slot::new(&ctx, "s", dir.clone());
             for name in ["key.png", "key.mask.png", "v1.png", "v2.png", "v3.png"] {
