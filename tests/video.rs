@@ -2,6 +2,8 @@
 //! rendered frames (a camera panning past a facade with a tree in front, some frames
 //! blurred), read from a file and from a local MJPEG stream that drops and comes back.
 
+mod daemon_common;
+
 use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
 use std::path::Path;
@@ -102,8 +104,7 @@ fn masked_error(truth: &RgbF32, mask: &Mask, img: &image::RgbImage) -> f64 {
 }
 
 fn events(out: &Path) -> Vec<Value> {
-    let Ok(text) = std::fs::read_to_string(out.join("events.jsonl")) else { return Vec::new() };
-    text.lines().map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON: {l}: {e}"))).collect()
+    daemon_common::whole_lines(&out.join("events.jsonl"))
 }
 
 fn of_kind<'a>(events: &'a [Value], kind: &str) -> Vec<&'a Value> {

@@ -309,8 +309,17 @@ impl Drop for Service {
 
 /// The event log (`events.jsonl` in the out folder), parsed.
 pub fn events(f: &Folders) -> Vec<Value> {
-    let Ok(text) = std::fs::read_to_string(f.outbox.join("events.jsonl")) else { return Vec::new() };
-    text.lines().map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON: {l}: {e}"))).collect()
+    whole_lines(&f.outbox.join("events.jsonl"))
+}
+
+/// The whole lines of a JSON-lines log another process may be appending to, each parsed
+/// (a line that is not JSON fails). A last line without its newline is being written: a
+/// reader can see the first part of a single `write` that crosses a page of the file, so
+/// it is left for the next read.
+pub fn whole_lines(path: &Path) -> Vec<Value> {
+    let Ok(text) = std::fs::read_to_string(path) else { return Vec::new() };
+    let whole = text.rfind('\n').map_or("", |end| &text[..end]);
+    whole.lines().map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON: {l}: {e}"))).collect()
 }
 
 pub fn of_kind<'a>(events: &'a [Value], kind: &str) -> Vec<&'a Value> {

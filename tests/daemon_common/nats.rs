@@ -105,11 +105,7 @@ pub fn wait_port(port: u16, secs: u64) {
 
 /// Reads `events.jsonl` (lines may be added while it is read: only whole ones count).
 pub fn events(out: &Path) -> Vec<Value> {
-    std::fs::read_to_string(out.join("events.jsonl"))
-        .unwrap_or_default()
-        .lines()
-        .filter_map(|l| serde_json::from_str(l).ok())
-        .collect()
+    super::whole_lines(&out.join("events.jsonl"))
 }
 
 /// One JetStream `nats-server` on the loopback, its store under `dir`: the process and its
