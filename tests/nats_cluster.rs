@@ -215,8 +215,36 @@ fn a_three_server_cluster_survives_a_dead_worker_and_a_dead_server() {
         );
         std::thread::sleep(Duration::from_millis(200));
     }
-    // The last result of a session follows its last view; give the fills a moment.
-    std::thread::sleep(Duration::from_secs(2));
+    // The last result of a session follows its last view: the first result (the keyframe
+    // and mask alone, from the fallback) can be on disk before the fill with the views is.
+    // Settled when the result lists every view, or a fill after the last view's event kept
+    // the current result.
+    let settled = |ev: &[Value], session: &str, views: &[String]| {
+        let report: Option<Value> = std::fs::read(out.join(session).join("result.json"))
+            .ok()
+            .and_then(|b| serde_json::from_slice(&b).ok());
+        let listed = report.is_some_and(|r| {
+            views.iter().all(|v| {
+                r["views"].as_array().is_some_and(|a| {
+                    a.iter().any(|x| x["file"].as_str().is_some_and(|f| Path::new(f).ends_with(v)))
+                })
+            })
+        });
+        let last_view =
+            ev.iter().rposition(|e| e["session"] == session && views.iter().any(|v| e["file"] == v.as_str()));
+        let kept = ev.iter().enumerate().any(|(i, e)| {
+            e["session"] == session
+                && Some(i) > last_view
+                && (e["event"] == "result_not_better" || e["event"] == "result_unchanged")
+        });
+        listed || kept
+    };
+    let waiting = Instant::now();
+    let deadline = waiting + Duration::from_secs(30);
+    while !dropped.iter().all(|(s, d)| settled(&events(&out), s, &d.views)) && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    println!("results settled {:.1?} after every view was named", waiting.elapsed());
     let finished = started.elapsed();
 
     // Survivors stop cleanly.
