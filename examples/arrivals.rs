@@ -42,42 +42,36 @@ struct Scene {
     band: bool,
 }
 
+/// `facade` as seen through `to_scene` (image pixel → facade pixel), `W × H`; with `band`,
+/// rendered at twice the size on both sides (pixel centres kept: x₂ = 2·x + 0.5) and
+/// box-averaged.
+fn render(facade: &RgbF32, to_scene: &Homography, band: bool) -> RgbF32 {
+    if !band {
+        return synth::render_view(facade, to_scene, W, H, [0.5; 3]);
+    }
+    let s2 = Homography::from_rows([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5], [0.0, 0.0, 1.0]]).expect("regular");
+    let fine = s2.after(to_scene).after(&s2.inverse().expect("regular"));
+    half(&synth::render_view(facade, &fine, 2 * W, 2 * H, [0.5; 3]))
+}
+
 impl Scene {
     fn new(seed: u64, band: bool) -> Self {
         let k = if band { 2 } else { 1 };
         let facade = synth::facade(k * W * 3 / 2, k * H * 3 / 2, seed);
         let centre = Homography::translation(W as f64 / 4.0, H as f64 / 4.0);
-        let mut scene = Self {
-            truth: RgbF32::new(W, H, [0.0; 3]),
-            key: RgbF32::new(W, H, [0.0; 3]),
-            mask: Mask::new(W, H, 0),
-            facade,
-            centre,
-            rng: ChaCha8Rng::seed_from_u64(seed),
-            band,
-        };
-        scene.truth = scene.render(&centre);
-        scene.key = scene.truth.clone();
-        synth::paint_occluder(&mut scene.key, Some(&mut scene.mask), Occluder::Tree, 200.0, 160.0, 110.0, 3);
-        scene
-    }
-
-    /// The facade as seen through `to_scene` (image pixel → facade pixel).
-    fn render(&self, to_scene: &Homography) -> RgbF32 {
-        if !self.band {
-            return synth::render_view(&self.facade, to_scene, W, H, [0.5; 3]);
-        }
-        // Twice the size on both sides, pixel centres kept: x₂ = 2·x + 0.5.
-        let s2 = Homography::from_rows([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5], [0.0, 0.0, 1.0]]).expect("regular");
-        let fine = s2.after(to_scene).after(&s2.inverse().expect("regular"));
-        half(&synth::render_view(&self.facade, &fine, 2 * W, 2 * H, [0.5; 3]))
+        let truth = render(&facade, &centre, band);
+        let mut key = truth.clone();
+        let mut mask = Mask::new(W, H, 0);
+        let (mx, my) = (MASK_CENTRE.0 as f32, MASK_CENTRE.1 as f32);
+        synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Tree, mx, my, 110.0, 3);
+        Self { facade, centre, truth, key, mask, rng: ChaCha8Rng::seed_from_u64(seed), band }
     }
 
     /// View `i` with a passer-by at `cx`, and its key-to-view scale at the mask's centre.
     fn view(&mut self, i: u64, cx: f32) -> (RgbF32, f64) {
         let key_to_view = synth::random_homography(&mut self.rng, W, H, 0.1, 0.2, (0.9, 1.1));
         let to_scene = self.centre.after(&key_to_view.inverse().expect("regular"));
-        let mut v = self.render(&to_scene);
+        let mut v = render(&self.facade, &to_scene, self.band);
         synth::paint_occluder(&mut v, None, Occluder::Person, cx, 170.0, 40.0, 100 + i);
         synth::expose(&mut v, 0.9 + 0.03 * i as f32, 0.01);
         let scale = key_to_view.area_scale(nalgebra::Point2::new(MASK_CENTRE.0, MASK_CENTRE.1)).abs().sqrt();
