@@ -21,7 +21,7 @@ use clearview::imaging::convert::{luminance, to_rgb8};
 use clearview::imaging::metrics::masked_psnr;
 use clearview::imaging::{Mask, RgbF32};
 use clearview::session::{Session, SessionParams};
-use clearview::synth::{self, Occluder, half};
+use clearview::synth::{self, Occluder};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
@@ -46,12 +46,11 @@ struct Scene {
 /// rendered at twice the size on both sides (pixel centres kept: x₂ = 2·x + 0.5) and
 /// box-averaged.
 fn render(facade: &RgbF32, to_scene: &Homography, band: bool) -> RgbF32 {
-    if !band {
-        return synth::render_view(facade, to_scene, W, H, [0.5; 3]);
+    if band {
+        synth::render_view_band(facade, to_scene, W, H, [0.5; 3])
+    } else {
+        synth::render_view(facade, to_scene, W, H, [0.5; 3])
     }
-    let s2 = Homography::from_rows([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5], [0.0, 0.0, 1.0]]).expect("regular");
-    let fine = s2.after(to_scene).after(&s2.inverse().expect("regular"));
-    half(&synth::render_view(facade, &fine, 2 * W, 2 * H, [0.5; 3]))
 }
 
 impl Scene {

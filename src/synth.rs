@@ -346,7 +346,7 @@ pub fn dilate_mask(m: &Mask, r: usize) -> Mask {
 /// fault).
 pub fn occlusion_case(family: CaseFamily, width: usize, height: usize, n: usize, seed: u64) -> OcclusionCase {
     let fine = occlusion_case_at(family, 2 * width, 2 * height, n, seed);
-    let s2 = Homography::from_rows([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5], [0.0, 0.0, 1.0]]).expect("regular");
+    let s2 = doubling();
     let s2_inv = s2.inverse().expect("regular");
     let key_occluders = half_mask(&fine.key_occluders);
     OcclusionCase {
@@ -390,6 +390,28 @@ pub fn tree_scene(width: usize, height: usize, facade_seed: u64, view_seed: u64)
         })
         .collect();
     TreeScene { truth, key, mask, views }
+}
+
+/// From an image's pixels to those of the same image at twice the size, pixel centres kept
+/// (x₂ = 2·x + 0.5): what [`half`] undoes.
+pub fn doubling() -> Homography {
+    Homography::from_rows([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5], [0.0, 0.0, 1.0]]).expect("regular")
+}
+
+/// [`render_view`] band-limited, as a camera's pixels integrate light: `fine_scene` is the
+/// scene at twice the size of the one `view_to_scene` maps into, the view is rendered at
+/// twice `width × height` ([`doubling`] on both sides) and box-averaged ([`half`]). A warp
+/// of it resamples a sharp mortar line without the aliasing a direct rendering has.
+pub fn render_view_band(
+    fine_scene: &RgbF32,
+    view_to_scene: &Homography,
+    width: usize,
+    height: usize,
+    background: [f32; 3],
+) -> RgbF32 {
+    let s2 = doubling();
+    let fine = s2.after(view_to_scene).after(&s2.inverse().expect("regular"));
+    half(&render_view(fine_scene, &fine, 2 * width, 2 * height, background))
 }
 
 /// Box average of 2×2 blocks.

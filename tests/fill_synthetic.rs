@@ -60,9 +60,7 @@ fn scene(seed: u64) -> Scene {
     let mut homographies = Vec::new();
     for (v, (&(gain, bias), &sigma)) in exposures.iter().zip(&noise).enumerate() {
         let hm = synth::random_homography(&mut rng, W, H, 0.05, 0.12, (0.92, 1.08));
-        let s2 = Homography::from_rows([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5], [0.0, 0.0, 1.0]]).expect("regular");
-        let to_fine = s2.after(&hm.inverse().expect("regular")).after(&s2.inverse().expect("regular"));
-        let mut view = half(&synth::render_view(&fine, &to_fine, 2 * W, 2 * H, [0.5; 3]));
+        let mut view = synth::render_view_band(&fine, &hm.inverse().expect("regular"), W, H, [0.5; 3]);
         if v == 0 {
             // Over the keyframe's tree crown, where the keyframe's hole is.
             let c = hm.apply(Point2::new(185.0, 150.0)).expect("finite");
@@ -436,13 +434,11 @@ fn views_with_independent_noise_are_averaged_into_the_copy() {
     let mut mask = Mask::new(W, H, 0);
     synth::paint_occluder(&mut key, Some(&mut mask), Occluder::Person, 240.0, 200.0, 150.0, seed + 1);
     let mut rng = ChaCha8Rng::seed_from_u64(seed + 10);
-    let s2 = Homography::from_rows([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5], [0.0, 0.0, 1.0]]).expect("regular");
     let mut views = Vec::new();
     let mut homographies = Vec::new();
     for v in 0..3 {
         let hm = synth::random_homography(&mut rng, W, H, 0.05, 0.12, (0.92, 1.08));
-        let to_fine = s2.after(&hm.inverse().expect("regular")).after(&s2.inverse().expect("regular"));
-        let mut view = half(&synth::render_view(&fine, &to_fine, 2 * W, 2 * H, [0.5; 3]));
+        let mut view = synth::render_view_band(&fine, &hm.inverse().expect("regular"), W, H, [0.5; 3]);
         synth::add_noise(&mut view, 0.04, seed + 30 + v);
         views.push(view);
         homographies.push(hm);
