@@ -229,6 +229,27 @@ fn an_automatic_mask_from_one_view_says_it_could_judge_nothing() {
     assert!(a == b, "the result is not the keyframe");
 }
 
+/// An all-black mask (a mask exported without its strokes) fills nothing. The command says
+/// so, on stderr with the mask's name and on stdout, and claims no share of the mask: "100 %
+/// confident, 100 % taken from views" of an empty mask described a fill that never was. The
+/// result is the keyframe, pixel for pixel.
+#[test]
+fn an_empty_mask_is_told_and_no_share_of_it_is_claimed() {
+    let s = scene();
+    let (out, report) = (s.path("clear.png"), s.path("report.json"));
+    let black = s.path("black.mask.png");
+    mask_to_luma8(&Mask::new(W, H, 0)).save(&black).unwrap();
+    let mut a = args(&s, &out, &report);
+    a[3] = black.clone();
+    let o = fill_ok(a);
+    let (err, text) = (String::from_utf8_lossy(&o.stderr), String::from_utf8_lossy(&o.stdout));
+    assert!(err.contains(&black.display().to_string()) && err.contains("marks no pixel"), "{err}");
+    assert!(text.contains("nothing filled") && !text.contains("% confident"), "{text}");
+    assert!(!text.contains("filled every pixel"), "{text}");
+    let (k, r) = (image::open(s.path("key.png")).unwrap().to_rgb8(), image::open(&out).unwrap().to_rgb8());
+    assert!(k == r, "the result is not the keyframe");
+}
+
 /// A photograph given as the mask (the wrong file picked: it has the keyframe's size) is
 /// refused with the reason: taken as a mask, every pixel over 127 would have been removed.
 #[test]

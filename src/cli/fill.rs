@@ -601,6 +601,9 @@ fn load_key(
                 100.0 * grey
             )));
         }
+        if let Some(w) = m.mistake() {
+            eprintln!("clearview fill: {}: {w}", path.display());
+        }
         Some(m)
     };
     let key_rgb = to_rgb(&key_img);
@@ -687,17 +690,12 @@ fn align_view(
 }
 
 fn print_summary(r: &Report<'_>) {
-    // "From views" says where pixels came from, not that they are right: the confident
-    // share comes first, and a doubtful share is always told.
-    println!(
-        "{}: {} masked pixels, {:.1} % confident, {:.1} % doubtful or invented ({:.1} % taken from views, {} from the single-image fallback)",
-        r.out.display(),
-        r.masked_pixels,
-        100.0 * r.share_confident,
-        100.0 * r.share_doubtful,
-        100.0 * r.share_from_views,
-        r.fallback_pixels
-    );
+    if r.masked_pixels == 0 {
+        // No share of nothing is told: "100 % confident" would claim a fill that never was.
+        println!("{}: no masked pixel: nothing filled, the result is the keyframe", r.out.display());
+    } else {
+        print_shares(r);
+    }
     if let Some(a) = &r.auto_mask {
         println!(
             "  auto mask: {} object{}, {:.1} % of it contradicted by the views directly, the rest joined to it; {:.1} % of the keyframe could be judged",
@@ -707,7 +705,7 @@ fn print_summary(r: &Report<'_>) {
             100.0 * a.share_judged
         );
     }
-    if let Some(p) = &r.planes {
+    if let Some(p) = r.planes.as_ref().filter(|_| r.masked_pixels > 0) {
         let filled: usize = p.surfaces.iter().map(|s| s.filled_pixels).sum();
         let n = p.surfaces.len();
         let found = format!("{n} surface{} off the wall found", if n == 1 { "" } else { "s" });
@@ -737,6 +735,21 @@ fn print_summary(r: &Report<'_>) {
     }
     let stages: Vec<String> = r.timings_ms.iter().map(|(n, ms)| format!("{n} {ms:.0} ms")).collect();
     println!("  time: {}", stages.join(", "));
+}
+
+/// The summary's first line: the mask's shares. "From views" says where pixels came from,
+/// not that they are right: the confident share comes first, and a doubtful share is always
+/// told.
+fn print_shares(r: &Report<'_>) {
+    println!(
+        "{}: {} masked pixels, {:.1} % confident, {:.1} % doubtful or invented ({:.1} % taken from views, {} from the single-image fallback)",
+        r.out.display(),
+        r.masked_pixels,
+        100.0 * r.share_confident,
+        100.0 * r.share_doubtful,
+        100.0 * r.share_from_views,
+        r.fallback_pixels
+    );
 }
 
 /// Whether two paths name the same file (the second may not exist yet).

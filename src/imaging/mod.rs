@@ -301,6 +301,21 @@ impl Mask {
     pub fn hole_count(&self) -> usize {
         self.data.iter().filter(|&&v| v > 127).count()
     }
+
+    /// What a mask that is probably a mistake comes to, in a user's words: one that marks
+    /// no pixel (all black) or every pixel (all white); `None` for any other.
+    pub fn mistake(&self) -> Option<&'static str> {
+        let masked = self.hole_count();
+        if masked == 0 {
+            Some("the mask marks no pixel (all black): nothing to fill, the keyframe itself is the result")
+        } else if masked as f64 >= 0.999 * self.data.len() as f64 {
+            Some(
+                "the mask covers the whole keyframe (all white): the result is made of the views alone, and what no view sees is invented",
+            )
+        } else {
+            None
+        }
+    }
 }
 
 /// The four samples around a real-valued position of a `w × h` image and the weights

@@ -356,6 +356,8 @@ impl Slot {
     ) -> Result<Vec<PathBuf>, String> {
         let masked = mask.hole_count();
         let share = masked as f64 / mask.len().max(1) as f64;
+        // Masks that are probably mistakes say what will come of them.
+        let warning = mask.mistake();
         let again = self.session.set_mask(id, mask).map_err(|e| e.to_string())?;
         self.decided.clear();
         let (file, views) = match origin {
@@ -365,16 +367,6 @@ impl Slot {
         self.auto_views = views.unwrap_or(0);
         self.mask_source = Some(file.as_ref().map_or_else(|| "auto".to_owned(), |f| format!("file:{f}")));
         publish::write_mask(ctx, self);
-        // Masks that are probably mistakes say what will come of them.
-        let warning = if masked == 0 {
-            Some("the mask marks no pixel (all black): nothing to fill, the keyframe itself is the result")
-        } else if share >= 0.999 {
-            Some(
-                "the mask covers the whole keyframe (all white): the result is made of the views alone, and what no view sees is invented",
-            )
-        } else {
-            None
-        };
         let shown = file.as_deref().map_or("auto".into(), watch::shown);
         match warning {
             Some(w) => tracing::warn!(mask = %shown, masked, reason = w, "mask set"),
