@@ -1366,7 +1366,8 @@ fn exclude_marked(
     let mut lifted: Vec<Option<Plane<bool>>> = vec![None; ws.len()];
     let Some(first) = ws.first() else { return lifted };
     if levels.iter().all(Option::is_none) {
-        // No source has marks (the folder service, the one-shot fill): nothing to do.
+        // No source has marks (no caller's marks, and no own occluders found: fewer views
+        // than [`OwnParams::min_views`], or `FillParams::own` off): nothing to do.
         return lifted;
     }
     let (w, h, r) = (first.rect.width, first.rect.height, first.rect);
