@@ -67,6 +67,21 @@ const LIFTED_CONFIDENCE: f32 = 0.45;
 /// of a crown over the sky, which the frames around had agreed with (BENCHMARKS.md,
 /// "Video target, eighteenth session").
 const LIFTED_RESEMBLES: f32 = 0.08;
+/// Nor is a soft-marked pixel whose 3 × 3 mean is at least this foreign to the colours of
+/// the building around the mask (the keyframe outside the mask near the part,
+/// [`LIFTED_FOREIGN_REACH`]; [`occlusion::Histogram::foreign`], 0 common .. 1 never seen):
+/// where every view has its
+/// own occluder over a spot, the one marked least may show the building, or a van of a
+/// colour the facade has nowhere; the van is left to the fallback. On the shared-occluder
+/// service cases the third view's van was copied over the keyframe's tree (BENCHMARKS.md,
+/// "A mark over a foreign colour stays", fifty-eighth session).
+const LIFTED_FOREIGN: f32 = 0.7;
+/// The building's colours for [`LIFTED_FOREIGN`] are the keyframe's outside the mask within
+/// this many pixels of the part's rectangle (the hole grown by the fill's margin, 11 px):
+/// a window wholly inside a large hole has its like further along the facade. The part
+/// grown by this much stays inside the service's crop ([`crate::session::SessionParams`]'s
+/// 48 px margin), so that the service's fill and `clearview fill` hear the same colours.
+const LIFTED_FOREIGN_REACH: usize = 32;
 /// The confidence of a pixel the single-image fallback invented.
 const INVENTED: f32 = 0.2;
 /// The most the fill may trust a pixel the blend moved by more than a gross difference
@@ -409,7 +424,7 @@ pub struct FillExtras<'a> {
     /// than the building (an occluder found by other means); they are never copied. A
     /// soft mark (128..255, exclusive) is a doubt, not a verdict: such a pixel may be
     /// copied where every source that sees it is marked there, and is then never
-    /// reported sure ([`LIFTED_CONFIDENCE`], [`LIFTED_RESEMBLES`]).
+    /// reported sure ([`LIFTED_CONFIDENCE`], [`LIFTED_RESEMBLES`], [`LIFTED_FOREIGN`]).
     pub occluders: &'a [Option<&'a Mask>],
     /// Another result of the same keyframe and mask (keyframe-sized), to be judged on the
     /// same evidence as this fill ([`Filled::rival_quality`]).
@@ -1355,7 +1370,8 @@ fn mark_levels(wv: &Warped, h: &Homography, occluders: Option<&Mask>) -> Option<
 
 /// Marks invalid the views' pixels on their occluders (`levels` > 127), but where every
 /// view that sees a pixel is marked there, those whose mark is soft (below 255) stay,
-/// unless, inside the mask, they look like the keyframe ([`LIFTED_RESEMBLES`]). Returns,
+/// unless, inside the mask, they look like the keyframe ([`LIFTED_RESEMBLES`]), or their
+/// colour is foreign to the building around the mask ([`LIFTED_FOREIGN`]). Returns,
 /// per view, the pixels that stayed under a soft mark (`None`: none did).
 fn exclude_marked(
     ws: &mut [Warped],
@@ -1390,6 +1406,14 @@ fn exclude_marked(
         mean(x, y, &|xx, yy| wv.valid.get(xx, yy).then(|| wv.image.get(xx, yy)))
     };
     let mut drop: Vec<(usize, usize, usize)> = Vec::new();
+    // The building's colours: the keyframe around the part, outside the mask.
+    let around = r.grown(LIFTED_FOREIGN_REACH, key.width(), key.height());
+    let building = occlusion::Histogram::new(
+        (around.y..around.y + around.height)
+            .flat_map(|y| (around.x..around.x + around.width).map(move |x| (x, y)))
+            .filter(|&(x, y)| !mask.is_hole(x, y))
+            .map(|(x, y)| key.get(x, y)),
+    );
     for y in 0..h {
         for x in 0..w {
             let seen: Vec<usize> = (0..ws.len()).filter(|&v| ws[v].valid.get(x, y)).collect();
@@ -1401,10 +1425,11 @@ fn exclude_marked(
                     drop.push((v, x, y));
                 } else if l > 127 {
                     // Inside the mask the keyframe shows its occluder: a lifted pixel like
-                    // it shows the same one.
+                    // it shows the same one. And a mark over a colour the building does not
+                    // have is right, whatever the other views' marks.
                     let (a, b) = (view_mean(&ws[v], x, y), key_mean(x, y));
                     let d = (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>().sqrt();
-                    if inside && d < LIFTED_RESEMBLES {
+                    if (inside && d < LIFTED_RESEMBLES) || building.foreign(a) >= LIFTED_FOREIGN {
                         drop.push((v, x, y));
                     } else {
                         lifted[v].get_or_insert_with(|| Plane::new(w, h, false)).set(x, y, true);
@@ -2319,10 +2344,11 @@ mod tests {
     /// A soft mark (a frame's own judgement revised, as a walk makes them) over a block of
     /// the hole both views mark: the softly marked view's pixels are copied rather than
     /// invented, but never reported sure. Where that view shows the keyframe's own occluder
-    /// (the same person at the same place), they are not copied even with the occlusion
-    /// model off: the fallback makes them.
+    /// (the same person at the same place), or something of a colour the facade has
+    /// nowhere (a magenta van), they are not copied even with the occlusion model off: the
+    /// fallback makes them.
     #[test]
-    fn a_soft_mark_is_copied_where_every_view_is_marked_unless_it_shows_the_keyframes_occluder() {
+    fn a_soft_mark_is_copied_where_every_view_is_marked_unless_it_shows_an_occluder() {
         let (scene, key, mask) = person_before_facade();
         let (w, h) = (key.width(), key.height());
         let mut person = Mask::new(w, h, 0);
@@ -2362,13 +2388,22 @@ mod tests {
         assert!(copied > 0.9, "the softly marked view's wall: {copied:.2} copied");
         let sure = share(&|i| p[i] == 1 && c[i] >= CONFIDENT);
         assert_eq!(sure, 0.0, "a softly marked pixel reported sure");
-        // View 0 shows the keyframe's person there: not copied, the model off or on.
-        for occlusion in [false, true] {
-            let params = FillParams { occlusion, ..FillParams::default() };
-            let f = fill(&with_person, &params);
-            let p = f.provenance.as_slice();
-            let copied = share(&|i| p[i] == 1);
-            assert!(copied < 0.05, "the keyframe's own person, model {occlusion}: {copied:.2} copied");
+        // View 0 shows the keyframe's person there, or a van of its own: not copied, the
+        // model off or on.
+        let mut with_van = scene.clone();
+        for y in 35..95 {
+            for x in 60..100 {
+                with_van.set(x, y, [0.75, 0.1, 0.65]);
+            }
+        }
+        for (first, what) in [(&with_person, "the keyframe's own person"), (&with_van, "a magenta van")] {
+            for occlusion in [false, true] {
+                let params = FillParams { occlusion, ..FillParams::default() };
+                let f = fill(first, &params);
+                let p = f.provenance.as_slice();
+                let copied = share(&|i| p[i] == 1);
+                assert!(copied < 0.05, "{what}, model {occlusion}: {copied:.2} copied");
+            }
         }
     }
 

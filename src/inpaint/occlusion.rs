@@ -127,12 +127,12 @@ fn sigmoid(x: f32) -> f32 {
 /// A normalised colour histogram with its neighbouring bins blurred in (so that a colour
 /// just across a bin edge is not "never seen").
 #[derive(Debug, Clone)]
-struct Histogram {
+pub(crate) struct Histogram {
     p: Vec<f32>,
 }
 
 impl Histogram {
-    fn new(colours: impl Iterator<Item = [f32; 3]>) -> Self {
+    pub(crate) fn new(colours: impl Iterator<Item = [f32; 3]>) -> Self {
         let mut raw = vec![0.0f32; LEVELS * LEVELS * LEVELS];
         let mut n = 0.0;
         for c in colours {
@@ -167,6 +167,11 @@ impl Histogram {
 
     fn prob(&self, c: [f32; 3]) -> f32 {
         self.p[bin(c)]
+    }
+
+    /// How foreign a colour is to the colours counted (0 common .. 1 never seen).
+    pub(crate) fn foreign(&self, c: [f32; 3]) -> f32 {
+        1.0 - (self.prob(c) / 2e-3).min(1.0)
     }
 }
 
@@ -691,8 +696,6 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
         let (o, b) = (occluder.prob(c), building.prob(c));
         (o / (o + b + 1e-4)).clamp(0.0, 1.0) * (o / (o + 1e-3)).min(1.0)
     };
-    // How foreign a colour is to the building around the hole (0 common .. 1 never seen).
-    let foreign = |c: [f32; 3]| -> f32 { 1.0 - (building.prob(c) / 2e-3).min(1.0) };
 
     // Each view's own occluders (outside the mask, followed into it).
     let own: Vec<Vec<bool>> = (0..nv)
@@ -792,7 +795,7 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
                 if own[i] {
                     l += params.w_own;
                 }
-                l += params.w_foreign * (foreign(c) - 0.5);
+                l += params.w_foreign * (building.foreign(c) - 0.5);
                 sigmoid(l)
             })
             .collect()
