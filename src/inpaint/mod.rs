@@ -70,11 +70,11 @@ const LIFTED_RESEMBLES: f32 = 0.08;
 /// Nor is a soft-marked pixel whose 3 × 3 mean is at least this foreign to the colours of
 /// the building around the mask (the keyframe outside the mask near the part,
 /// [`LIFTED_FOREIGN_REACH`]; [`occlusion::Histogram::foreign`], 0 common .. 1 never seen):
-/// where every view has its
-/// own occluder over a spot, the one marked least may show the building, or a van of a
-/// colour the facade has nowhere; the van is left to the fallback. On the shared-occluder
-/// service cases the third view's van was copied over the keyframe's tree (BENCHMARKS.md,
-/// "A mark over a foreign colour stays", fifty-eighth session).
+/// where every view has its own occluder over a spot, the one marked least may show the
+/// building, or a van of a colour the facade has nowhere; the van is left to the fallback.
+/// On the shared-occluder service cases the third view's van was copied over the
+/// keyframe's tree (BENCHMARKS.md, "A mark over a foreign colour stays", fifty-eighth
+/// session).
 const LIFTED_FOREIGN: f32 = 0.7;
 /// The building's colours for [`LIFTED_FOREIGN`] are the keyframe's outside the mask within
 /// this many pixels of the part's rectangle (the hole grown by the fill's margin, 11 px):
@@ -2405,6 +2405,16 @@ mod tests {
                 assert!(copied < 0.05, "{what}, model {occlusion}: {copied:.2} copied");
             }
         }
+    }
+
+    /// The colours a lifted pixel is judged foreign to ([`LIFTED_FOREIGN_REACH`] around the
+    /// part) lie inside the crop the service fills, so that the service and `clearview
+    /// fill` hear the same ones.
+    #[test]
+    fn the_building_around_a_lifted_mark_lies_inside_the_services_crop() {
+        let session = crate::session::SessionParams::default();
+        let (part, crop) = (session.fill.margin() + 1, session.margin_px);
+        assert!(part + LIFTED_FOREIGN_REACH <= crop, "{part} + {LIFTED_FOREIGN_REACH} > {crop}");
     }
 
     #[test]
