@@ -1406,14 +1406,17 @@ fn exclude_marked(
         mean(x, y, &|xx, yy| wv.valid.get(xx, yy).then(|| wv.image.get(xx, yy)))
     };
     let mut drop: Vec<(usize, usize, usize)> = Vec::new();
-    // The building's colours: the keyframe around the part, outside the mask.
-    let around = r.grown(LIFTED_FOREIGN_REACH, key.width(), key.height());
-    let building = occlusion::Histogram::new(
-        (around.y..around.y + around.height)
-            .flat_map(|y| (around.x..around.x + around.width).map(move |x| (x, y)))
-            .filter(|&(x, y)| !mask.is_hole(x, y))
-            .map(|(x, y)| key.get(x, y)),
-    );
+    // The building's colours: the keyframe around the part, outside the mask (counted
+    // only if a pixel is to be lifted).
+    let building = std::cell::LazyCell::new(|| {
+        let around = r.grown(LIFTED_FOREIGN_REACH, key.width(), key.height());
+        occlusion::Histogram::new(
+            (around.y..around.y1())
+                .flat_map(|y| (around.x..around.x1()).map(move |x| (x, y)))
+                .filter(|&(x, y)| !mask.is_hole(x, y))
+                .map(|(x, y)| key.get(x, y)),
+        )
+    });
     for y in 0..h {
         for x in 0..w {
             let seen: Vec<usize> = (0..ws.len()).filter(|&v| ws[v].valid.get(x, y)).collect();
