@@ -1844,87 +1844,83 @@ mod tests {
         assert!(beside < 60, "{beside} pixels of the views' own objects flagged in the keyframe");
     }
 
-    #[test]
-    fn finds_a_pasted_person_and_not_the_facade() {
+    /// A person pasted at `x` on the facade of `seed`, found with three views of the
+    /// facade at `hs`, each rendered and then changed by `change(i, view)`: the pixels of
+    /// the mask on the person, those beside it, the person's size, and the pixels flagged
+    /// on the clean facade as keyframe.
+    fn person_found(
+        seed: u64,
+        x: f32,
+        hs: &[Homography; 3],
+        change: impl Fn(usize, &mut RgbF32),
+    ) -> (usize, usize, usize, usize) {
         let (w, h) = (240, 180);
-        let scene = facade(w, h, 11);
+        let scene = facade(w, h, seed);
         let mut key = scene.clone();
         let mut truth = Mask::new(w, h, 0);
-        paint_occluder(&mut key, Some(&mut truth), Occluder::Person, 120.0, 95.0, 90.0, 3);
+        paint_occluder(&mut key, Some(&mut truth), Occluder::Person, x, 95.0, 90.0, seed % 8);
+        let views: Vec<RgbF32> = hs
+            .iter()
+            .enumerate()
+            .map(|(i, hm)| {
+                let mut v = render_view(&scene, &hm.inverse().unwrap(), w, h, [0.5; 3]);
+                change(i, &mut v);
+                v
+            })
+            .collect();
+        let sources: Vec<Source<'_>> =
+            views.iter().zip(hs).map(|(v, &homography)| Source { image: v, homography }).collect();
+        let m = auto_mask(&key, &sources, &AutoMaskParams::default());
+        let (mut hit, mut false_pos) = (0, 0);
+        for (&t, &p) in truth.as_slice().iter().zip(m.as_slice()) {
+            hit += usize::from(t > 127 && p > 127);
+            false_pos += usize::from(t <= 127 && p > 127);
+        }
+        let clean = auto_mask(&scene, &sources, &AutoMaskParams::default()).hole_count();
+        (hit, false_pos, truth.hole_count(), clean)
+    }
+
+    #[test]
+    fn finds_a_pasted_person_and_not_the_facade() {
         let hs = [
             Homography::translation(6.5, -3.0),
             Homography::from_rows([[1.02, 0.01, -5.0], [-0.01, 0.99, 4.0], [1e-5, 0.0, 1.0]]).unwrap(),
             Homography::translation(-7.0, 2.5),
         ];
         // Views of the same facade, one of them darker and each with a tree elsewhere.
-        let views: Vec<RgbF32> = hs
-            .iter()
-            .enumerate()
-            .map(|(i, hm)| {
-                let mut v = render_view(&scene, &hm.inverse().unwrap(), w, h, [0.5; 3]);
-                if i == 1 {
-                    crate::synth::expose(&mut v, 0.8, 0.02);
-                }
-                paint_occluder(&mut v, None, Occluder::Tree, 30.0 + 80.0 * i as f32, 40.0, 40.0, i as u64);
-                v
-            })
-            .collect();
-        let sources: Vec<Source<'_>> =
-            views.iter().zip(&hs).map(|(v, &homography)| Source { image: v, homography }).collect();
-        let m = auto_mask(&key, &sources, &AutoMaskParams::default());
-        let (mut hit, mut false_pos) = (0, 0);
-        for i in 0..w * h {
-            let (t, p) = (truth.as_slice()[i] > 127, m.as_slice()[i] > 127);
-            hit += (t && p) as usize;
-            false_pos += (!t && p) as usize;
-        }
-        let person = truth.hole_count();
+        let (hit, false_pos, person, clean) = person_found(11, 120.0, &hs, |i, v| {
+            if i == 1 {
+                crate::synth::expose(v, 0.8, 0.02);
+            }
+            paint_occluder(v, None, Occluder::Tree, 30.0 + 80.0 * i as f32, 40.0, 40.0, i as u64);
+        });
         assert!(hit as f32 > 0.9 * person as f32, "found {hit} of {person}");
         // Allowed: the dilation ring around the person (≈ perimeter × 3), nothing else.
         assert!(false_pos < person, "{false_pos} false positives for a {person}-pixel person");
         // A keyframe equal to the scene: nothing is transient.
-        let none = auto_mask(&scene, &sources, &AutoMaskParams::default());
-        assert!(none.hole_count() < w * h / 200, "{} pixels flagged on a clean keyframe", none.hole_count());
+        assert!(clean < 240 * 180 / 200, "{clean} pixels flagged on a clean keyframe");
     }
 
     /// Oxford's leuven: the same facade as the light falls, each view darker than the last,
     /// through the camera's curve (gamma), not a line: a line fitted to the whole overlap
     /// leaves the shadows and highlights of the darkest views beyond the threshold, and the
-    /// mask took a fifth of the facade for occluders (IoU 0.22 on leuven with four views).
+    /// mask took walls, cars and the hedge for occluders (IoU 0.14–0.22 on the leuven
+    /// service cases with four views).
     #[test]
     fn views_darkened_through_a_curve_flag_the_person_and_not_the_facade() {
-        let (w, h) = (240, 180);
-        let scene = facade(w, h, 5);
-        let mut key = scene.clone();
-        let mut truth = Mask::new(w, h, 0);
-        paint_occluder(&mut key, Some(&mut truth), Occluder::Person, 110.0, 95.0, 90.0, 7);
         let hs = [
             Homography::translation(4.5, -2.0),
             Homography::translation(-5.0, 3.5),
             Homography::translation(2.0, 4.0),
         ];
-        let views: Vec<RgbF32> = hs
-            .iter()
-            .enumerate()
-            .map(|(i, hm)| {
-                let v = render_view(&scene, &hm.inverse().unwrap(), w, h, [0.5; 3]);
-                let gamma = 1.8 + 0.6 * i as f32;
-                v.map(|p| p.map(|c| 0.9 * c.clamp(0.0, 1.0).powf(gamma)))
-            })
-            .collect();
-        let sources: Vec<Source<'_>> =
-            views.iter().zip(&hs).map(|(v, &homography)| Source { image: v, homography }).collect();
-        let m = auto_mask(&key, &sources, &AutoMaskParams::default());
-        let (mut hit, mut false_pos) = (0, 0);
-        for i in 0..w * h {
-            let (t, p) = (truth.as_slice()[i] > 127, m.as_slice()[i] > 127);
-            hit += (t && p) as usize;
-            false_pos += (!t && p) as usize;
-        }
-        let person = truth.hole_count();
+        let (hit, false_pos, person, clean) = person_found(5, 110.0, &hs, |i, v| {
+            let gamma = 1.8 + 0.6 * i as f32;
+            *v = v.map(|p| p.map(|c| 0.9 * c.clamp(0.0, 1.0).powf(gamma)));
+        });
         assert!(hit as f32 > 0.9 * person as f32, "found {hit} of {person}");
-        // Allowed: the dilation ring around the person; with a line, 6 731 pixels more.
+        // Allowed: the dilation ring around the person (with a line, 6 732 pixels).
         assert!(false_pos < person, "{false_pos} false positives for a {person}-pixel person");
+        assert!(clean < 240 * 180 / 200, "{clean} pixels flagged on a clean keyframe");
     }
 
     /// A facade under a sky whose clouds drifted between the shots: the views, taken a
