@@ -227,10 +227,13 @@ impl Default for ToneParams {
 }
 
 /// What [`fit_tone`] found: the curve when it explains the pairs clearly better than the
-/// robust line, and the shares of pairs each explains.
+/// robust line, the line, and the shares of pairs each explains.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ToneFit {
     pub curve: Option<ToneCurve>,
+    /// The robust line ([`fit_gain`], default parameters) the curve was weighed against:
+    /// what to use where there is no curve.
+    pub line: Gain,
     /// Share of the pairs the line explains (all channels within the tolerance).
     pub line_share: f32,
     /// The same for the curve.
@@ -249,12 +252,12 @@ pub struct ToneFit {
 /// deviations ([`ToneParams::trim_rounds`]), so that a view's occluder does not shift the
 /// quantiles; equal view values are merged and the knots made non-decreasing.
 pub fn fit_tone(pairs: &[([f32; 3], [f32; 3])], params: &ToneParams) -> ToneFit {
-    let none = ToneFit { curve: None, line_share: 0.0, curve_share: 0.0 };
+    let line = fit_gain(pairs, &GainParams::default());
+    let none = ToneFit { curve: None, line, line_share: 0.0, curve_share: 0.0 };
     let bins = params.bins.min(pairs.len() / params.min_per_bin.max(1));
     if bins < 4 {
         return none;
     }
-    let line = fit_gain(pairs, &GainParams::default());
     let Some(mut curve) = quantile_curve(pairs, bins) else { return none };
     // Trimmed: matched again on the pairs the curve explains within a band (three robust
     // standard deviations of its residuals, at least twice the tolerance), so that pairs
@@ -287,7 +290,7 @@ pub fn fit_tone(pairs: &[([f32; 3], [f32; 3])], params: &ToneParams) -> ToneFit 
     let (line_share, curve_share) = (line_ok as f32 / n, curve_ok as f32 / n);
     let gain = curve_share - line_share;
     let better = gain >= params.min_gain && gain >= params.min_recovered * (1.0 - line_share);
-    ToneFit { curve: better.then_some(curve), line_share, curve_share }
+    ToneFit { curve: better.then_some(curve), line, line_share, curve_share }
 }
 
 /// Per channel, the view's quantiles matched to the keyframe's (`bins + 1` knots from the

@@ -15,7 +15,7 @@ use super::Source;
 use super::parallax::{SweepParams, parallax_family_with};
 use crate::geometry::Homography;
 use crate::imaging::convert::luminance;
-use crate::imaging::photometric::{Gain, GainParams, ToneCurve, ToneParams, fit_gain, fit_tone};
+use crate::imaging::photometric::{Gain, ToneCurve, ToneParams, fit_tone};
 use crate::imaging::warp::{Interpolation, Rect, warp};
 use crate::imaging::{Mask, Plane, RgbF32, RgbPixel};
 
@@ -1005,9 +1005,10 @@ fn fit_whole(key: &RgbF32, view: &RgbF32, valid: &Plane<bool>) -> Photometry {
         .step_by(step)
         .map(|(i, _)| (view.as_slice()[i], key.as_slice()[i]))
         .collect();
-    match fit_tone(&pairs, &ToneParams::default()).curve {
+    let fit = fit_tone(&pairs, &ToneParams::default());
+    match fit.curve {
         Some(curve) => Photometry::Tone(curve),
-        None => Photometry::Line(fit_gain(&pairs, &GainParams::default())),
+        None => Photometry::Line(fit.line),
     }
 }
 
@@ -1844,7 +1845,8 @@ mod tests {
         assert!(beside < 60, "{beside} pixels of the views' own objects flagged in the keyframe");
     }
 
-    /// A person pasted at `x` on the facade of `seed`, found with three views of the
+    /// A person pasted at `x` on the facade of `seed` (its shape drawn from `seed` too),
+    /// found with three views of the
     /// facade at `hs`, each rendered and then changed by `change(i, view)`: the pixels of
     /// the mask on the person, those beside it, the person's size, and the pixels flagged
     /// on the clean facade as keyframe.
