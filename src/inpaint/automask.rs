@@ -102,10 +102,21 @@ pub struct AutoMaskParams {
     pub sky_gradient: f32,
     pub sky_luma: f32,
     /// ...and no pixel of the sky is itself on an edge steeper than this (its own gradient,
-    /// not averaged): the faint outline of a plain pale object against a plain pale wall
-    /// that reaches the top (a white board before a rendered facade) stops the sky there,
-    /// where the average alone let it through and the object was lost whole.
+    /// not averaged, in the steepest colour channel: a board of the sky's luminance but
+    /// another hue is no sky either): the faint outline of a plain pale object against a
+    /// plain pale wall that reaches the top (a white board before a rendered facade) stops
+    /// the sky there, where the average alone let it through and the object was lost whole.
     pub sky_edge: f32,
+    /// Clouds: from that sky, the sky goes on through pixels that are bright (`sky_luma`)
+    /// and smooth in colour: the steepest channel's gradient (before the comparison's blur),
+    /// averaged over 5 × 5 work pixels, below this (0: not looked for), and its own below
+    /// `sky_cloud_edge`. A streaked or rippled cloud bank is too textured for `sky_gradient`
+    /// and cut the sky off from the bands of cloud nearer the horizon, which drift between
+    /// the shots and were flagged across the frame; its colours change slowly. The outline of
+    /// an object against the sky is a step in some channel even where its luminance is the
+    /// sky's, and stops it.
+    pub sky_cloud_gradient: f32,
+    pub sky_cloud_edge: f32,
     /// The mask is finally grown by this many pixels (full resolution).
     pub dilate_radius: usize,
     /// The comparison runs on an image box-reduced to at most this many pixels.
@@ -134,6 +145,8 @@ impl Default for AutoMaskParams {
             sky_gradient: 0.015,
             sky_luma: 0.35,
             sky_edge: 0.02,
+            sky_cloud_gradient: 0.03,
+            sky_cloud_edge: 0.04,
             dilate_radius: 3,
             work_pixels: 1_500_000,
         }
@@ -252,7 +265,7 @@ fn auto_mask_excluding<P: RgbPixel>(
         explain_by_epipoles(&key_b, &warped, &epipoles, &mut ev, params);
     }
 
-    let sky = sky(&key_b, params);
+    let sky = sky(&key_b, &key_r, params);
     let shared = shared_occluders(&key_b, &ev, params);
     let veto = Plane::from_fn(rw, rh, |x, y| shared.get(x, y) || sky.get(x, y));
     let keep = |p: &Plane<bool>| Plane::from_fn(rw, rh, |x, y| p.get(x, y) && !veto.get(x, y));
@@ -772,28 +785,23 @@ fn shared_occluders(key: &RgbF32, ev: &Evidence, params: &AutoMaskParams) -> Pla
     Plane::from_fn(w, h, |x, y| ev.strong.get(x, y) && smooth.get(x, y) > cut)
 }
 
-/// The sky of `key` (work resolution): the pixels smooth and bright enough
-/// ([`AutoMaskParams::sky_gradient`], [`AutoMaskParams::sky_edge`],
-/// [`AutoMaskParams::sky_luma`]) 4-connected through such pixels to the top rows (the top
-/// 2 %), and the bright pixels within 2 px of them.
-fn sky(key: &RgbF32, params: &AutoMaskParams) -> Plane<bool> {
+/// The sky of `key` (work resolution, blurred; `sharp` the same before the blur): the
+/// pixels smooth and bright enough ([`AutoMaskParams::sky_gradient`],
+/// [`AutoMaskParams::sky_edge`], [`AutoMaskParams::sky_luma`]) 4-connected through such pixels to the top rows (the top
+/// 2 %), the clouds 4-connected to those ([`AutoMaskParams::sky_cloud_gradient`]), and the
+/// bright pixels within 2 px of them.
+fn sky(key: &RgbF32, sharp: &RgbF32, params: &AutoMaskParams) -> Plane<bool> {
     let (w, h) = (key.width(), key.height());
     if params.sky_gradient <= 0.0 || w < 3 || h < 3 {
         return Plane::new(w, h, false);
     }
     let l = luminance(key);
-    // Sobel, per unit of distance; the border takes its inner neighbour's.
-    let gradient = Plane::from_fn(w, h, |x, y| {
-        let (x, y) = (x.clamp(1, w - 2), y.clamp(1, h - 2));
-        let p = |dx: isize, dy: isize| l.get((x as isize + dx) as usize, (y as isize + dy) as usize);
-        let gx = (p(1, -1) + 2.0 * p(1, 0) + p(1, 1) - p(-1, -1) - 2.0 * p(-1, 0) - p(-1, 1)) / 8.0;
-        let gy = (p(-1, 1) + 2.0 * p(0, 1) + p(1, 1) - p(-1, -1) - 2.0 * p(0, -1) - p(1, -1)) / 8.0;
-        (gx * gx + gy * gy).sqrt()
-    });
+    let gradient = Plane::from_fn(w, h, |x, y| sobel(w, h, x, y, |x, y| l.get(x, y)));
     let smooth = box_mean(&gradient, &Plane::new(w, h, true), 2);
+    let colour = colour_gradient(key);
     let like = Plane::from_fn(w, h, |x, y| {
         smooth.get(x, y) < params.sky_gradient
-            && gradient.get(x, y) < params.sky_edge
+            && colour.get(x, y) < params.sky_edge
             && l.get(x, y) >= params.sky_luma
     });
     let mut out = Plane::new(w, h, false);
@@ -805,10 +813,41 @@ fn sky(key: &RgbF32, params: &AutoMaskParams) -> Plane<bool> {
         out.set(x, y, true);
     }
     grow_through(&mut out, top, &NEIGHBOURS_4, |x, y| like.get(x, y));
+    if params.sky_cloud_gradient > 0.0 {
+        // Before the blur, where an object's outline is still a step.
+        let colour = colour_gradient(sharp);
+        let smooth = box_mean(&colour, &Plane::new(w, h, true), 2);
+        let cloud = |x: usize, y: usize| {
+            smooth.get(x, y) < params.sky_cloud_gradient
+                && colour.get(x, y) < params.sky_cloud_edge
+                && l.get(x, y) >= params.sky_luma
+        };
+        let edge: Vec<(usize, usize)> =
+            (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).filter(|&(x, y)| out.get(x, y)).collect();
+        grow_through(&mut out, edge, &NEIGHBOURS_4, cloud);
+    }
     // The gradient's average reaches 2 px past the skyline: the sky's rim along it is sky
     // too, where it is bright.
     let rim = dilate(&out, 2);
     Plane::from_fn(w, h, |x, y| rim.get(x, y) && l.get(x, y) >= params.sky_luma)
+}
+
+/// The steepest of the three channels' Sobel gradients at each pixel.
+fn colour_gradient(img: &RgbF32) -> Plane<f32> {
+    let (w, h) = (img.width(), img.height());
+    Plane::from_fn(w, h, |x, y| {
+        (0..3).map(|c| sobel(w, h, x, y, |x, y| img.get(x, y)[c])).fold(0.0, f32::max)
+    })
+}
+
+/// The Sobel gradient's magnitude of `v` at `(x, y)`, per unit of distance; the border takes
+/// its inner neighbour's. The image is at least 3 × 3.
+fn sobel(w: usize, h: usize, x: usize, y: usize, v: impl Fn(usize, usize) -> f32) -> f32 {
+    let (x, y) = (x.clamp(1, w - 2), y.clamp(1, h - 2));
+    let p = |dx: isize, dy: isize| v((x as isize + dx) as usize, (y as isize + dy) as usize);
+    let gx = (p(1, -1) + 2.0 * p(1, 0) + p(1, 1) - p(-1, -1) - 2.0 * p(-1, 0) - p(-1, 1)) / 8.0;
+    let gy = (p(-1, 1) + 2.0 * p(0, 1) + p(1, 1) - p(-1, -1) - 2.0 * p(0, -1) - p(1, -1)) / 8.0;
+    (gx * gx + gy * gy).sqrt()
 }
 
 /// A 16³-bin colour histogram with add-one smoothing.
@@ -1995,6 +2034,80 @@ mod tests {
             under_drifting_clouds(&AutoMaskParams { sky_gradient: 0.0, ..AutoMaskParams::default() });
         let sky = count(&m, 0..above);
         assert!(sky > w * above / 5, "only {sky} of the {} sky pixels taken without the rule", w * above);
+    }
+
+    /// A facade under a sky whose top is plain, then a rippled cloud bank across the whole
+    /// width (too textured to be sky by its luminance's gradient), then bands of cloud along
+    /// the horizon that sank 6 px between the keyframe and the views. Against the ripples a
+    /// board of the sky's luminance but another hue, and a passer-by before the facade (both
+    /// the truth). Returns the mask, the truth and the rows the bands take.
+    fn under_a_rippled_cloud_bank(params: &AutoMaskParams) -> (Mask, Mask, std::ops::Range<usize>) {
+        let (w, h, skyline) = (240, 180, 72);
+        let wall = facade(w, h, 5);
+        let scene_at = |sunk: f32| {
+            RgbF32::from_fn(w, h, |x, y| {
+                if y >= skyline {
+                    return wall.get(x, y);
+                }
+                let (xf, yf) = (x as f32, y as f32);
+                let mut c = 0.78;
+                if (16..40).contains(&y) {
+                    // Ripples 12 px apart, their crests slanting.
+                    c += 0.067 * (std::f32::consts::TAU * (yf + 0.15 * xf) / 12.0).sin();
+                }
+                // Two soft grey bands, 6 px deep (σ) and 0.2 darker at their middle.
+                for centre in [46.0, 62.0] {
+                    c -= 0.2 * (-((yf - centre - sunk) / 6.0).powi(2) / 2.0).exp();
+                }
+                [0.94 * c, 0.97 * c, c]
+            })
+        };
+        let mut key = scene_at(0.0);
+        let mut truth = Mask::new(w, h, 0);
+        paint_occluder(&mut key, Some(&mut truth), Occluder::Person, 180.0, 140.0, 70.0, 3);
+        // The board: luminance about the sky's, a warm hue against its blue-grey.
+        for y in 20..36 {
+            for x in 40..90 {
+                key.set(x, y, [0.93, 0.74, 0.62]);
+                truth.set(x, y, 255);
+            }
+        }
+        let hs = [
+            Homography::translation(2.5, -1.0),
+            Homography::translation(-3.0, 1.5),
+            Homography::translation(1.0, 2.0),
+        ];
+        let views: Vec<RgbF32> =
+            hs.iter().map(|hm| render_view(&scene_at(6.0), &hm.inverse().unwrap(), w, h, [0.5; 3])).collect();
+        let sources: Vec<Source<'_>> =
+            views.iter().zip(&hs).map(|(v, &homography)| Source { image: v, homography }).collect();
+        (auto_mask(&key, &sources, params), truth, 40..skyline - 4)
+    }
+
+    #[test]
+    fn bands_of_cloud_below_a_rippled_bank_are_sky_and_a_board_against_it_is_not() {
+        let taken = |m: &Mask, rows: std::ops::Range<usize>| {
+            rows.flat_map(|y| (0..m.width()).map(move |x| (x, y))).filter(|&(x, y)| m.is_hole(x, y)).count()
+        };
+        let (m, truth, bands) = under_a_rippled_cloud_bank(&AutoMaskParams::default());
+        let w = m.width();
+        let objects = truth.hole_count();
+        let hit = (0..w * m.height()).filter(|&i| truth.as_slice()[i] > 127 && m.as_slice()[i] > 127).count();
+        assert!(hit as f32 > 0.9 * objects as f32, "found {hit} of the occluders' {objects} pixels");
+        let band_pixels = w * bands.len();
+        let in_bands = taken(&m, bands.clone());
+        assert!(in_bands < band_pixels / 50, "{in_bands} of the bands' {band_pixels} pixels taken");
+        // Without the clouds looked for, the ripples cut the bands off from the sky and the
+        // bands are taken: the case tests the rule.
+        let (m, _, _) = under_a_rippled_cloud_bank(&AutoMaskParams {
+            sky_cloud_gradient: 0.0,
+            ..AutoMaskParams::default()
+        });
+        let in_bands = taken(&m, bands);
+        assert!(
+            in_bands > band_pixels / 5,
+            "only {in_bands} of the bands' {band_pixels} pixels taken without the rule"
+        );
     }
 
     #[test]
