@@ -1964,6 +1964,50 @@ mod tests {
         assert!(clean < 240 * 180 / 200, "{clean} pixels flagged on a clean keyframe");
     }
 
+    /// Three views a few pixels off the keyframe each way, with their homographies (view →
+    /// keyframe); `scene_at(i)` is the scene as view `i` saw it.
+    fn nudged_views(w: usize, h: usize, scene_at: impl Fn(usize) -> RgbF32) -> Vec<(RgbF32, Homography)> {
+        [
+            Homography::translation(2.5, -1.0),
+            Homography::translation(-3.0, 1.5),
+            Homography::translation(1.0, 2.0),
+        ]
+        .into_iter()
+        .enumerate()
+        .map(|(i, hm)| (render_view(&scene_at(i), &hm.inverse().unwrap(), w, h, [0.5; 3]), hm))
+        .collect()
+    }
+
+    fn sources_of(views: &[(RgbF32, Homography)]) -> Vec<Source<'_>> {
+        views.iter().map(|(image, homography)| Source { image, homography: *homography }).collect()
+    }
+
+    /// The holes of `m` in `rows`.
+    fn holes_in_rows(m: &Mask, rows: std::ops::Range<usize>) -> usize {
+        rows.flat_map(|y| (0..m.width()).map(move |x| (x, y))).filter(|&(x, y)| m.is_hole(x, y)).count()
+    }
+
+    /// The pixels of `truth` that the mask `m` found.
+    fn found_of(truth: &Mask, m: &Mask) -> usize {
+        truth.as_slice().iter().zip(m.as_slice()).filter(|&(&t, &f)| t > 127 && f > 127).count()
+    }
+
+    /// A plain board of `colour` over `xs` × `ys` in the keyframe and in its truth.
+    fn paint_board(
+        key: &mut RgbF32,
+        truth: &mut Mask,
+        xs: std::ops::Range<usize>,
+        ys: std::ops::Range<usize>,
+        colour: [f32; 3],
+    ) {
+        for y in ys {
+            for x in xs.clone() {
+                key.set(x, y, colour);
+                truth.set(x, y, 255);
+            }
+        }
+    }
+
     /// A facade under a sky whose clouds drifted between the shots: the views, taken a
     /// moment apart, agree on a sky the keyframe (taken earlier) does not show. In front of
     /// the facade a passer-by and a glazed screen that reflects the sky (both the truth).
@@ -1996,32 +2040,17 @@ mod tests {
                 truth.set(x, y, 255);
             }
         }
-        let hs = [
-            Homography::translation(2.5, -1.0),
-            Homography::translation(-3.0, 1.5),
-            Homography::translation(1.0, 2.0),
-        ];
-        let views: Vec<RgbF32> = hs
-            .iter()
-            .enumerate()
-            .map(|(i, hm)| {
-                render_view(&scene_at(3.0 + 0.05 * i as f32), &hm.inverse().unwrap(), w, h, [0.5; 3])
-            })
-            .collect();
-        let sources: Vec<Source<'_>> =
-            views.iter().zip(&hs).map(|(v, &homography)| Source { image: v, homography }).collect();
-        (auto_mask(&key, &sources, params), truth, sky_rows)
+        let views = nudged_views(w, h, |i| scene_at(3.0 + 0.05 * i as f32));
+        (auto_mask(&key, &sources_of(&views), params), truth, sky_rows)
     }
 
     #[test]
     fn drifting_clouds_are_not_an_occluder_and_what_stands_below_them_is() {
-        let count = |m: &Mask, rows: std::ops::Range<usize>| {
-            rows.flat_map(|y| (0..m.width()).map(move |x| (x, y))).filter(|&(x, y)| m.is_hole(x, y)).count()
-        };
+        let count = holes_in_rows;
         let (m, truth, sky_rows) = under_drifting_clouds(&AutoMaskParams::default());
         let w = m.width();
         let person = truth.hole_count();
-        let hit = (0..w * m.height()).filter(|&i| truth.as_slice()[i] > 127 && m.as_slice()[i] > 127).count();
+        let hit = found_of(&truth, &m);
         assert!(hit as f32 > 0.9 * person as f32, "found {hit} of the occluders' {person} pixels");
         // The sky but its last rows, where the mask's final growth (`dilate_radius`, 3 px)
         // reaches over the skyline from what stands against it.
@@ -2066,33 +2095,18 @@ mod tests {
         let mut truth = Mask::new(w, h, 0);
         paint_occluder(&mut key, Some(&mut truth), Occluder::Person, 180.0, 140.0, 70.0, 3);
         // The board: luminance about the sky's, a warm hue against its blue-grey.
-        for y in 20..36 {
-            for x in 40..90 {
-                key.set(x, y, [0.93, 0.74, 0.62]);
-                truth.set(x, y, 255);
-            }
-        }
-        let hs = [
-            Homography::translation(2.5, -1.0),
-            Homography::translation(-3.0, 1.5),
-            Homography::translation(1.0, 2.0),
-        ];
-        let views: Vec<RgbF32> =
-            hs.iter().map(|hm| render_view(&scene_at(6.0), &hm.inverse().unwrap(), w, h, [0.5; 3])).collect();
-        let sources: Vec<Source<'_>> =
-            views.iter().zip(&hs).map(|(v, &homography)| Source { image: v, homography }).collect();
-        (auto_mask(&key, &sources, params), truth, 40..skyline - 4)
+        paint_board(&mut key, &mut truth, 40..90, 20..36, [0.93, 0.74, 0.62]);
+        let views = nudged_views(w, h, |_| scene_at(6.0));
+        (auto_mask(&key, &sources_of(&views), params), truth, 40..skyline - 4)
     }
 
     #[test]
     fn bands_of_cloud_below_a_rippled_bank_are_sky_and_a_board_against_it_is_not() {
-        let taken = |m: &Mask, rows: std::ops::Range<usize>| {
-            rows.flat_map(|y| (0..m.width()).map(move |x| (x, y))).filter(|&(x, y)| m.is_hole(x, y)).count()
-        };
+        let taken = holes_in_rows;
         let (m, truth, bands) = under_a_rippled_cloud_bank(&AutoMaskParams::default());
         let w = m.width();
         let objects = truth.hole_count();
-        let hit = (0..w * m.height()).filter(|&i| truth.as_slice()[i] > 127 && m.as_slice()[i] > 127).count();
+        let hit = found_of(&truth, &m);
         assert!(hit as f32 > 0.9 * objects as f32, "found {hit} of the occluders' {objects} pixels");
         let band_pixels = w * bands.len();
         let in_bands = taken(&m, bands.clone());
@@ -2119,21 +2133,9 @@ mod tests {
         let scene = RgbF32::from_fn(w, h, |x, y| if y < top { [0.86, 0.85, 0.82] } else { wall.get(x, y) });
         let mut key = scene.clone();
         let mut truth = Mask::new(w, h, 0);
-        for y in 30..110 {
-            for x in 60..140 {
-                key.set(x, y, [0.92, 0.92, 0.93]);
-                truth.set(x, y, 255);
-            }
-        }
-        let hs = [
-            Homography::translation(2.5, -1.0),
-            Homography::translation(-3.0, 1.5),
-            Homography::translation(1.0, 2.0),
-        ];
-        let views: Vec<RgbF32> =
-            hs.iter().map(|hm| render_view(&scene, &hm.inverse().unwrap(), w, h, [0.5; 3])).collect();
-        let sources: Vec<Source<'_>> =
-            views.iter().zip(&hs).map(|(v, &homography)| Source { image: v, homography }).collect();
+        paint_board(&mut key, &mut truth, 60..140, 30..110, [0.92, 0.92, 0.93]);
+        let views = nudged_views(w, h, |_| scene.clone());
+        let sources = sources_of(&views);
         let found = |params: &AutoMaskParams| {
             let m = auto_mask(&key, &sources, params);
             (0..w * h).filter(|&i| truth.as_slice()[i] > 127 && m.as_slice()[i] > 127).count()
