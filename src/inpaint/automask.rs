@@ -787,9 +787,9 @@ fn shared_occluders(key: &RgbF32, ev: &Evidence, params: &AutoMaskParams) -> Pla
 
 /// The sky of `key` (work resolution, blurred; `sharp` the same before the blur): the
 /// pixels smooth and bright enough ([`AutoMaskParams::sky_gradient`],
-/// [`AutoMaskParams::sky_edge`], [`AutoMaskParams::sky_luma`]) 4-connected through such pixels to the top rows (the top
-/// 2 %), the clouds 4-connected to those ([`AutoMaskParams::sky_cloud_gradient`]), and the
-/// bright pixels within 2 px of them.
+/// [`AutoMaskParams::sky_edge`], [`AutoMaskParams::sky_luma`]) 4-connected through such
+/// pixels to the top rows (the top 2 %), the clouds 4-connected to those
+/// ([`AutoMaskParams::sky_cloud_gradient`]), and the bright pixels within 2 px of them.
 fn sky(key: &RgbF32, sharp: &RgbF32, params: &AutoMaskParams) -> Plane<bool> {
     let (w, h) = (key.width(), key.height());
     if params.sky_gradient <= 0.0 || w < 3 || h < 3 {
@@ -1992,6 +1992,12 @@ mod tests {
         truth.as_slice().iter().zip(m.as_slice()).filter(|&(&t, &f)| t > 127 && f > 127).count()
     }
 
+    /// More than 90 % of the occluders' pixels (`truth`) are in the mask `m`.
+    fn assert_most_found(truth: &Mask, m: &Mask) {
+        let (hit, objects) = (found_of(truth, m), truth.hole_count());
+        assert!(hit as f32 > 0.9 * objects as f32, "found {hit} of the occluders' {objects} pixels");
+    }
+
     /// A plain board of `colour` over `xs` × `ys` in the keyframe and in its truth.
     fn paint_board(
         key: &mut RgbF32,
@@ -2046,22 +2052,19 @@ mod tests {
 
     #[test]
     fn drifting_clouds_are_not_an_occluder_and_what_stands_below_them_is() {
-        let count = holes_in_rows;
         let (m, truth, sky_rows) = under_drifting_clouds(&AutoMaskParams::default());
         let w = m.width();
-        let person = truth.hole_count();
-        let hit = found_of(&truth, &m);
-        assert!(hit as f32 > 0.9 * person as f32, "found {hit} of the occluders' {person} pixels");
+        assert_most_found(&truth, &m);
         // The sky but its last rows, where the mask's final growth (`dilate_radius`, 3 px)
         // reaches over the skyline from what stands against it.
         let above = sky_rows - 4;
-        let sky = count(&m, 0..above);
+        let sky = holes_in_rows(&m, 0..above);
         assert!(sky < w * above / 100, "{sky} of the {} sky pixels taken", w * above);
         // Without the sky looked for, the clouds the keyframe shows are taken: the case
         // tests the rule.
         let (m, _, _) =
             under_drifting_clouds(&AutoMaskParams { sky_gradient: 0.0, ..AutoMaskParams::default() });
-        let sky = count(&m, 0..above);
+        let sky = holes_in_rows(&m, 0..above);
         assert!(sky > w * above / 5, "only {sky} of the {} sky pixels taken without the rule", w * above);
     }
 
@@ -2102,14 +2105,11 @@ mod tests {
 
     #[test]
     fn bands_of_cloud_below_a_rippled_bank_are_sky_and_a_board_against_it_is_not() {
-        let taken = holes_in_rows;
         let (m, truth, bands) = under_a_rippled_cloud_bank(&AutoMaskParams::default());
         let w = m.width();
-        let objects = truth.hole_count();
-        let hit = found_of(&truth, &m);
-        assert!(hit as f32 > 0.9 * objects as f32, "found {hit} of the occluders' {objects} pixels");
+        assert_most_found(&truth, &m);
         let band_pixels = w * bands.len();
-        let in_bands = taken(&m, bands.clone());
+        let in_bands = holes_in_rows(&m, bands.clone());
         assert!(in_bands < band_pixels / 50, "{in_bands} of the bands' {band_pixels} pixels taken");
         // Without the clouds looked for, the ripples cut the bands off from the sky and the
         // bands are taken: the case tests the rule.
@@ -2117,7 +2117,7 @@ mod tests {
             sky_cloud_gradient: 0.0,
             ..AutoMaskParams::default()
         });
-        let in_bands = taken(&m, bands);
+        let in_bands = holes_in_rows(&m, bands);
         assert!(
             in_bands > band_pixels / 5,
             "only {in_bands} of the bands' {band_pixels} pixels taken without the rule"
@@ -2136,10 +2136,7 @@ mod tests {
         paint_board(&mut key, &mut truth, 60..140, 30..110, [0.92, 0.92, 0.93]);
         let views = nudged_views(w, h, |_| scene.clone());
         let sources = sources_of(&views);
-        let found = |params: &AutoMaskParams| {
-            let m = auto_mask(&key, &sources, params);
-            (0..w * h).filter(|&i| truth.as_slice()[i] > 127 && m.as_slice()[i] > 127).count()
-        };
+        let found = |params: &AutoMaskParams| found_of(&truth, &auto_mask(&key, &sources, params));
         let board = truth.hole_count();
         let with_edges = found(&AutoMaskParams::default());
         assert!(with_edges as f32 > 0.9 * board as f32, "found {with_edges} of the board's {board} pixels");
