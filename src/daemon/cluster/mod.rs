@@ -28,7 +28,10 @@
 //!   are applied in the order they arrived whatever order the messages are delivered in, a
 //!   duplicate or late message finds nothing to do, and several files that landed together
 //!   make one fill (the batching of `run`). A message for a session leased by another worker
-//!   is NAK'd with a delay.
+//!   is NAK'd with a delay. The listing and the record are read from their stream's leader
+//!   (the buckets answer no direct gets, which a follower that has not caught up may
+//!   answer), and a message whose file the listing as read does not have is put back, never
+//!   acknowledged: ingest lists a file before it sends its message.
 //!
 //!   **Roles.** The message carries the file's role by name (keyframe `key.*`, mask, view:
 //!   [`super::watch::role_of_stem`]); which image *is* the keyframe (the first, the one a mask
@@ -567,8 +570,12 @@ async fn ensure(js: &jetstream::Context, config: &NatsConfig) -> Result<Buckets,
 }
 
 /// A key-value bucket, made if missing. Its stream is made here with the configuration
-/// `async_nats`' `create_key_value` would send: that call first reads the account's
-/// JetStream info, whose reply from a 2.9 server the client cannot parse.
+/// `async_nats`' `create_key_value` would send (that call first reads the account's
+/// JetStream info, whose reply from a 2.9 server the client cannot parse), but for
+/// direct gets: with them any replica answers a read, one that has not caught up too,
+/// and a worker that read a listing from behind would find a new file's entry missing.
+/// Without them the stream's leader answers. A bucket an earlier version made with
+/// direct gets is changed.
 async fn kv_bucket(
     js: &jetstream::Context,
     bucket: &str,
@@ -576,7 +583,13 @@ async fn kv_bucket(
     replicas: usize,
 ) -> Result<kv::Store, String> {
     if let Ok(s) = js.get_key_value(bucket).await {
-        return Ok(s);
+        let mut config = s.stream.cached_info().config.clone();
+        if !config.allow_direct {
+            return Ok(s);
+        }
+        config.allow_direct = false;
+        js.update_stream(&config).await.map_err(|e| e.to_string())?;
+        return js.get_key_value(bucket).await.map_err(|e| e.to_string());
     }
     let config = stream::Config {
         name: format!("KV_{bucket}"),
@@ -588,7 +601,7 @@ async fn kv_bucket(
         max_age,
         allow_rollup: true,
         deny_delete: true,
-        allow_direct: true,
+        allow_direct: false,
         discard: stream::DiscardPolicy::New,
         num_replicas: replicas,
         ..Default::default()

@@ -54,6 +54,8 @@ pub struct Metrics {
     messages: AtomicU64,
     redelivered: AtomicU64,
     lease_busy: AtomicU64,
+    /// Messages put back because the listing read did not have their file yet.
+    behind: AtomicU64,
     takeovers: AtomicU64,
     rebuilds: AtomicU64,
     entries: AtomicU64,
@@ -90,6 +92,12 @@ impl Metrics {
             "messages put back: another worker held the session",
             "counter",
             l(&self.lease_busy),
+        );
+        counter(
+            "listing_behind_total",
+            "messages put back: the session's listing as read did not have their file yet",
+            "counter",
+            l(&self.behind),
         );
         counter(
             "lease_takeovers_total",
@@ -170,6 +178,10 @@ enum StepError {
     Stopping,
     /// Another worker saved the session meanwhile (this one's lease lapsed).
     TakenOver,
+    /// The session's listing, as read, does not have the message's file: a server
+    /// answered from behind (ingest lists a file before it sends its message).
+    /// Acknowledging would lose the file: the message comes again.
+    Behind,
     Failed(OpError),
 }
 
@@ -351,7 +363,7 @@ impl Worker {
         let span = tracing::info_span!("session", session = %watch::shown(&session));
         let outcome = {
             let _enter = span.enter();
-            self.step(&session, &tok).await
+            self.step(&session, &tok, &file.entry).await
         };
         keeper.abort();
         let lost = lease.lost.load(Ordering::Relaxed);
@@ -372,6 +384,12 @@ impl Worker {
                 );
                 self.local.remove(&session);
                 let _ = acker.ack_with(AckKind::Nak(Some(Duration::from_millis(500)))).await;
+            }
+            Err(StepError::Behind) => {
+                self.metrics.behind.fetch_add(1, Ordering::Relaxed);
+                let delay = Duration::from_millis(250 * delivered.clamp(1, 20) as u64);
+                tracing::info!(file = %file.entry.name, delay_ms = delay.as_millis() as u64, "the session's listing as read does not have the file yet: later");
+                let _ = acker.ack_with(AckKind::Nak(Some(delay))).await;
             }
             Err(StepError::Failed(e)) => {
                 self.metrics.failures.fetch_add(1, Ordering::Relaxed);
@@ -402,13 +420,17 @@ impl Worker {
 
     /// Brings the session up to date: applies every listing entry its record has not
     /// applied, fills, publishes, saves; again while entries keep arriving.
-    async fn step(&mut self, session: &str, tok: &str) -> Result<(), StepError> {
+    /// `entry` is the message's file: a listing read without it is behind.
+    async fn step(&mut self, session: &str, tok: &str, entry: &Entry) -> Result<(), StepError> {
         loop {
             if self.ctx.cancel.is_cancelled() {
                 return Err(StepError::Stopping);
             }
             let t = Instant::now();
             let (listing, _) = self.nats.listing(tok).await?;
+            if !listing.entries.contains(entry) {
+                return Err(StepError::Behind);
+            }
             let (record, rev) = self.nats.record(tok).await?;
             self.metrics.stage(0, t);
             let n = listing.entries.len();
