@@ -2,7 +2,8 @@
 //! step fails on a timeout, which is the cluster's failure and not the message's, so the
 //! message comes again and the session gets its result; it is never dead-lettered, even
 //! with `max_deliver = 1`. A file whose content the object store really lost is a lasting
-//! failure: that message is dead-lettered, with the file and the reason.
+//! failure: that message is dead-lettered, with the file and the reason. A worker paused
+//! past its lease (SIGSTOP) loses its step to another and says nothing of it.
 //!
 //! One `nats-server`; the worker reaches it through a relay that holds its bytes back for
 //! 12 s (longer than the client's request timeouts) at its first object read. Needs
@@ -164,4 +165,94 @@ fn a_stalled_link_is_not_poison_and_a_lost_file_is() {
         let (name, log) = (p.name.clone(), p.log());
         assert_eq!(p.terminate(), Some(0), "{name}:\n{log}");
     }
+}
+
+/// A worker paused in the middle of a step (SIGSTOP: a virtual machine suspended, a laptop
+/// lid closed) past its lease and its message's ack wait: another worker does the step and
+/// saves the session. When the first resumes, its step loses the record's compare-and-set
+/// and is dropped; what it said (the views it accepted, a result it numbered) was never
+/// committed and is never published, not even with the next record that worker saves.
+#[test]
+fn a_worker_paused_past_its_lease_says_nothing_of_the_step_it_lost() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let (inbox, out) = (root.join("inbox"), root.join("out"));
+    std::fs::create_dir_all(&inbox).unwrap();
+    let (_nats, urls, _) = single_server(root);
+    let config = root.join("clearview.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[watch]\nquiet_period_ms = 300\n[state]\ndir = {:?}\n\
+             [nats]\nreplicas = 1\nlease_ttl_ms = 1000\nack_wait_ms = 2000\n",
+            root.join("state")
+        ),
+    )
+    .unwrap();
+    let c = config.to_str().unwrap();
+    let collect = Proc::start(
+        "collect",
+        Path::new(bin()),
+        &["collect", "-c", c, "--nats", &urls, "--out", out.to_str().unwrap()],
+        root,
+    );
+    let worker = |id: &str| {
+        let scratch = root.join(format!("scratch-{id}"));
+        Proc::start(
+            id,
+            Path::new(bin()),
+            &["worker", "-c", c, "--nats", &urls, "--id", id, "--scratch", scratch.to_str().unwrap()],
+            root,
+        )
+    };
+    let w1 = worker("w1");
+    let ingest = start_ingest(c, &urls, &inbox, &root.join("ingest"), root);
+    wait_until("every role started", 40, &[&collect, &w1, &ingest], || {
+        [&collect, &w1, &ingest].iter().all(|p| started(p))
+    });
+
+    // Worker 1 is paused as soon as it has accepted a view of site0: the step's fill (a few
+    // hundred milliseconds) is still to come.
+    let views = drop_session(&inbox, "site0", 41);
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !w1.log().lines().any(|l| l.contains("session{session=site0}") && l.contains("view accepted")) {
+        assert!(Instant::now() < deadline, "worker 1 never filled site0:\n{}", w1.log());
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    w1.signal("-STOP");
+    let w2 = worker("w2");
+    let named = |ev: &[Value], s: &str, f: &str| ev.iter().any(|e| e["session"] == s && e["file"] == f);
+    wait_until("site0's result from worker 2", 60, &[&w2, &collect], || {
+        let ev = events(&out);
+        views.iter().all(|v| named(&ev, "site0", v)) && out.join("site0").join("result.json").is_file()
+    });
+    assert_eq!(w2.terminate(), Some(0));
+
+    // Worker 1 resumes, loses site0's record to worker 2's, and saves site1's.
+    w1.signal("-CONT");
+    let dropped = "another worker saved the session meanwhile";
+    wait_until("worker 1's step of site0 dropped", 30, &[&w1], || w1.log().contains(dropped));
+    let views1 = drop_session(&inbox, "site1", 42);
+    wait_until("site1's result from worker 1", 60, &[&w1, &collect], || {
+        let ev = events(&out);
+        views1.iter().all(|v| named(&ev, "site1", v)) && out.join("site1").join("result.json").is_file()
+    });
+    for p in [w1, ingest, collect] {
+        let (name, log) = (p.name.clone(), p.log());
+        assert_eq!(p.terminate(), Some(0), "{name}:\n{log}");
+    }
+
+    // site0 is told once: each view accepted once, each result number once, and the last
+    // result said is the one collected.
+    let ev: Vec<Value> = events(&out).into_iter().filter(|e| e["session"] == "site0").collect();
+    for v in &views {
+        let accepted = ev.iter().filter(|e| e["event"] == "view_accepted" && e["file"] == v.as_str()).count();
+        assert_eq!(accepted, 1, "{v} accepted {accepted} times: {ev:#?}");
+    }
+    let numbers: Vec<u64> =
+        ev.iter().filter(|e| e["event"] == "result_updated").map(|e| e["number"].as_u64().unwrap()).collect();
+    let on_disk: Value =
+        serde_json::from_slice(&std::fs::read(out.join("site0").join("result.json")).unwrap()).unwrap();
+    assert_eq!(numbers.last().copied(), on_disk["number"].as_u64(), "results said: {numbers:?}");
+    assert!(numbers.windows(2).all(|w| w[0] < w[1]), "a result number said twice: {numbers:?}");
 }

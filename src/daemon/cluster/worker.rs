@@ -368,6 +368,11 @@ impl Worker {
         keeper.abort();
         let lost = lease.lost.load(Ordering::Relaxed);
         lease.release(&self.nats).await;
+        if outcome.is_err() {
+            // What a step that saved no record said is not said (its views accepted, its
+            // result numbered): none of it was committed, and the step is done again.
+            self.said.lock().expect("events lock").clear();
+        }
         match outcome {
             Ok(()) => {
                 if let Err(e) = acker.ack().await {
@@ -394,7 +399,6 @@ impl Worker {
             Err(StepError::Failed(e)) => {
                 self.metrics.failures.fetch_add(1, Ordering::Relaxed);
                 self.local.remove(&session);
-                self.said.lock().expect("events lock").clear();
                 if e.lasting && delivered >= limit {
                     let name = file.entry.name.as_str();
                     self.send_dead(
