@@ -196,9 +196,11 @@ async fn ingest(nats: &Nats, config: &Config, job: Job, cancel: &CancellationTok
         }
     };
     let tok = super::token(&session);
-    let added = retry(cancel, u32::MAX, || append(nats, &tok, &entry)).await?;
-    // A file's id is its content, session, name and time: the same file ingested again
-    // (a restart, a second ingest) is dropped by the stream. A deletion's is its moment.
+    let (place, added) = retry(cancel, u32::MAX, || append(nats, &tok, &entry)).await?;
+    // A file's id is its place in the listing, its content, session, name and time: the
+    // same file ingested again (a restart, a second ingest) is dropped by the stream, and a
+    // file put back after another of its name (a mask restored from a copy that keeps its
+    // time) is a new entry and a new message. A deletion's id is its moment.
     let when = match &entry.digest {
         Some(d) => format!("{d}:{}", entry.mtime_ns),
         None => format!(
@@ -206,7 +208,7 @@ async fn ingest(nats: &Nats, config: &Config, job: Job, cancel: &CancellationTok
             SystemTime::now().duration_since(SystemTime::UNIX_EPOCH).map_or(0, |d| d.as_nanos())
         ),
     };
-    let id = format!("{when}:{tok}:{}", super::sha256_hex(entry.name.as_bytes()));
+    let id = format!("{place}:{when}:{tok}:{}", super::sha256_hex(entry.name.as_bytes()));
     let msg =
         serde_json::to_vec(&FileMsg { session: session.clone(), entry: entry.clone() }).ctx("message")?;
     retry(cancel, u32::MAX, || nats.publish(format!("{IN_PREFIX}.{tok}"), Some(&id), msg.clone())).await?;
@@ -221,18 +223,22 @@ async fn ingest(nats: &Nats, config: &Config, job: Job, cancel: &CancellationTok
 }
 
 /// Appends `entry` to the session's listing (compare-and-set), unless the listing's last
-/// entry for that name is the same; returns whether it was appended.
-async fn append(nats: &Nats, tok: &str, entry: &Entry) -> Result<bool, OpError> {
+/// entry for that name is the same; returns the entry's place in the listing and whether
+/// it was appended.
+async fn append(nats: &Nats, tok: &str, entry: &Entry) -> Result<(usize, bool), OpError> {
     let key = format!("files.{tok}");
     loop {
         let (mut listing, rev) = nats.listing(tok).await?;
-        if listing.entries.iter().rev().find(|e| e.name == entry.name) == Some(entry) {
-            return Ok(false);
+        if let Some(i) = listing.entries.iter().rposition(|e| e.name == entry.name)
+            && listing.entries[i] == *entry
+        {
+            return Ok((i, false));
         }
         listing.entries.push(entry.clone());
+        let place = listing.entries.len() - 1;
         let bytes = serde_json::to_vec(&listing).ctx("listing")?;
         if Nats::kv_swap(&nats.sessions, &key, bytes, rev).await?.is_some() {
-            return Ok(true);
+            return Ok((place, true));
         }
         // Another ingest appended meanwhile: read again.
     }
