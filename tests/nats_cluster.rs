@@ -384,3 +384,116 @@ fn the_session_buckets_are_read_from_their_leader_even_when_an_earlier_version_m
     }
     assert_eq!(worker.terminate(), Some(0));
 }
+
+/// A mask swapped for another and put back (restored from a copy that keeps the file's
+/// time): the session's inputs are again those of an earlier result, under a later number.
+/// That result is its own: collected, its history file with it. (The result's objects were
+/// kept under its inputs alone: the later one found the earlier one's, uploaded nothing,
+/// and named a history file the store never had; collect tried it for ever.)
+#[test]
+fn a_mask_put_back_makes_a_result_of_its_own() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let (inbox, out) = (root.join("inbox"), root.join("out"));
+    std::fs::create_dir_all(&inbox).unwrap();
+    let (_server, url, _) = single_server(root);
+    let config = root.join("clearview.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[watch]\nquiet_period_ms = 300\n[state]\ndir = {:?}\n[nats]\nreplicas = 1\n",
+            root.join("state")
+        ),
+    )
+    .unwrap();
+    let c = config.to_str().unwrap();
+    let collect = Proc::start(
+        "collect",
+        Path::new(bin()),
+        &["collect", "-c", c, "--nats", &url, "--out", out.to_str().unwrap()],
+        root,
+    );
+    let scratch = root.join("scratch");
+    let worker = Proc::start(
+        "w1",
+        Path::new(bin()),
+        &["worker", "-c", c, "--nats", &url, "--scratch", scratch.to_str().unwrap()],
+        root,
+    );
+    let ingest = start_ingest(c, &url, &inbox, &root.join("ingest"), root);
+    let all = [&collect, &worker, &ingest];
+    let deadline = Instant::now() + Duration::from_secs(40);
+    for p in all {
+        while !p.log().contains(" started") {
+            assert!(Instant::now() < deadline, "{} did not start:\n{}", p.name, p.log());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+    let collected = || -> Option<Value> {
+        serde_json::from_slice(&std::fs::read(out.join("site0").join("result.json")).ok()?).ok()
+    };
+    let wait_for = |what: &str, done: &dyn Fn(&Value) -> bool| -> u64 {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        loop {
+            if let Some(r) = collected().filter(|r| done(r)) {
+                return r["number"].as_u64().unwrap();
+            }
+            assert!(
+                Instant::now() < deadline,
+                "{what} within 60 s:\nworker:\n{}\ncollect:\n{}\ningest:\n{}",
+                worker.log(),
+                collect.log(),
+                ingest.log()
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    };
+    let d = drop_session(&inbox, "site0", 801);
+    let first = wait_for("a result with every view", &|r| {
+        r["views"].as_array().is_some_and(|a| a.len() == d.views.len())
+    });
+    let mask_path = inbox.join("site0").join("key.mask.png");
+    let (mask_a, time_a) =
+        (std::fs::read(&mask_path).unwrap(), std::fs::metadata(&mask_path).unwrap().modified().unwrap());
+    let mut other = d.scene.mask.clone();
+    for y in 20..60 {
+        for x in 20..80 {
+            other.set(x, y, 255);
+        }
+    }
+    put(&mask_path, &mask_png(&other));
+    let second = wait_for("a result with the other mask", &|r| r["number"].as_u64() > Some(first));
+    // The first mask back, with its time.
+    let hidden = mask_path.with_file_name(".key.mask.png.upload");
+    std::fs::write(&hidden, &mask_a).unwrap();
+    std::fs::File::options().write(true).open(&hidden).unwrap().set_modified(time_a).unwrap();
+    std::fs::rename(&hidden, &mask_path).unwrap();
+    let masked = |n: u64| {
+        let r: Value =
+            serde_json::from_slice(&std::fs::read(out.join("site0").join("result.json")).unwrap()).unwrap();
+        assert_eq!(r["number"].as_u64(), Some(n));
+        r["masked"].as_u64().unwrap()
+    };
+    assert!(masked(second) > d.scene.mask.as_slice().iter().filter(|&&v| v > 127).count() as u64);
+    let third = wait_for("a result with the first mask again", &|r| r["number"].as_u64() > Some(second));
+    assert_eq!(
+        masked(third),
+        d.scene.mask.as_slice().iter().filter(|&&v| v > 127).count() as u64,
+        "the first mask's"
+    );
+    let history = out.join("site0").join("history");
+    for n in [first, second, third] {
+        assert!(
+            std::fs::read_dir(&history).unwrap().any(|e| e
+                .unwrap()
+                .file_name()
+                .to_string_lossy()
+                .contains(&format!("{n:04}"))),
+            "no history file of result {n}"
+        );
+    }
+    for p in [ingest, worker, collect] {
+        let (name, log) = (p.name.clone(), p.log());
+        assert_eq!(p.terminate(), Some(0), "{name}:\n{log}");
+    }
+}

@@ -250,12 +250,10 @@ impl Collector {
                 tracing::error!(file = %rel, "a result file outside the session's folder: skipped");
                 continue;
             }
-            let name = super::result_object(&tok, &r.result.inputs, rel);
-            let bytes = self
-                .nats
-                .get_object(&name)
-                .await?
-                .ok_or_else(|| OpError::lasting(format!("{name} is not in the object store")))?;
+            let bytes = self.nats.result_file(&tok, &r.result, rel).await?.ok_or_else(|| {
+                let name = super::result_object(&tok, &r.result.inputs, r.result.number, rel);
+                OpError::lasting(format!("{name} is not in the object store"))
+            })?;
             if rel == "result.json" {
                 // A map an earlier result left, which this one has not: it goes before the
                 // result.json that does not name it.

@@ -8,7 +8,7 @@
 //!                                              │ durable pull consumer, explicit ack
 //!                                              ▼
 //!                   KV leases lease.<session> ◄─ worker × N ─► KV sessions  state.<session>
-//!                                                   │          object store result/<session>/<inputs>/…
+//!                                                   │          object store result/<session>/<inputs>/<n>/…
 //!                                                   ▼
 //!                     stream OUT  clearview.out|events|dead.<session> ─► collect ─► out folder
 //! ```
@@ -18,9 +18,10 @@
 //!   to the object store under its SHA-256 (`file/<hex>`), is appended to its session's
 //!   **listing** in the key-value bucket (`files.<session>`, compare-and-set, in arrival
 //!   order; a deletion is an entry too), and a message ([`FileMsg`]) goes to
-//!   `clearview.in.<session>` with `Nats-Msg-Id` = digest + session + name, so a restarted
-//!   or doubled ingest adds nothing twice (the stream's duplicate window; after it, the
-//!   listing already has the entry and the worker finds nothing new).
+//!   `clearview.in.<session>` with `Nats-Msg-Id` = the entry's place in the listing +
+//!   digest + time + session + name, so a restarted or doubled ingest adds nothing twice (the
+//!   stream's duplicate window; after it, the listing already has the entry and the worker
+//!   finds nothing new), and a file put back after another of its name is a new message.
 //! - [`worker`]: pulls one message at a time. The message only says "session S has a new
 //!   file": the worker takes S's **lease** (key-value create, renewed by revision
 //!   compare-and-set, lapsing after the bucket's max age), then applies every listing entry
@@ -58,10 +59,12 @@
 //!   modification time ingest saw, so view ids — and the alignments keyed by them — are the
 //!   same on every worker.
 //!
-//!   **Results** are keyed by the digest of their inputs (the session's inputs digest):
-//!   `result/<session>/<inputs>/{result.<ext>, result.json, history/…, confidence.png,
-//!   surfaces.png, provenance.png, mask.png}` (not uploaded again when there), and a [`ResultMsg`] on
-//!   `clearview.out.<session>` with `Nats-Msg-Id` = session + inputs.
+//!   **Results** are keyed by the digest of their inputs (the session's inputs digest) and
+//!   their number: `result/<session>/<inputs>/<number>/{result.<ext>, result.json, history/…,
+//!   confidence.png, surfaces.png, provenance.png, mask.png}` (not uploaded again when there),
+//!   and a [`ResultMsg`] on `clearview.out.<session>` with `Nats-Msg-Id` = session + inputs +
+//!   number. A step done again after a worker died has the same of both; the same inputs
+//!   can come back later under a new number (a mask put back), and that is a new result.
 //!
 //!   **Events** are the service's own ([`super::event::Event`]) on
 //!   `clearview.events.<session>`, with ids session + record revision + place: exactly
@@ -200,9 +203,15 @@ pub fn file_object(digest: &str) -> String {
     format!("file/{digest}")
 }
 
-/// The object of one file of a result (`rel`: `result.png`, `history/result-0003.png`…).
-pub fn result_object(session_token: &str, inputs: &str, rel: &str) -> String {
-    format!("result/{session_token}/{inputs}/{rel}")
+/// The object of one file of a result (`rel`: `result.png`, `history/result-0003.png`…),
+/// under the digest of the result's inputs and its number. A step done again after a worker
+/// died has both the same and uploads nothing. The same inputs can come back under a later
+/// number (a view taken out of the folder and put back, its time kept), and that is another
+/// result: its own `result.json`, its own history file. Under the inputs alone, the later
+/// result found the earlier one's objects, uploaded nothing, and named a history file the
+/// store never had.
+pub fn result_object(session_token: &str, inputs: &str, number: u64, rel: &str) -> String {
+    format!("result/{session_token}/{inputs}/{number}/{rel}")
 }
 
 /// A file's role by its name, as messages carry it.
@@ -428,6 +437,15 @@ impl Nats {
             return Err(OpError::passing(format!("read {name}: {} bytes of {}", bytes.len(), info.size)));
         }
         Ok(Some(bytes))
+    }
+
+    /// The file `rel` of result `r` of the session `tok`; where an earlier version kept it
+    /// (under the inputs alone) when it is not under the result's number.
+    pub async fn result_file(&self, tok: &str, r: &ResultRef, rel: &str) -> Result<Option<Vec<u8>>, OpError> {
+        match self.get_object(&result_object(tok, &r.inputs, r.number, rel)).await? {
+            Some(bytes) => Ok(Some(bytes)),
+            None => self.get_object(&format!("result/{tok}/{}/{rel}", r.inputs)).await,
+        }
     }
 
     /// Publishes `payload` to `subject` (with a message id for the stream's duplicate

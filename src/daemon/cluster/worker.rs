@@ -527,8 +527,8 @@ impl Worker {
     }
 
     /// Publishes what record `rev` says: its result's message, the session's snapshot and
-    /// its step's events, each with a message id of its own (result: session and inputs;
-    /// snapshot: session and record revision; event: session, record revision and place),
+    /// its step's events, each with a message id of its own (result: session, inputs and
+    /// number; snapshot: session and record revision; event: session, record revision and place),
     /// so that publishing a record twice adds nothing. The snapshot follows the result it
     /// names, so a collector has the result's files before it shows them.
     async fn flush(&self, tok: &str, record: &Record, rev: u64) -> Result<(), OpError> {
@@ -536,7 +536,11 @@ impl Worker {
             let session = super::untoken(tok);
             let msg = serde_json::to_vec(&ResultMsg { session, result: r.clone() }).ctx("result")?;
             self.nats
-                .publish(format!("{OUT_PREFIX}.{tok}"), Some(&format!("result:{tok}:{}", r.inputs)), msg)
+                .publish(
+                    format!("{OUT_PREFIX}.{tok}"),
+                    Some(&format!("result:{tok}:{}:{}", r.inputs, r.number)),
+                    msg,
+                )
                 .await?;
         }
         if let Some(shown) = &record.session {
@@ -585,8 +589,7 @@ impl Worker {
             // then "unchanged", not a new result.
             std::fs::create_dir_all(&out).ctx("scratch")?;
             for rel in r.files.iter().filter(|f| !f.contains('/')) {
-                let name = super::result_object(&super::token(session), &r.inputs, rel);
-                if let Some(bytes) = self.nats.get_object(&name).await? {
+                if let Some(bytes) = self.nats.result_file(&super::token(session), r, rel).await? {
                     crate::fsio::atomic_write(&out.join(rel), &bytes).ctx("scratch result")?;
                 }
             }
@@ -651,7 +654,7 @@ impl Worker {
                 files.push(rel.to_owned());
             }
         }
-        let marker = super::result_object(tok, &inputs, "result.json");
+        let marker = super::result_object(tok, &inputs, number, "result.json");
         if self.nats.has_object(&marker).await? {
             self.metrics.replays.fetch_add(1, Ordering::Relaxed);
             tracing::info!(number, %inputs, "result of these inputs already uploaded: nothing uploaded");
@@ -659,7 +662,7 @@ impl Worker {
             // result.json last: its presence says the others are there.
             for rel in &files {
                 let bytes = std::fs::read(out.join(rel)).ctx(rel)?;
-                self.nats.put_object(&super::result_object(tok, &inputs, rel), &bytes).await?;
+                self.nats.put_object(&super::result_object(tok, &inputs, number, rel), &bytes).await?;
             }
         }
         self.metrics.results.fetch_add(1, Ordering::Relaxed);
