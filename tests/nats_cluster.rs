@@ -17,7 +17,10 @@ use std::time::{Duration, Instant};
 
 use clearview::imaging::convert::to_rgb;
 use clearview::imaging::metrics::masked_psnr;
-use daemon_common::nats::{Proc, events, free_ports, nats_server, single_server, start_ingest, wait_port};
+use daemon_common::nats::{
+    Proc, events, free_ports, nats_server, single_server, start_collect, start_ingest, start_worker,
+    wait_port, wait_started, write_config,
+};
 use daemon_common::{Scene, bin, mask_png, png, put};
 use serde_json::Value;
 
@@ -87,45 +90,16 @@ fn a_three_server_cluster_survives_a_dead_worker_and_a_dead_server() {
     }
     let urls: Vec<String> = client.iter().map(|p| format!("nats://127.0.0.1:{p}")).collect();
     let urls = urls.join(",");
-    let config = root.join("clearview.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[watch]\nquiet_period_ms = 300\n[output]\nhistory = 10\n[state]\ndir = {:?}\n\
-             [nats]\nreplicas = 3\nlease_ttl_ms = 3000\nack_wait_ms = 4000\nmax_deliver = 5\n",
-            root.join("state")
-        ),
-    )
-    .unwrap();
-    let c = config.to_str().unwrap();
-    let started = Instant::now();
-    let mut collect = Proc::start(
-        "collect",
-        Path::new(bin()),
-        &["collect", "-c", c, "--nats", &urls, "--out", out.to_str().unwrap()],
+    let c = &write_config(
         root,
+        "[output]\nhistory = 10\n[nats]\nreplicas = 3\nlease_ttl_ms = 3000\nack_wait_ms = 4000\nmax_deliver = 5\n",
     );
-    let worker = |id: &str| {
-        let scratch = root.join(format!("scratch-{id}"));
-        Proc::start(
-            id,
-            Path::new(bin()),
-            &["worker", "-c", c, "--nats", &urls, "--id", id, "--scratch", scratch.to_str().unwrap()],
-            root,
-        )
-    };
-    let w1 = worker("w1");
-    let mut w2 = worker("w2");
+    let started = Instant::now();
+    let mut collect = start_collect(c, &urls, &out, root);
+    let w1 = start_worker(c, &urls, "w1", root);
+    let mut w2 = start_worker(c, &urls, "w2", root);
     let mut ingest = start_ingest(c, &urls, &inbox, &root.join("ingest"), root);
-    let all = [&collect, &w1, &w2, &ingest];
-    // Every role up (streams and buckets made, consumers ready).
-    let deadline = Instant::now() + Duration::from_secs(40);
-    for p in all {
-        while !p.log().contains(" started") {
-            assert!(Instant::now() < deadline, "{} did not start:\n{}", p.name, p.log());
-            std::thread::sleep(Duration::from_millis(100));
-        }
-    }
+    wait_started(&[&collect, &w1, &w2, &ingest], 40);
 
     // Half the sessions; once results flow, the other half, and while those are being
     // handled a worker and a server die.
@@ -365,20 +339,9 @@ fn the_session_buckets_are_read_from_their_leader_even_when_an_earlier_version_m
         .unwrap();
     });
     assert!(direct("clearview-sessions"));
-    let config = root.join("clearview.toml");
-    std::fs::write(&config, format!("[state]\ndir = {:?}\n", root.join("state"))).unwrap();
-    let scratch = root.join("scratch");
-    let worker = Proc::start(
-        "worker",
-        Path::new(bin()),
-        &["worker", "-c", config.to_str().unwrap(), "--nats", &url, "--scratch", scratch.to_str().unwrap()],
-        root,
-    );
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while !worker.log().contains(" started") {
-        assert!(Instant::now() < deadline, "the worker did not start:\n{}", worker.log());
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    let c = &write_config(root, "");
+    let worker = start_worker(c, &url, "w1", root);
+    wait_started(&[&worker], 30);
     for bucket in ["clearview-sessions", "clearview-leases"] {
         assert!(!direct(bucket), "{bucket} still answers direct gets from any replica");
     }
@@ -397,38 +360,11 @@ fn a_mask_put_back_makes_a_result_of_its_own() {
     let (inbox, out) = (root.join("inbox"), root.join("out"));
     std::fs::create_dir_all(&inbox).unwrap();
     let (_server, url, _) = single_server(root);
-    let config = root.join("clearview.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[watch]\nquiet_period_ms = 300\n[state]\ndir = {:?}\n[nats]\nreplicas = 1\n",
-            root.join("state")
-        ),
-    )
-    .unwrap();
-    let c = config.to_str().unwrap();
-    let collect = Proc::start(
-        "collect",
-        Path::new(bin()),
-        &["collect", "-c", c, "--nats", &url, "--out", out.to_str().unwrap()],
-        root,
-    );
-    let scratch = root.join("scratch");
-    let worker = Proc::start(
-        "w1",
-        Path::new(bin()),
-        &["worker", "-c", c, "--nats", &url, "--scratch", scratch.to_str().unwrap()],
-        root,
-    );
+    let c = &write_config(root, "[nats]\nreplicas = 1\n");
+    let collect = start_collect(c, &url, &out, root);
+    let worker = start_worker(c, &url, "w1", root);
     let ingest = start_ingest(c, &url, &inbox, &root.join("ingest"), root);
-    let all = [&collect, &worker, &ingest];
-    let deadline = Instant::now() + Duration::from_secs(40);
-    for p in all {
-        while !p.log().contains(" started") {
-            assert!(Instant::now() < deadline, "{} did not start:\n{}", p.name, p.log());
-            std::thread::sleep(Duration::from_millis(100));
-        }
-    }
+    wait_started(&[&collect, &worker, &ingest], 40);
     let collected = || -> Option<Value> {
         serde_json::from_slice(&std::fs::read(out.join("site0").join("result.json")).ok()?).ok()
     };

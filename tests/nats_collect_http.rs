@@ -13,7 +13,7 @@ mod daemon_common;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use daemon_common::nats::{Proc, events, single_server, start_ingest};
+use daemon_common::nats::{Proc, events, single_server, start_ingest, start_worker, write_config};
 use daemon_common::{Reply, Scene, Service, bin, folders, get, mask_png, png, put, raw_status, request};
 use serde_json::Value;
 
@@ -52,24 +52,9 @@ fn collect_serves_the_preview_page_of_what_it_collected() {
     let (inbox, out) = (root.join("inbox"), root.join("out"));
     std::fs::create_dir_all(&inbox).unwrap();
     let (_nats, urls, _) = single_server(root);
-    let config = root.join("clearview.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[watch]\nquiet_period_ms = 300\n[output]\nhistory = 10\n[state]\ndir = {:?}\n[nats]\nreplicas = 1\n",
-            root.join("state")
-        ),
-    )
-    .unwrap();
-    let c = config.to_str().unwrap();
+    let c = &write_config(root, "[output]\nhistory = 10\n[nats]\nreplicas = 1\n");
     let mut collector = collect(root, c, &urls, &out);
-    let scratch = root.join("scratch");
-    let worker = Proc::start(
-        "worker",
-        Path::new(bin()),
-        &["worker", "-c", c, "--nats", &urls, "--id", "w1", "--scratch", scratch.to_str().unwrap()],
-        root,
-    );
+    let worker = start_worker(c, &urls, "w1", root);
     let ingest_state = root.join("ingest");
     let ingest = start_ingest(c, &urls, &inbox, &ingest_state, root);
     let deadline = Instant::now() + Duration::from_secs(30);

@@ -15,7 +15,9 @@ use std::path::Path;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
-use daemon_common::nats::{Proc, Stall, events, single_server, start_ingest};
+use daemon_common::nats::{
+    Proc, Stall, events, single_server, start_collect, start_ingest, start_worker, wait_started, write_config,
+};
 use daemon_common::{Scene, bin, mask_png, png, put};
 use serde_json::Value;
 
@@ -45,10 +47,6 @@ fn wait_until(what: &str, secs: u64, logs: &[&Proc], mut done: impl FnMut() -> b
     }
 }
 
-fn started(p: &Proc) -> bool {
-    p.log().contains(" started")
-}
-
 #[test]
 fn a_stalled_link_is_not_poison_and_a_lost_file_is() {
     let tmp = tempfile::tempdir().unwrap();
@@ -58,23 +56,11 @@ fn a_stalled_link_is_not_poison_and_a_lost_file_is() {
     let (_nats, urls, port) = single_server(root);
     // The worker's object reads are direct gets of the object store's meta subjects.
     let stall = Stall::start(port, b"$O.clearview-files.M.", Duration::from_secs(12));
-    let config = root.join("clearview.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[watch]\nquiet_period_ms = 300\n[state]\ndir = {:?}\n\
-             [nats]\nreplicas = 1\nlease_ttl_ms = 3000\nack_wait_ms = 4000\nmax_deliver = 1\n",
-            root.join("state")
-        ),
-    )
-    .unwrap();
-    let c = config.to_str().unwrap();
-    let collect = Proc::start(
-        "collect",
-        Path::new(bin()),
-        &["collect", "-c", c, "--nats", &urls, "--out", out.to_str().unwrap()],
+    let c = &write_config(
         root,
+        "[nats]\nreplicas = 1\nlease_ttl_ms = 3000\nack_wait_ms = 4000\nmax_deliver = 1\n",
     );
+    let collect = start_collect(c, &urls, &out, root);
     let worker = |relay: u16| {
         let scratch = root.join("scratch");
         let via = format!("nats://127.0.0.1:{relay}");
@@ -87,9 +73,7 @@ fn a_stalled_link_is_not_poison_and_a_lost_file_is() {
     };
     let w = worker(stall.port);
     let ingest = start_ingest(c, &urls, &inbox, &root.join("ingest"), root);
-    wait_until("every role started", 40, &[&collect, &w, &ingest], || {
-        [&collect, &w, &ingest].iter().all(|p| started(p))
-    });
+    wait_started(&[&collect, &w, &ingest], 40);
     stall.arm();
 
     // 1. The link stalls at the worker's first object read: a timeout, then the message
@@ -179,37 +163,11 @@ fn a_worker_paused_past_its_lease_says_nothing_of_the_step_it_lost() {
     let (inbox, out) = (root.join("inbox"), root.join("out"));
     std::fs::create_dir_all(&inbox).unwrap();
     let (_nats, urls, _) = single_server(root);
-    let config = root.join("clearview.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[watch]\nquiet_period_ms = 300\n[state]\ndir = {:?}\n\
-             [nats]\nreplicas = 1\nlease_ttl_ms = 1000\nack_wait_ms = 2000\n",
-            root.join("state")
-        ),
-    )
-    .unwrap();
-    let c = config.to_str().unwrap();
-    let collect = Proc::start(
-        "collect",
-        Path::new(bin()),
-        &["collect", "-c", c, "--nats", &urls, "--out", out.to_str().unwrap()],
-        root,
-    );
-    let worker = |id: &str| {
-        let scratch = root.join(format!("scratch-{id}"));
-        Proc::start(
-            id,
-            Path::new(bin()),
-            &["worker", "-c", c, "--nats", &urls, "--id", id, "--scratch", scratch.to_str().unwrap()],
-            root,
-        )
-    };
-    let w1 = worker("w1");
+    let c = &write_config(root, "[nats]\nreplicas = 1\nlease_ttl_ms = 1000\nack_wait_ms = 2000\n");
+    let collect = start_collect(c, &urls, &out, root);
+    let w1 = start_worker(c, &urls, "w1", root);
     let ingest = start_ingest(c, &urls, &inbox, &root.join("ingest"), root);
-    wait_until("every role started", 40, &[&collect, &w1, &ingest], || {
-        [&collect, &w1, &ingest].iter().all(|p| started(p))
-    });
+    wait_started(&[&collect, &w1, &ingest], 40);
 
     // Worker 1 is paused as soon as it has accepted a view of site0: the step's fill (a few
     // hundred milliseconds) is still to come.
@@ -220,7 +178,7 @@ fn a_worker_paused_past_its_lease_says_nothing_of_the_step_it_lost() {
         std::thread::sleep(Duration::from_millis(2));
     }
     w1.signal("-STOP");
-    let w2 = worker("w2");
+    let w2 = start_worker(c, &urls, "w2", root);
     let named = |ev: &[Value], s: &str, f: &str| ev.iter().any(|e| e["session"] == s && e["file"] == f);
     wait_until("site0's result from worker 2", 60, &[&w2, &collect], || {
         let ev = events(&out);

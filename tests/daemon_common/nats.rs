@@ -123,6 +123,40 @@ pub fn single_server(dir: &Path) -> (Proc, String, u16) {
     (server, format!("nats://127.0.0.1:{port}"), port)
 }
 
+/// `DIR/clearview.toml` for the roles: a 300 ms quiet period, the state in `DIR/state`,
+/// then `more` (the `[nats]` table and any other); its path as a string.
+pub fn write_config(dir: &Path, more: &str) -> String {
+    let path = dir.join("clearview.toml");
+    let state = dir.join("state");
+    std::fs::write(&path, format!("[watch]\nquiet_period_ms = 300\n[state]\ndir = {state:?}\n{more}"))
+        .unwrap();
+    path.to_str().unwrap().to_owned()
+}
+
+/// `clearview collect` with config `config` into `out`, its logs in `dir`.
+pub fn start_collect(config: &str, urls: &str, out: &Path, dir: &Path) -> Proc {
+    let args = ["collect", "-c", config, "--nats", urls, "--out", out.to_str().unwrap()];
+    Proc::start("collect", Path::new(super::bin()), &args, dir)
+}
+
+/// `clearview worker` `id` with config `config`, its scratch folder and logs in `dir`.
+pub fn start_worker(config: &str, urls: &str, id: &str, dir: &Path) -> Proc {
+    let scratch = dir.join(format!("scratch-{id}"));
+    let args = ["worker", "-c", config, "--nats", urls, "--id", id, "--scratch", scratch.to_str().unwrap()];
+    Proc::start(id, Path::new(super::bin()), &args, dir)
+}
+
+/// Waits until every role has said it started (streams and buckets made, consumers ready).
+pub fn wait_started(roles: &[&Proc], secs: u64) {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    for p in roles {
+        while !p.log().contains(" started") {
+            assert!(Instant::now() < deadline, "{} did not start:\n{}", p.name, p.log());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+}
+
 /// `clearview ingest` with config `config`, watching `inbox`, its state in `state`, its
 /// logs in `dir`.
 pub fn start_ingest(config: &str, urls: &str, inbox: &Path, state: &Path, dir: &Path) -> Proc {
