@@ -206,7 +206,7 @@ pub fn file_object(digest: &str) -> String {
 /// The object of one file of a result (`rel`: `result.png`, `history/result-0003.png`…),
 /// under the digest of the result's inputs and its number. A step done again after a worker
 /// died has both the same and uploads nothing. The same inputs can come back under a later
-/// number (a view taken out of the folder and put back, its time kept), and that is another
+/// number (a mask swapped and put back from a copy that keeps its time), and that is another
 /// result: its own `result.json`, its own history file. Under the inputs alone, the later
 /// result found the earlier one's objects, uploaded nothing, and named a history file the
 /// store never had.
