@@ -19,7 +19,7 @@ use clearview::imaging::convert::to_rgb;
 use clearview::imaging::metrics::masked_psnr;
 use daemon_common::nats::{
     Proc, events, free_ports, nats_server, single_server, start_collect, start_ingest, start_worker,
-    wait_port, wait_started, write_config,
+    wait_port, wait_started, wait_until, write_config,
 };
 use daemon_common::{Scene, bin, mask_png, png, put};
 use serde_json::Value;
@@ -370,20 +370,8 @@ fn a_mask_put_back_makes_a_result_of_its_own() {
         serde_json::from_slice(&std::fs::read(out.join("site0").join("result.json")).ok()?).ok()
     };
     let wait_for = |what: &str, done: &dyn Fn(&Value) -> bool| -> u64 {
-        let deadline = Instant::now() + Duration::from_secs(60);
-        loop {
-            if let Some(r) = collected().filter(|r| done(r)) {
-                return r["number"].as_u64().unwrap();
-            }
-            assert!(
-                Instant::now() < deadline,
-                "{what} within 60 s:\nworker:\n{}\ncollect:\n{}\ningest:\n{}",
-                worker.log(),
-                collect.log(),
-                ingest.log()
-            );
-            std::thread::sleep(Duration::from_millis(100));
-        }
+        wait_until(what, 60, &[&worker, &collect, &ingest], || collected().is_some_and(|r| done(&r)));
+        collected().unwrap()["number"].as_u64().unwrap()
     };
     let d = drop_session(&inbox, "site0", 801);
     let first = wait_for("a result with every view", &|r| {

@@ -16,7 +16,8 @@ use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use daemon_common::nats::{
-    Proc, Stall, events, single_server, start_collect, start_ingest, start_worker, wait_started, write_config,
+    Proc, Stall, events, single_server, start_collect, start_ingest, start_worker, wait_started, wait_until,
+    write_config,
 };
 use daemon_common::{Scene, bin, mask_png, png, put};
 use serde_json::Value;
@@ -36,15 +37,6 @@ fn drop_session(inbox: &Path, name: &str, seed: u64) -> Vec<String> {
             file
         })
         .collect()
-}
-
-fn wait_until(what: &str, secs: u64, logs: &[&Proc], mut done: impl FnMut() -> bool) {
-    let deadline = Instant::now() + Duration::from_secs(secs);
-    while !done() {
-        let said: Vec<String> = logs.iter().map(|p| format!("{}:\n{}", p.name, p.log())).collect();
-        assert!(Instant::now() < deadline, "{what} within {secs} s\n{}", said.join("\n"));
-        std::thread::sleep(Duration::from_millis(100));
-    }
 }
 
 #[test]

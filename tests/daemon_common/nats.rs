@@ -146,6 +146,18 @@ pub fn start_worker(config: &str, urls: &str, id: &str, dir: &Path) -> Proc {
     Proc::start(id, Path::new(super::bin()), &args, dir)
 }
 
+/// Waits up to `secs` for `done`; fails with `what` and the logs of `logs`.
+pub fn wait_until(what: &str, secs: u64, logs: &[&Proc], mut done: impl FnMut() -> bool) {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    while !done() {
+        if Instant::now() >= deadline {
+            let said: Vec<String> = logs.iter().map(|p| format!("{}:\n{}", p.name, p.log())).collect();
+            panic!("{what} within {secs} s\n{}", said.join("\n"));
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
 /// Waits until every role has said it started (streams and buckets made, consumers ready).
 pub fn wait_started(roles: &[&Proc], secs: u64) {
     let deadline = Instant::now() + Duration::from_secs(secs);
