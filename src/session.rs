@@ -56,7 +56,7 @@ use thiserror::Error;
 use crate::align::{AlignParams, Alignment, Frame, align};
 use crate::geometry::Homography;
 use crate::geometry::homography::similarity_lsq;
-use crate::imaging::convert::{MASK_MAX_GREY, luminance, mask_grey_share};
+use crate::imaging::convert::{MASK_MAX_GREY, luma, luminance, mask_grey_share, monochrome};
 use crate::imaging::{GrayF32, Mask, Plane, Rect, RgbF32, RgbPixel};
 use crate::inpaint::parallax::{SurfacePlane, SweepParams, ViewMatches};
 use crate::inpaint::region::{footprint, into_crop};
@@ -76,10 +76,12 @@ pub const SAME_AS_KEY: f64 = 0.02;
 
 /// Whether a view's `pixels`, mapped by keyframe → view `h`, show the keyframe's own
 /// pixels over the mask ([`SAME_AS_KEY`]): the keyframe's file again, or a shot from the
-/// same spot with the occluder where it was. `false` when the view sees less than half of
-/// the mask.
+/// same spot with the occluder where it was. When either is black and white
+/// ([`monochrome`]) their luma is compared: a black-and-white export of the keyframe is the
+/// keyframe. `false` when the view sees less than half of the mask.
 pub fn shows_the_keyframe(key: &RgbF32, mask: &Mask, h: &Homography, pixels: &Rgb8) -> bool {
     let Some(region) = mask.hole_bounds() else { return false };
+    let grey = monochrome(pixels) || monochrome(key);
     let step = if mask.hole_count() > 250_000 { 2 } else { 1 };
     let (w, h_px) = (pixels.width() as f64, pixels.height() as f64);
     let (mut sum, mut seen, mut holes) = (0.0f64, 0usize, 0usize);
@@ -94,12 +96,27 @@ pub fn shows_the_keyframe(key: &RgbF32, mask: &Mask, h: &Homography, pixels: &Rg
             if vx < 0.0 || vy < 0.0 || vx >= w || vy >= h_px {
                 continue;
             }
-            let (v, k) = (pixels.get(vx as usize, vy as usize), key.get(x, y));
-            sum += (0..3).map(|c| f64::from((f32::from(v[c]) / 255.0 - k[c]).abs())).sum::<f64>() / 3.0;
+            let (v, k) = (pixels.get(vx as usize, vy as usize).to_f32(), key.get(x, y));
+            sum += if grey {
+                f64::from((luma(v) - luma(k)).abs())
+            } else {
+                (0..3).map(|c| f64::from((v[c] - k[c]).abs())).sum::<f64>() / 3.0
+            };
             seen += 1;
         }
     }
     seen > 0 && seen * 2 >= holes && sum / (seen as f64) < SAME_AS_KEY
+}
+
+/// Why a black-and-white view of a colour keyframe is not used ([`without_colour`]).
+pub const NO_COLOUR: &str = "a black-and-white picture of a colour keyframe: it has no colour to give (what it filled would come out grey or tinted)";
+
+/// Whether a view has no colour to give the keyframe: it is black and white
+/// ([`monochrome`]) and the keyframe is not. What it would fill takes its colour from the
+/// ring's gain alone, one tint over the whole hole (a dark doorway came out green), and it
+/// cannot witness a colour at all. A black-and-white keyframe takes any view.
+pub fn without_colour(key: &RgbF32, view: &Rgb8) -> bool {
+    monochrome(view) && !monochrome(key)
 }
 
 /// Two views from one viewpoint ([`SAME_SHOT_VIEWPOINT_PX`]) with less than this share of
@@ -127,8 +144,11 @@ pub const SAME_SHOT_VIEWPOINT_SHARE: f64 = 0.005;
 /// ([`SAME_SHOT_GROSS_SHARE`]) and the same exposure ([`SAME_SHOT_BIAS`]). Two shots from a
 /// tripod between which a passer-by moved differ grossly where the passer-by was, and both
 /// are kept. As a second witness, a copy would only add weight to its original's own errors.
+/// When either is black and white ([`monochrome`]) their luma is compared: a
+/// black-and-white export of a shot is that shot.
 pub fn the_same_shot(mask: &Mask, a: (&Homography, &Rgb8), b: (&Homography, &Rgb8)) -> bool {
     let Some(region) = mask.hole_bounds() else { return false };
+    let grey = monochrome(a.1) || monochrome(b.1);
     // `b`'s pixels per pixel of `a`.
     let Some(ratio) = one_viewpoint(region, a.0, b.0) else { return false };
     // About 200 000 pixels at most, spread evenly: a pair costs a few milliseconds.
@@ -147,7 +167,8 @@ pub fn the_same_shot(mask: &Mask, a: (&Homography, &Rgb8), b: (&Homography, &Rgb
                 (0..3).for_each(|ch| sum[ch] += c[ch]);
             }
         }
-        Some(sum.map(|v| v / (k * k) as f32))
+        let mean = sum.map(|v| v / (k * k) as f32);
+        Some(if grey { [luma(mean); 3] } else { mean })
     };
     let (mut gross, mut both, mut seen_a, mut seen_b) = (0usize, 0usize, 0usize, 0usize);
     let mut bias = [0.0f64; 3];
@@ -663,6 +684,12 @@ impl Session {
                 want_w: record.view_size.0,
                 want_h: record.view_size.1,
             });
+        }
+        if let Some(p) = pixels
+            && let Some(key) = &self.key
+            && without_colour(&key.rgb, p)
+        {
+            return Ok(Admission::Rejected { reason: NO_COLOUR.into() });
         }
         if let Some(p) = pixels
             && let (Some(key), Some(mask)) = (&self.key, &self.mask)
@@ -1446,6 +1473,44 @@ mod tests {
         let other = to8(&synth::facade(W, H, 11));
         assert!(matches!(s.admit("w".into(), record(&h), Some(&other)).unwrap(), Admission::Accepted { .. }));
         assert_eq!(s.buffered().len(), 2);
+    }
+
+    /// A black-and-white view of a colour keyframe is turned down with the reason, a grey
+    /// copy of the keyframe included (it is not the keyframe's colours, but it is the
+    /// keyframe). A black-and-white keyframe takes colour views, and there a grey copy of a
+    /// buffered view is that view again, and the keyframe's colour original the keyframe.
+    #[test]
+    fn black_and_white_views_give_a_colour_keyframe_nothing_and_are_compared_by_their_grey() {
+        let grey = |img: &RgbF32| img.map(|&p| [luma(p); 3]);
+        let mut s = session_with_key();
+        s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+        let h = Homography::translation(-12.0, 5.0);
+        let view = synth::facade(W, H, 9);
+        for (id, h, img) in
+            [("bw", &h, grey(&view)), ("bw-key", &Homography::identity(), grey(&synth::facade(W, H, 5)))]
+        {
+            let a = s.admit(id.into(), record(h), Some(&to8(&img))).unwrap();
+            assert_eq!(a, Admission::Rejected { reason: NO_COLOUR.into() }, "{id}");
+        }
+        assert!(s.buffered().is_empty());
+        assert!(matches!(
+            s.admit("v".into(), record(&h), Some(&to8(&view))).unwrap(),
+            Admission::Accepted { .. }
+        ));
+
+        let colour_key = synth::facade(W, H, 5);
+        let mut s = Session::new(params());
+        s.set_key("key".into(), grey(&colour_key));
+        s.set_mask("mask".into(), square_mask(40, 30, 10)).unwrap();
+        assert!(matches!(
+            s.admit("v".into(), record(&h), Some(&to8(&view))).unwrap(),
+            Admission::Accepted { .. }
+        ));
+        let a = s.admit("bw".into(), record(&h), Some(&to8(&grey(&view)))).unwrap();
+        assert!(matches!(&a, Admission::Duplicate { of } if of == "v"), "{a:?}");
+        let a =
+            s.admit("key-colour".into(), record(&Homography::identity()), Some(&to8(&colour_key))).unwrap();
+        assert!(matches!(&a, Admission::Rejected { reason } if reason.contains("adds nothing")), "{a:?}");
     }
 
     #[test]

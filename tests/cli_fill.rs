@@ -327,6 +327,57 @@ fn the_same_shot_saved_again_is_skipped() {
     assert!(a == b, "the result changed with a view's JPEG among the views");
 }
 
+/// A black-and-white picture among a colour keyframe's views has no colour to give: a grey
+/// copy of the keyframe painted its occluder back in grey, and one of a view filled a dark
+/// doorway green (the ring's gain, one tint for the whole hole), called sure. Both are
+/// skipped with the reason, and the result is the one made without them. A black-and-white
+/// keyframe takes colour views, and its result stays black and white (the views' colour
+/// came through before); there a grey copy of a view is that view again.
+#[test]
+fn black_and_white_pictures_give_no_colour_and_a_black_and_white_keyframe_keeps_none() {
+    let s = scene();
+    let grey_copy = |from: &Path, to: &str| {
+        let to = s.path(to);
+        image::open(from).unwrap().to_luma8().save(&to).unwrap();
+        to
+    };
+    let (plain, report) = (s.path("plain.png"), s.path("plain.json"));
+    fill_ok(args(&s, &plain, &report));
+    let (grey_key, grey_view) =
+        (grey_copy(&s.path("key.png"), "key-bw.png"), grey_copy(&s.views[1], "view-2-bw.png"));
+    let (out, report) = (s.path("clear.png"), s.path("report.json"));
+    let mut a = args(&s, &out, &report);
+    a.extend([grey_key.clone(), grey_view]);
+    fill_ok(a);
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let views = v["views"].as_array().unwrap();
+    assert!(views[..3].iter().all(|v| v["accepted"] == true), "{views:#?}");
+    for v in &views[3..] {
+        let reason = v["reason"].as_str().unwrap_or("");
+        assert!(v["accepted"] == false && reason.contains("black-and-white"), "{v:#?}");
+    }
+    let (a, b) = (image::open(&plain).unwrap().to_rgb8(), image::open(&out).unwrap().to_rgb8());
+    assert!(a == b, "the result changed with black-and-white copies among the views");
+
+    // The keyframe in black and white, the views in colour, and a grey copy of view 1.
+    let (out, report) = (s.path("bw-clear.png"), s.path("bw-report.json"));
+    let mut a = args(&s, &out, &report);
+    a[1] = grey_key.clone();
+    a.push(grey_copy(&s.views[0], "view-1-bw.png"));
+    fill_ok(a);
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let views = v["views"].as_array().unwrap();
+    assert!(views[..3].iter().all(|v| v["accepted"] == true), "{views:#?}");
+    let reason = views[3]["reason"].as_str().unwrap_or("");
+    let first = s.views[0].display().to_string();
+    assert!(reason.contains("the same picture") && reason.contains(&first), "{:#?}", views[3]);
+    let (result, key) = (image::open(&out).unwrap().to_rgb8(), image::open(&grey_key).unwrap().to_rgb8());
+    let coloured = result.pixels().filter(|p| p.0.iter().max() != p.0.iter().min()).count();
+    assert_eq!(coloured, 0, "pixels with colour in a black-and-white keyframe's result");
+    let changed = result.pixels().zip(key.pixels()).filter(|(r, k)| r != k).count();
+    assert!(changed > s.mask.hole_count() / 2, "the mask was filled: {changed} pixels changed");
+}
+
 /// `--confidence` writes the fill's confidence as it is: 0 outside the mask, and inside every
 /// grade the model gave, so that the map's mean over the mask is the report's expected
 /// quality and its pixels at 128 or more are the report's confident ones. (It was written as

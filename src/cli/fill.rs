@@ -31,7 +31,7 @@ use crate::inpaint::{
     AutoMaskParams, FillExtras, FillParams, Observer, Source, Stage, SurfacesReport, auto_mask_report,
     fill_swept, sweep_surfaces,
 };
-use crate::session::{shows_the_keyframe, the_same_shot};
+use crate::session::{NO_COLOUR, shows_the_keyframe, the_same_shot, without_colour};
 
 /// Views decoded and aligned at the same time. JPEG decoding is sequential, so with two in
 /// flight (and the keyframe decoded beside them) both cores stay busy; the alignment inside
@@ -381,6 +381,15 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
         reports.push(o.report);
     }
 
+    // A black-and-white view of a colour keyframe has no colour to give: what it filled
+    // would take one tint from the ring around the hole.
+    aligned.retain(|a| {
+        let grey = without_colour(&key_rgb, &a.crop);
+        if grey {
+            skip(&mut reports[a.report], NO_COLOUR);
+        }
+        !grey
+    });
     // A view given twice (the same file, a copy of it, the same shot saved again as
     // another file) would witness its own errors twice: only the first is kept. Compared
     // over the mask, or over the whole frame when the mask is still to be found.

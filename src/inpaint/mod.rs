@@ -22,6 +22,7 @@ pub mod swept;
 use rayon::prelude::*;
 
 use crate::geometry::Homography;
+use crate::imaging::convert::{luma, monochrome};
 use crate::imaging::photometric::{Gain, GainParams, ToneCurve, ToneParams, fit_gain, fit_tone};
 use crate::imaging::warp::{Interpolation, Rect, Warped, warp};
 use crate::imaging::{Mask, Plane, RgbF32, RgbPixel, bilinear_rgb};
@@ -688,8 +689,20 @@ fn fill_gathered<P: RgbPixel>(
         }
     }
     report.witnessed_quality = quality;
+    // A black-and-white keyframe stays black and white: the views' colour (each channel
+    // brought to the keyframe's grey by its own gain) is taken out of what they filled.
+    let (mut image, mut unfused) = (made.image, unfused);
+    if monochrome(key) {
+        let grey = |c: &mut [f32; 3]| *c = [luma(*c); 3];
+        for (p, &m) in image.as_mut_slice().iter_mut().zip(mask.as_slice()) {
+            if m > 127 {
+                grey(p);
+            }
+        }
+        unfused.iter_mut().for_each(|(_, c)| grey(c));
+    }
     let filled = Filled {
-        image: made.image,
+        image,
         provenance: made.provenance,
         surface,
         confidence: made.confidence,
