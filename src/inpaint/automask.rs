@@ -14,7 +14,7 @@ use rayon::prelude::*;
 use super::Source;
 use super::parallax::{SweepParams, parallax_family_with};
 use crate::geometry::Homography;
-use crate::imaging::convert::luminance;
+use crate::imaging::convert::{luma, luminance, monochrome};
 use crate::imaging::photometric::{Gain, ToneCurve, ToneParams, fit_tone};
 use crate::imaging::warp::{Interpolation, Rect, warp};
 use crate::imaging::{Mask, Plane, RgbF32, RgbPixel};
@@ -240,11 +240,18 @@ fn auto_mask_excluding<P: RgbPixel>(
     let (rw, rh) = (key_r.width(), key_r.height());
     let to_full = reduced_to_full(f);
     let from_full = to_full.inverse().expect("scaling is regular");
+    // A black-and-white keyframe is compared by grey: the views' colours are not something
+    // it shows wrongly (before, every colour view disagreed with it everywhere and the sky
+    // and background vetoes took the whole frame: nothing was found).
+    let grey = monochrome(&key_r);
     let warped: Vec<(RgbF32, Plane<bool>)> = sources
         .par_iter()
         .enumerate()
         .map(|(v, s)| {
-            let view_r = reduce(s.image, f);
+            let mut view_r = reduce(s.image, f);
+            if grey {
+                view_r.as_mut_slice().iter_mut().for_each(|p| *p = [luma(*p); 3]);
+            }
             let hr = from_full.after(&s.homography).after(&to_full);
             let mut wv = warp(&view_r, &hr, Rect::full(rw, rh), None, Interpolation::Bilinear);
             super::exclude(&mut wv, &s.homography.after(&to_full), known.get(v).copied().flatten());
@@ -1940,6 +1947,37 @@ mod tests {
         assert!(false_pos < person, "{false_pos} false positives for a {person}-pixel person");
         // A keyframe equal to the scene: nothing is transient.
         assert!(clean < 240 * 180 / 200, "{clean} pixels flagged on a clean keyframe");
+    }
+
+    /// A black-and-white keyframe among colour views is judged by grey: the person is
+    /// found, and a clean grey keyframe flags nothing. Compared by colour, every colour view
+    /// disagreed with it everywhere; on hunt3 in grey with its four colour views not a pixel
+    /// was found (in colour, eight objects).
+    #[test]
+    fn a_black_and_white_keyframe_is_judged_by_its_grey() {
+        let (w, h) = (240, 180);
+        let grey = |img: &RgbF32| img.map(|&p| [luma(p); 3]);
+        let scene = facade(w, h, 11);
+        let mut key = scene.clone();
+        let mut truth = Mask::new(w, h, 0);
+        paint_occluder(&mut key, Some(&mut truth), Occluder::Person, 120.0, 95.0, 90.0, 3);
+        let hs = [
+            Homography::translation(6.5, -3.0),
+            Homography::from_rows([[1.02, 0.01, -5.0], [-0.01, 0.99, 4.0], [1e-5, 0.0, 1.0]]).unwrap(),
+            Homography::translation(-7.0, 2.5),
+        ];
+        let views: Vec<RgbF32> =
+            hs.iter().map(|hm| render_view(&scene, &hm.inverse().unwrap(), w, h, [0.5; 3])).collect();
+        let sources: Vec<Source<'_>> =
+            views.iter().zip(&hs).map(|(v, &homography)| Source { image: v, homography }).collect();
+        let m = auto_mask(&grey(&key), &sources, &AutoMaskParams::default());
+        let person = truth.hole_count();
+        let hit = found_of(&truth, &m);
+        assert!(hit as f32 > 0.9 * person as f32, "found {hit} of {person}");
+        let false_pos = m.hole_count() - hit;
+        assert!(false_pos < person, "{false_pos} false positives for a {person}-pixel person");
+        let clean = auto_mask(&grey(&scene), &sources, &AutoMaskParams::default()).hole_count();
+        assert!(clean < w * h / 200, "{clean} pixels flagged on a clean keyframe");
     }
 
     /// Oxford's leuven: the same facade as the light falls, each view darker than the last,
