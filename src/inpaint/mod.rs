@@ -19,6 +19,7 @@ pub mod region;
 pub mod shift;
 pub mod swept;
 
+use nalgebra::Point2;
 use rayon::prelude::*;
 
 use crate::geometry::Homography;
@@ -582,10 +583,10 @@ fn fill_gathered<P: RgbPixel>(
     else {
         return (unfinished(surface, report), None);
     };
-    let Gathered { parts, warps, lifted, maps, errors, diagonal } = &evidence;
+    let Gathered { parts, warps, lifted, maps, errors, reach, diagonal } = &evidence;
     let diagonal = *diagonal;
     let judge = |img: &RgbF32| evidence.judge(key, mask, img);
-    let stage = Staged { key, mask, parts, warps, lifted, maps, errors, diagonal, params, seed };
+    let stage = Staged { key, mask, parts, warps, lifted, maps, errors, reach, diagonal, params, seed };
     if observer.cancelled() {
         return (unfinished(surface, report), None);
     }
@@ -728,6 +729,8 @@ struct Gathered {
     maps: Vec<OcclusionMap>,
     /// Per part, per source ([`view_errors`]).
     errors: Vec<Vec<f32>>,
+    /// Per part, per source ([`view_reach`]).
+    reach: Vec<Vec<usize>>,
     /// The whole keyframe's diagonal ([`FillExtras::whole`]).
     diagonal: f32,
 }
@@ -789,6 +792,7 @@ impl Gathered {
         let mut plane_warps: Vec<Vec<Vec<Option<Warped>>>> = Vec::with_capacity(parts.len());
         // Per part, per source: the pixels copied only under a soft mark ([`exclude_marked`]).
         let mut lifted: Vec<Vec<Option<Plane<bool>>>> = Vec::with_capacity(parts.len());
+        let mut reach: Vec<Vec<usize>> = Vec::with_capacity(parts.len());
         for (k, part) in parts.iter().enumerate() {
             // Each view's homography here: its own, or moved onto the keyframe around this hole.
             let shifts: Vec<Option<Shift>> = match &params.local_shift {
@@ -814,6 +818,7 @@ impl Gathered {
                     None => s.homography,
                 })
                 .collect();
+            reach.push(hs.iter().map(|hv| view_reach(hv, part.rect)).collect());
             let mut ws: Vec<Warped> = sources
                 .par_iter()
                 .zip(&hs)
@@ -950,7 +955,7 @@ impl Gathered {
 
         let errors: Vec<Vec<f32>> =
             parts.par_iter().zip(warps.par_iter()).map(|(part, ws)| view_errors(key, part, ws)).collect();
-        Some(Gathered { parts, warps, lifted, maps, errors, diagonal })
+        Some(Gathered { parts, warps, lifted, maps, errors, reach, diagonal })
     }
 
     /// A result against what every view shows, each view a witness as far as the model
@@ -1037,6 +1042,8 @@ struct Staged<'a> {
     maps: &'a [OcclusionMap],
     /// Per part, per source ([`view_errors`]: each view's own, whatever the others).
     errors: &'a [Vec<f32>],
+    /// Per part, per source ([`view_reach`]).
+    reach: &'a [Vec<usize>],
     /// The whole keyframe's diagonal ([`FillExtras::whole`]).
     diagonal: f32,
     params: &'a FillParams,
@@ -1118,6 +1125,7 @@ impl Staged<'_> {
                         warps: pick_views(&self.warps[k], &all_views(self.warps[k].len())),
                         map: &self.maps[k],
                         errors: &self.errors[k],
+                        reach: &self.reach[k],
                         views,
                     };
                     let lifted: Vec<Option<&Plane<bool>>> =
@@ -1762,6 +1770,8 @@ struct Evidence<'a> {
     warps: Vec<&'a Warped>,
     map: &'a OcclusionMap,
     errors: &'a [f32],
+    /// Per source ([`view_reach`]).
+    reach: &'a [usize],
     views: &'a [usize],
 }
 
@@ -1854,8 +1864,9 @@ fn fill_one(
                 .errors
                 .get(view)
                 .map_or(1.0, |&e| if e.is_finite() { occlusion::closeness(e.sqrt()) } else { 1.0 });
-            let c = occlusion::confidence(evidence.map, &refs, view, at, i, r.width, pixels[i]);
-            let value = fit * c.value(occlusion::EDGE_SHARE);
+            let reach = evidence.reach.get(view).copied().unwrap_or(1);
+            let c = occlusion::confidence(evidence.map, &refs, view, (at, reach), i, r.width, pixels[i]);
+            let value = fit * c.reported();
             // Its own frame took it for an occluder: never reported as sure.
             let lifted = lifted.get(p.view as usize).copied().flatten().is_some_and(|l| l.as_slice()[at]);
             let value = if lifted { value.min(LIFTED_CONFIDENCE) } else { value };
@@ -2026,6 +2037,19 @@ const GAIN_SAMPLES: usize = 12_000;
 const BORDER_MEDIAN: usize = 5;
 /// The largest step between two views' colours that blending removes at a seam inside.
 const SEAM_STEP: f32 = 0.03;
+
+/// The most keyframe pixels [`view_reach`] gives.
+const MAX_REACH: usize = 4;
+
+/// How many keyframe pixels one pixel of a view mapped by `h` (keyframe → view) spans at
+/// the centre of `rect`, rounded, from 1 (the keyframe's resolution or finer) to
+/// [`MAX_REACH`]: a view at a third of the keyframe's resolution spreads each of its edges
+/// over three keyframe pixels, and where the edge lies within them its copy cannot say.
+fn view_reach(h: &Homography, rect: Rect) -> usize {
+    let c = Point2::new(rect.x as f64 + 0.5 * rect.width as f64, rect.y as f64 + 0.5 * rect.height as f64);
+    let s = h.area_scale(c).abs().sqrt();
+    if s.is_finite() && s > 0.0 { (1.0 / s).round().clamp(1.0, MAX_REACH as f64) as usize } else { 1 }
+}
 
 /// The single-image fallback for the pending pixels of `rect`, on a crop with context;
 /// returns how many it filled.
@@ -2255,6 +2279,20 @@ mod tests {
     use super::*;
     use crate::imaging::Rgb8;
     use crate::synth::{Occluder, facade, paint_occluder, render_view};
+
+    /// One pixel of a view at a third of the keyframe's size spans three keyframe pixels;
+    /// a view at the keyframe's size or finer, one; never more than four.
+    #[test]
+    fn a_views_reach_is_how_many_keyframe_pixels_one_of_its_pixels_spans() {
+        let rect = Rect { x: 100, y: 50, width: 40, height: 30 };
+        let scaled =
+            |s: f64| Homography::from_rows([[s, 0.0, 7.0], [0.0, s, -3.0], [0.0, 0.0, 1.0]]).unwrap();
+        assert_eq!(view_reach(&scaled(1.0 / 3.0), rect), 3);
+        assert_eq!(view_reach(&scaled(0.5), rect), 2);
+        assert_eq!(view_reach(&scaled(0.8), rect), 1);
+        assert_eq!(view_reach(&scaled(2.0), rect), 1);
+        assert_eq!(view_reach(&scaled(0.05), rect), MAX_REACH);
+    }
 
     /// A strip of view pixels beside an unseen region in the sky shows a trunk (a copied
     /// occluder). When the fill doubts them they are not the border the fallback's guide

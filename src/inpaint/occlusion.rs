@@ -921,14 +921,16 @@ impl Shared<'_> {
 /// its step, however well the witnesses agree.
 ///
 /// `value` is the filled colour (after compensation, before blending); `at` the pixel of the
-/// picked view it came from (the prediction shifted by the local search); `width` the
-/// region's.
+/// picked view it came from (the prediction shifted by the local search), and `reach` how
+/// many keyframe pixels one of that view's pixels spans there (a view at a third of the
+/// keyframe's resolution: 3; its edges are that soft, and the step across one is measured
+/// that far apart); `width` the region's.
 #[allow(clippy::too_many_arguments)]
 pub fn confidence(
     map: &OcclusionMap,
     views: &[(&[[f32; 3]], &[bool])],
     picked: usize,
-    at: usize,
+    (at, reach): (usize, usize),
     i: usize,
     width: usize,
     value: [f32; 3],
@@ -948,15 +950,21 @@ pub fn confidence(
     // fraction of a pixel the views are off (resampling, registration), however well the
     // witnesses agree (they are all resampled alike).
     let (img, ok) = views[picked];
-    let mut step = 0.0f32;
-    for j in [at.wrapping_sub(1), at + 1, at.wrapping_sub(width), at + width] {
-        if j < img.len() && ok[j] {
-            step = step.max(max_channel(img[j], img[at]));
+    let step_at = |d: usize| {
+        let mut step = 0.0f32;
+        for j in [at.wrapping_sub(d), at + d, at.wrapping_sub(d * width), at + d * width] {
+            if j < img.len() && ok[j] {
+                step = step.max(max_channel(img[j], img[at]));
+            }
         }
-    }
+        step
+    };
+    let step = step_at(1);
+    // A coarser view's edge is spread over `reach` pixels: its whole step is that far apart.
+    let soft_step = if reach > 1 { step.max(step_at(reach)) } else { step };
     // Without witnesses, the view alone (as sure as that can be).
     let support = (agree + SOLE_WITNESS * (WITNESSES - wsum).max(0.0)) / wsum.max(WITNESSES);
-    PixelConfidence { building: own * support.clamp(0.0, 1.0), step }
+    PixelConfidence { building: own * support.clamp(0.0, 1.0), step, soft_step }
 }
 
 /// A filled pixel's [`confidence`], in its two halves: how sure the fill is that the pixel
@@ -966,12 +974,26 @@ pub fn confidence(
 pub struct PixelConfidence {
     pub building: f32,
     pub step: f32,
+    /// The step measured across the picked view's own pixel (`reach` keyframe pixels
+    /// apart; `step` at the keyframe's resolution): the contrast of an edge a coarser view
+    /// has spread over several pixels.
+    pub soft_step: f32,
 }
 
 impl PixelConfidence {
-    /// The confidence, an edge taken to be wrong by `edge_share` of its step.
+    /// The confidence, an edge taken to be wrong by `edge_share` of its step: as the fill
+    /// decides with it ([`GUIDE_EDGE_SHARE`]).
     pub fn value(&self, edge_share: f32) -> f32 {
         self.building * closeness(edge_share * self.step)
+    }
+
+    /// The confidence a result reports: an edge taken to be wrong by [`EDGE_SHARE`] of its
+    /// step across the picked view's own pixel. Where a view coarser than the keyframe
+    /// filled, the copy cannot say where within that pixel the edge lies, nor how sharp it
+    /// is (views at a half and a third of the keyframe's size made the report surer than
+    /// the views themselves, while its fills lost 3–6 dB).
+    pub fn reported(&self) -> f32 {
+        self.building * closeness(EDGE_SHARE * self.soft_step)
     }
 }
 
@@ -1013,6 +1035,27 @@ mod tests {
     fn region(w: usize, h: usize, hole: impl Fn(usize, usize) -> bool) -> (Vec<bool>, Vec<bool>, Vec<bool>) {
         let hole: Vec<bool> = (0..w * h).map(|i| hole(i % w, i / w)).collect();
         (hole, vec![true; w * h], vec![false; w * h])
+    }
+
+    /// A view at a third of the keyframe's resolution spreads an edge over three pixels:
+    /// one pixel apart its steps are a third of the edge, which the report called sure;
+    /// measured across the view's own pixel the edge is whole, and the pixel is doubted.
+    /// The confidence the fill decides with is the same either way.
+    #[test]
+    fn an_edge_a_coarser_view_spread_over_its_pixel_is_doubted_in_the_report() {
+        let w = 9;
+        // A ramp from 0.2 to 0.8 over columns 3..=6 (three steps of 0.2), one row.
+        let img: Vec<[f32; 3]> = (0..w).map(|x| [0.2 + 0.2 * (x as f32 - 3.0).clamp(0.0, 3.0); 3]).collect();
+        let ok = vec![true; w];
+        let map = OcclusionMap { occluded: vec![vec![0.0; w]], independence: vec![1.0] };
+        let views = [(img.as_slice(), ok.as_slice())];
+        let at = 4;
+        let fine = confidence(&map, &views, 0, (at, 1), at, w, img[at]);
+        let coarse = confidence(&map, &views, 0, (at, 3), at, w, img[at]);
+        let sure = f32::from(crate::inpaint::CONFIDENT) / 255.0;
+        assert!(fine.reported() >= sure, "one pixel apart: {:.3}", fine.reported());
+        assert!(coarse.reported() < sure, "across the view's pixel: {:.3}", coarse.reported());
+        assert_eq!(fine.value(GUIDE_EDGE_SHARE), coarse.value(GUIDE_EDGE_SHARE));
     }
 
     #[test]
