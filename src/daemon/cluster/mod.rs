@@ -214,6 +214,12 @@ pub fn result_object(session_token: &str, inputs: &str, number: u64, rel: &str) 
     format!("result/{session_token}/{inputs}/{number}/{rel}")
 }
 
+/// Where a version before the results' numbers kept [`result_object`]: under the inputs
+/// alone. Read only (a result an earlier worker stored), never written.
+fn legacy_result_object(session_token: &str, inputs: &str, rel: &str) -> String {
+    format!("result/{session_token}/{inputs}/{rel}")
+}
+
 /// A file's role by its name, as messages carry it.
 pub fn role_name(role: Role) -> &'static str {
     match role {
@@ -444,7 +450,7 @@ impl Nats {
     pub async fn result_file(&self, tok: &str, r: &ResultRef, rel: &str) -> Result<Option<Vec<u8>>, OpError> {
         match self.get_object(&result_object(tok, &r.inputs, r.number, rel)).await? {
             Some(bytes) => Ok(Some(bytes)),
-            None => self.get_object(&format!("result/{tok}/{}/{rel}", r.inputs)).await,
+            None => self.get_object(&legacy_result_object(tok, &r.inputs, rel)).await,
         }
     }
 
