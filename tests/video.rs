@@ -276,6 +276,86 @@ fn encode(dir: &Path, frames: &[RgbF32]) -> std::path::PathBuf {
     video
 }
 
+/// `img` turned a quarter clockwise.
+fn turned_clockwise(img: &RgbF32) -> RgbF32 {
+    let h = img.height();
+    RgbF32::from_fn(h, img.width(), |x, y| img.get(y, h - 1 - x))
+}
+
+/// A phone held upright stores its frames on their side, with a quarter turn for the
+/// player (ffprobe's `rotation`); FFmpeg turns them upright as it decodes. The frames, the
+/// mask and `keyframe.png` are the upright picture the user sees. Before, the stored size
+/// was taken for the frames': the upright mask was refused as the wrong size, and a mask of
+/// the stored size was laid on the upright frames squeezed into that size.
+#[test]
+fn a_video_filmed_with_the_phone_upright_is_read_upright() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let world = World::new();
+    let stored: Vec<RgbF32> =
+        (0..24).map(|i| turned_clockwise(&world.frame(World::pan(i, 0), None))).collect();
+    let plain = encode(dir, &stored);
+    // FFmpeg 5 writes the turn when it copies a stream, not when it encodes one.
+    let video = dir.join("upright.mp4");
+    let st = Command::new("ffmpeg")
+        .args(["-v", "error", "-y", "-i"])
+        .arg(&plain)
+        .args(["-c", "copy", "-metadata:s:v:0", "rotate=90"])
+        .arg(&video)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let probe = Command::new("ffprobe")
+        .args([
+            "-v",
+            "error",
+            "-select_streams",
+            "v:0",
+            "-show_entries",
+            "stream_side_data=rotation:stream_tags=rotate",
+        ])
+        .arg(&video)
+        .output()
+        .unwrap();
+    if !String::from_utf8_lossy(&probe.stdout).contains("rotat") {
+        eprintln!("skipping: this FFmpeg wrote no rotation into the file");
+        return;
+    }
+    let mut mask = Mask::new(W, H, 0);
+    let key = world.frame(World::pan(0, 0), Some(&mut mask));
+    let mask = dilate(&mask, 6);
+    write_mask(&dir.join("mask.png"), &mask);
+    let out = dir.join("out");
+    let run = Command::new(bin())
+        .args(["run", "--video"])
+        .arg(&video)
+        .arg("--mask")
+        .arg(dir.join("mask.png"))
+        .arg("--out")
+        .arg(&out)
+        .current_dir(dir)
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(0), "log:\n{log}");
+    // The keyframe written for painting is the upright first frame.
+    let written = image::open(out.join("video").join("keyframe.png")).unwrap().to_rgb8();
+    assert_eq!(written.dimensions(), (W as u32, H as u32));
+    let all = Mask::new(W, H, 255);
+    let off = masked_error(&key, &all, &written);
+    assert!(off < 0.03, "keyframe.png is {off:.4} off the upright first frame");
+    let result = image::open(out.join("video").join("result.png")).unwrap().to_rgb8();
+    let truth = world.facade(World::pan(0, 0));
+    let (err, key_err) = (masked_error(&truth, &mask, &result), masked_error(&truth, &mask, &to_rgb8(&key)));
+    eprintln!("masked error: keyframe {key_err:.4}, result {err:.4}");
+    if multi_view_fill() {
+        assert!(err < 0.035 && err < key_err / 4.0, "result {err:.4}, keyframe {key_err:.4}");
+    }
+}
+
 /// The first frames of a stream only set the sharpness level, but they are views too: with
 /// the keyframe named just after them, they may be the only frames that saw what its
 /// occluder hides. Here the camera walks past the tree during the first five frames (the

@@ -71,7 +71,10 @@ pub enum VideoError {
     Thread(std::io::Error),
 }
 
-/// What ffprobe says of a stream.
+/// What ffprobe says of a stream. The size is the frame's as a player shows it, which is
+/// what FFmpeg decodes to: turned upright when the stream says it was filmed on its side
+/// (a phone held upright stores a 1920 × 1080 picture and a quarter turn), and with square
+/// pixels when its pixels are not square. A mask is painted on that picture.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Probe {
     pub width: usize,
@@ -321,7 +324,7 @@ impl Drop for Reaped {
 pub fn probe(src: &VideoSource, cancel: &CancellationToken) -> Result<Probe, String> {
     let mut cmd = Command::new(&src.ffprobe);
     cmd.args(["-v", "error", "-select_streams", "v:0", "-show_entries"])
-        .arg("stream=width,height,avg_frame_rate,r_frame_rate")
+        .arg("stream=width,height,avg_frame_rate,r_frame_rate,sample_aspect_ratio:stream_tags=rotate:stream_side_data=rotation")
         .args(["-of", "json"])
         .arg(&src.input)
         .stdin(Stdio::null())
@@ -372,11 +375,28 @@ fn parse_probe(json: &str) -> Option<Probe> {
     let height = s["height"].as_u64()? as usize;
     let rate = |k: &str| {
         let t = s[k].as_str()?;
-        let (n, d) = t.split_once('/').unwrap_or((t, "1"));
+        let (n, d) = t.split_once(['/', ':']).unwrap_or((t, "1"));
         let (n, d): (f64, f64) = (n.parse().ok()?, d.parse().ok()?);
         (d > 0.0 && n > 0.0 && (n / d).is_finite()).then_some(n / d)
     };
     let fps = rate("avg_frame_rate").or_else(|| rate("r_frame_rate")).unwrap_or(25.0);
+    // Pixels that are not square (`sample_aspect_ratio` 8:9, 4:3…) are shown stretched:
+    // the width as shown, rounded to an even number as FFmpeg's scaler wants it.
+    let width = match rate("sample_aspect_ratio") {
+        Some(sar) if (sar - 1.0).abs() > 1e-3 => (((width as f64 * sar) / 2.0).round() as usize * 2).max(2),
+        _ => width,
+    };
+    // A quarter turn (the display matrix's `rotation`, or the older `rotate` tag) swaps the
+    // sides: FFmpeg turns the frames upright as it decodes them.
+    let turn = s["side_data_list"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .find_map(|d| d["rotation"].as_f64())
+        .or_else(|| s["tags"]["rotate"].as_str().and_then(|t| t.trim().parse().ok()))
+        .unwrap_or(0.0);
+    let quarter = ((turn / 90.0).round() as i64).rem_euclid(2) == 1;
+    let (width, height) = if quarter { (height, width) } else { (width, height) };
     (width > 0 && height > 0).then_some(Probe { width, height, fps })
 }
 
@@ -399,5 +419,35 @@ mod tests {
         assert_eq!(p.fps, 25.0);
         assert!(parse_probe(r#"{"streams":[]}"#).is_none());
         assert!(parse_probe("not json").is_none());
+    }
+
+    #[test]
+    fn a_stream_filmed_on_its_side_or_with_wide_pixels_is_sized_as_it_is_shown() {
+        // FFmpeg 5's display matrix, either way round, and the older tag.
+        for turned in [
+            r#"{"streams":[{"width":1920,"height":1080,"r_frame_rate":"30/1","side_data_list":[{"rotation":-90}]}]}"#,
+            r#"{"streams":[{"width":1920,"height":1080,"r_frame_rate":"30/1","side_data_list":[{"rotation":90}]}]}"#,
+            r#"{"streams":[{"width":1920,"height":1080,"r_frame_rate":"30/1","tags":{"rotate":"270"}}]}"#,
+        ] {
+            let p = parse_probe(turned).unwrap();
+            assert_eq!((p.width, p.height), (1080, 1920), "{turned}");
+        }
+        // Upside down keeps its sides.
+        let p = parse_probe(
+            r#"{"streams":[{"width":1920,"height":1080,"r_frame_rate":"30/1","side_data_list":[{"rotation":180}]}]}"#,
+        )
+        .unwrap();
+        assert_eq!((p.width, p.height), (1920, 1080));
+        // DV's 720 × 480 with 8:9 pixels is shown 640 wide; square pixels change nothing.
+        let p = parse_probe(
+            r#"{"streams":[{"width":720,"height":480,"r_frame_rate":"30000/1001","sample_aspect_ratio":"8:9"}]}"#,
+        )
+        .unwrap();
+        assert_eq!((p.width, p.height), (640, 480));
+        let p = parse_probe(
+            r#"{"streams":[{"width":640,"height":480,"r_frame_rate":"25/1","sample_aspect_ratio":"1:1"}]}"#,
+        )
+        .unwrap();
+        assert_eq!((p.width, p.height), (640, 480));
     }
 }
