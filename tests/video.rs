@@ -276,6 +276,57 @@ fn encode(dir: &Path, frames: &[RgbF32]) -> std::path::PathBuf {
     video
 }
 
+/// A keyframe named past the end of a file cannot be: the run says so, naming the file and
+/// the frame, and exits 1. Before, the stream ended as if it had run: exit 0, no result and
+/// not a word of why.
+#[test]
+fn a_keyframe_named_past_the_end_of_the_file_is_refused_and_the_run_fails() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let world = World::new();
+    let frames: Vec<RgbF32> = (0..12).map(|i| world.frame(World::pan(i, 0), None)).collect();
+    let video = encode(dir, &frames);
+    let mut mask = Mask::new(W, H, 0);
+    world.frame(World::pan(0, 0), Some(&mut mask));
+    write_mask(&dir.join("mask.png"), &dilate(&mask, 6));
+    for (flag, value, says) in [
+        (
+            "--keyframe-frame",
+            "40",
+            "frame 40 (keyframe_frame) is past the end of the video: its frames are 0 to 11",
+        ),
+        (
+            "--keyframe-at",
+            "9",
+            "9 s (keyframe_at_s) is past the end of the video: its last frame is at 1.100 s",
+        ),
+    ] {
+        let out = dir.join(format!("out{flag}"));
+        let run = Command::new(bin())
+            .args(["run", "--video"])
+            .arg(&video)
+            .args([flag, value, "--mask"])
+            .arg(dir.join("mask.png"))
+            .arg("--out")
+            .arg(&out)
+            .current_dir(dir)
+            .output()
+            .unwrap();
+        let log = String::from_utf8_lossy(&run.stderr);
+        assert_eq!(run.status.code(), Some(1), "log:\n{log}");
+        assert!(log.contains(&format!("{}: {says}", video.display())), "log:\n{log}");
+        let ev = events(&out);
+        let refused = of_kind(&ev, "keyframe_refused");
+        assert_eq!(refused.len(), 1, "{ev:#?}");
+        assert_eq!(refused[0]["reason"], says);
+        assert_eq!(of_kind(&ev, "video_ended")[0]["reason"], says);
+        assert!(!out.join("video").join("result.png").exists());
+    }
+}
+
 /// `img` turned a quarter clockwise.
 fn turned_clockwise(img: &RgbF32) -> RgbF32 {
     let h = img.height();

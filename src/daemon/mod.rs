@@ -75,6 +75,11 @@ pub enum DaemonError {
     Http { addr: std::net::SocketAddr, source: std::io::Error },
     #[error(transparent)]
     Video(#[from] video::VideoError),
+    /// A run with videos and no watched folder, whose videos ended, one or more of them
+    /// with an error (a keyframe refused, a file that could not be decoded): `input:
+    /// reason` for each, also in their `video_ended` events.
+    #[error("{}", .0.join("; "))]
+    VideosFailed(Vec<String>),
 }
 
 /// Files of each session that the intake has noticed (still being written, complete, or
@@ -261,11 +266,15 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
     tracker.spawn(systemd::supervise(stats.clone(), cancel.clone()));
     tracker.close();
 
+    let mut failed = Vec::new();
     tokio::select! {
         () = shutdown => tracing::info!("shutdown requested: finishing the step in hand"),
         () = cancel.cancelled() => {}
         // Without a watched folder, the service ends when its videos do (files at their end).
-        () = videos.finished(), if !watching && !videos.is_empty() => tracing::info!("every video ended"),
+        ended = videos.finished(), if !watching && !videos.is_empty() => {
+            tracing::info!("every video ended");
+            failed = ended;
+        }
     }
     systemd::stopping();
     cancel.cancel();
@@ -288,7 +297,7 @@ pub async fn run(mut config: Config, shutdown: impl Future<Output = ()>) -> Resu
     }
     // The last line: a worker still busy past the grace period writes nothing after it.
     emitter.close(finished.is_ok());
-    Ok(())
+    if failed.is_empty() { Ok(()) } else { Err(DaemonError::VideosFailed(failed)) }
 }
 
 /// Completes on SIGTERM or SIGINT (Ctrl-C). The handlers are installed when this is

@@ -151,6 +151,16 @@ impl Decoder {
                     KeyStep::Wait => {}
                 }
             }
+            // A file that ended before the frame it names (or with no sharp frame) has no
+            // keyframe: the session ends saying so, not as if it had run.
+            if !gone
+                && !self.src.live
+                && index > 0
+                && let Some(reason) = pick.missed(index, (index - 1) as f64 / fps)
+            {
+                self.refuse_key(reason, &mut end_reason);
+                gone = true;
+            }
             // A file shorter than the warm-up: its frames are judged on the level they set.
             if !gone && !self.src.live {
                 for f in std::mem::take(&mut held) {

@@ -106,6 +106,25 @@ impl KeyPick {
         step
     }
 
+    /// Why a stream that ended after `frames` frames (the last at `last_t` seconds) gave no
+    /// keyframe: the frame it names is past its end, or none of its frames was sharp;
+    /// `None` when the keyframe was chosen or one is waiting to be judged.
+    pub(super) fn missed(&self, frames: u64, last_t: f64) -> Option<String> {
+        if self.done || self.pending.is_some() {
+            return None;
+        }
+        Some(match self.rule {
+            VideoKeyframe::AtFrame(n) => format!(
+                "frame {n} (keyframe_frame) is past the end of the video: its frames are 0 to {}",
+                frames.saturating_sub(1)
+            ),
+            VideoKeyframe::AtSeconds(at) => format!(
+                "{at} s (keyframe_at_s) is past the end of the video: its last frame is at {last_t:.3} s"
+            ),
+            VideoKeyframe::First => format!("none of its {frames} frames is sharp enough to be the keyframe"),
+        })
+    }
+
     /// The stream ended: judge a waiting candidate on the neighbours it had.
     pub(super) fn finish(&mut self) -> KeyStep {
         if self.pending.is_some() { self.judge() } else { KeyStep::Wait }
@@ -169,6 +188,31 @@ mod tests {
             KeyStep::Key { index, .. } => Some(*index),
             _ => None,
         })
+    }
+
+    #[test]
+    fn a_stream_that_ends_before_its_keyframe_says_why() {
+        let ended = |rule: VideoKeyframe, sharpness: &[f32]| {
+            let mut pick = KeyPick::new(rule, 0.5, 3);
+            for (i, &s) in sharpness.iter().enumerate() {
+                pick.offer(i as u64, i as f64 / 10.0, &[i as u8], s);
+            }
+            pick.finish();
+            pick.missed(sharpness.len() as u64, (sharpness.len() - 1) as f64 / 10.0)
+        };
+        let sharp = [1.0; 8];
+        assert_eq!(
+            ended(VideoKeyframe::AtFrame(8), &sharp).as_deref(),
+            Some("frame 8 (keyframe_frame) is past the end of the video: its frames are 0 to 7")
+        );
+        assert_eq!(
+            ended(VideoKeyframe::AtSeconds(0.75), &sharp).as_deref(),
+            Some("0.75 s (keyframe_at_s) is past the end of the video: its last frame is at 0.700 s")
+        );
+        // Reached, even as the last frame (judged on the neighbours it had): nothing missed.
+        assert_eq!(ended(VideoKeyframe::AtFrame(7), &sharp), None);
+        assert_eq!(ended(VideoKeyframe::AtSeconds(0.7), &sharp), None);
+        assert_eq!(ended(VideoKeyframe::First, &sharp), None);
     }
 
     #[test]

@@ -148,7 +148,8 @@ pub(super) type ChildPid = Arc<Mutex<Option<u32>>>;
 #[derive(Default)]
 pub struct Videos {
     threads: Vec<JoinHandle<()>>,
-    done: Vec<tokio::sync::oneshot::Receiver<()>>,
+    /// Each source's end: its input and, when it ended with an error, the reason.
+    done: Vec<tokio::sync::oneshot::Receiver<(String, Option<String>)>>,
     children: Vec<ChildPid>,
 }
 
@@ -216,12 +217,13 @@ impl Videos {
             let runner = Runner::new(ctx, src.clone(), vstats, mask);
             let name = &src.session;
             let c = cancel.clone();
+            let input = src.input.clone();
             videos.threads.push(
                 std::thread::Builder::new()
                     .name(format!("clearview-video-{name}"))
                     .spawn(move || {
-                        runner.run(&rx, &c);
-                        let _ = done_tx.send(());
+                        let failed = runner.run(&rx, &c);
+                        let _ = done_tx.send((input, failed));
                     })
                     .map_err(VideoError::Thread)?,
             );
@@ -242,11 +244,16 @@ impl Videos {
     }
 
     /// Completes when every source's session has ended (files at their end; a live
-    /// stream only on shutdown).
-    pub async fn finished(&mut self) {
+    /// stream only on shutdown): what went wrong with those that ended with an error, as
+    /// `input: reason`.
+    pub async fn finished(&mut self) -> Vec<String> {
+        let mut failed = Vec::new();
         for rx in &mut self.done {
-            let _ = rx.await;
+            if let Ok((input, Some(reason))) = rx.await {
+                failed.push(format!("{input}: {reason}"));
+            }
         }
+        failed
     }
 
     /// Kills the ffmpeg children (their threads then see the pipe close and reap them).

@@ -109,10 +109,13 @@ impl Runner {
         }
     }
 
-    pub(super) fn run(mut self, rx: &Receiver<Msg>, cancel: &CancellationToken) {
+    /// Runs the session until its stream ends (then the reason it ended with an error, if
+    /// it did) or the service stops.
+    pub(super) fn run(mut self, rx: &Receiver<Msg>, cancel: &CancellationToken) -> Option<String> {
         let span = tracing::info_span!("session", session = %self.src.session);
         let _enter = span.enter();
         let heart = self.ctx.stats.heartbeats.register(format!("video {}", self.src.session));
+        let mut failed = None;
         loop {
             heart.beat();
             match rx.recv_timeout(Duration::from_millis(100)) {
@@ -156,10 +159,11 @@ impl Runner {
                     let e = Event::VideoEnded {
                         counters: self.stats.counters(),
                         input: self.src.input.clone(),
-                        reason,
+                        reason: reason.clone(),
                         results: self.slot.state.last_number,
                     };
                     self.ctx.emitter.emit(Some(&self.src.session), &e);
+                    failed = reason;
                     break;
                 }
                 Err(RecvTimeoutError::Timeout) => {
@@ -174,6 +178,7 @@ impl Runner {
         if self.slot.state_dirty {
             state::save(&self.ctx.config.state_dir, &self.slot.name, &self.slot.state);
         }
+        failed
     }
 
     /// Writes the keyframe beside the results (`keyframe.png`), so that a mask can be
