@@ -257,6 +257,21 @@ fn a_video_file_is_selected_aligned_and_filled_until_its_end() {
     assert!(final_err < key_err / 4.0);
 }
 
+/// `clearview run --video VIDEO FLAGS --mask DIR/mask.png --out OUT`, run in `dir`.
+fn run_video(dir: &Path, video: &Path, flags: &[&str], out: &Path) -> std::process::Output {
+    Command::new(bin())
+        .args(["run", "--video"])
+        .arg(video)
+        .args(flags)
+        .arg("--mask")
+        .arg(dir.join("mask.png"))
+        .arg("--out")
+        .arg(out)
+        .current_dir(dir)
+        .output()
+        .unwrap()
+}
+
 /// Writes `frames` as an H.264 file (CRF 16, `FPS`) in `dir`; its path.
 fn encode(dir: &Path, frames: &[RgbF32]) -> std::path::PathBuf {
     let pngs = dir.join("frames");
@@ -305,16 +320,7 @@ fn a_keyframe_named_past_the_end_of_the_file_is_refused_and_the_run_fails() {
         ),
     ] {
         let out = dir.join(format!("out{flag}"));
-        let run = Command::new(bin())
-            .args(["run", "--video"])
-            .arg(&video)
-            .args([flag, value, "--mask"])
-            .arg(dir.join("mask.png"))
-            .arg("--out")
-            .arg(&out)
-            .current_dir(dir)
-            .output()
-            .unwrap();
+        let run = run_video(dir, &video, &[flag, value], &out);
         let log = String::from_utf8_lossy(&run.stderr);
         assert_eq!(run.status.code(), Some(1), "log:\n{log}");
         assert!(log.contains(&format!("{}: {says}", video.display())), "log:\n{log}");
@@ -380,16 +386,7 @@ fn a_video_filmed_with_the_phone_upright_is_read_upright() {
     let mask = dilate(&mask, 6);
     write_mask(&dir.join("mask.png"), &mask);
     let out = dir.join("out");
-    let run = Command::new(bin())
-        .args(["run", "--video"])
-        .arg(&video)
-        .arg("--mask")
-        .arg(dir.join("mask.png"))
-        .arg("--out")
-        .arg(&out)
-        .current_dir(dir)
-        .output()
-        .unwrap();
+    let run = run_video(dir, &video, &[], &out);
     let log = String::from_utf8_lossy(&run.stderr);
     assert_eq!(run.status.code(), Some(0), "log:\n{log}");
     // The keyframe written for painting is the upright first frame.
@@ -431,16 +428,7 @@ fn the_frames_of_the_warm_up_are_views_of_a_keyframe_named_after_them() {
     let mask = dilate(&mask, 6);
     write_mask(&dir.join("mask.png"), &mask);
     let out = dir.join("out");
-    let run = Command::new(bin())
-        .args(["run", "--video"])
-        .arg(&video)
-        .args(["--keyframe-frame", &KEY_AT.to_string(), "--mask"])
-        .arg(dir.join("mask.png"))
-        .arg("--out")
-        .arg(&out)
-        .current_dir(dir)
-        .output()
-        .unwrap();
+    let run = run_video(dir, &video, &["--keyframe-frame", &KEY_AT.to_string()], &out);
     let log = String::from_utf8_lossy(&run.stderr);
     assert_eq!(run.status.code(), Some(0), "log:\n{log}");
     let ev = events(&out);
@@ -705,16 +693,7 @@ fn frames_that_share_a_sliver_with_a_hidden_keyframe_are_chained_through_the_las
     let mask = dilate(&mask, 6);
     write_mask(&dir.join("mask.png"), &mask);
     let out = dir.join("out");
-    let run = Command::new(bin())
-        .args(["run", "--video"])
-        .arg(&video)
-        .arg("--mask")
-        .arg(dir.join("mask.png"))
-        .arg("--out")
-        .arg(&out)
-        .current_dir(dir)
-        .output()
-        .unwrap();
+    let run = run_video(dir, &video, &[], &out);
     let log = String::from_utf8_lossy(&run.stderr);
     assert_eq!(run.status.code(), Some(0), "log:\n{log}");
     let ev = events(&out);
