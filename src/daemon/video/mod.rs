@@ -388,9 +388,13 @@ fn parse_probe(json: &str) -> Option<Probe> {
     };
     let fps = rate("avg_frame_rate").or_else(|| rate("r_frame_rate")).unwrap_or(25.0);
     // Pixels that are not square (`sample_aspect_ratio` 8:9, 4:3…) are shown stretched:
-    // the width as shown, rounded to an even number as FFmpeg's scaler wants it.
+    // the width as shown, rounded to an even number as FFmpeg's scaler wants it. A ratio
+    // beyond 1:4 or 4:1 is no camera's and is not believed (it would only blow the frame
+    // up).
     let width = match rate("sample_aspect_ratio") {
-        Some(sar) if (sar - 1.0).abs() > 1e-3 => (((width as f64 * sar) / 2.0).round() as usize * 2).max(2),
+        Some(sar) if (sar - 1.0).abs() > 1e-3 && (0.25..=4.0).contains(&sar) => {
+            (((width as f64 * sar) / 2.0).round() as usize * 2).max(2)
+        }
         _ => width,
     };
     // A quarter turn (the display matrix's `rotation`, or the older `rotate` tag) swaps the
@@ -451,10 +455,12 @@ mod tests {
         )
         .unwrap();
         assert_eq!((p.width, p.height), (640, 480));
-        let p = parse_probe(
-            r#"{"streams":[{"width":640,"height":480,"r_frame_rate":"25/1","sample_aspect_ratio":"1:1"}]}"#,
-        )
-        .unwrap();
-        assert_eq!((p.width, p.height), (640, 480));
+        for plain in ["1:1", "0:1", "1000:1"] {
+            let p = parse_probe(&format!(
+                r#"{{"streams":[{{"width":640,"height":480,"r_frame_rate":"25/1","sample_aspect_ratio":"{plain}"}}]}}"#
+            ))
+            .unwrap();
+            assert_eq!((p.width, p.height), (640, 480), "{plain}");
+        }
     }
 }
