@@ -483,6 +483,34 @@ fn a_missing_ffmpeg_is_a_clear_error_at_start() {
     assert!(err.contains("/nonexistent/ffmpeg") && err.contains("install FFmpeg"), "{err}");
 }
 
+/// A stream whose frames have more pixels than `watch.max_pixels` (the limit every
+/// photograph is held to) is refused at start, naming the file, its frames' size and the
+/// limit: a stream can claim any size, and a frame is held several times over.
+#[test]
+fn frames_over_the_pixel_limit_are_refused_at_start() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let world = World::new();
+    let frames: Vec<RgbF32> = (0..3).map(|i| world.frame(World::pan(i, 0), None)).collect();
+    let video = encode(dir, &frames);
+    std::fs::write(dir.join("c.toml"), "[watch]\nmax_pixels = 100000\n").unwrap();
+    let run = Command::new(bin())
+        .args(["run", "--config", "c.toml", "--video"])
+        .arg(&video)
+        .args(["--mask", "auto", "--out", "out"])
+        .current_dir(dir)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "{err}");
+    let says =
+        format!("{}: its frames are 480x360 (0.2 MP), more than watch.max_pixels (100000)", video.display());
+    assert!(err.contains(&says), "{err}");
+}
+
 /// A tiny MJPEG-over-HTTP server on loopback that can be stopped and started again.
 struct Mjpeg {
     port: u16,

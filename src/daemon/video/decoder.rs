@@ -39,6 +39,8 @@ pub(super) struct Decoder {
     pub(super) pid: ChildPid,
     pub(super) cancel: CancellationToken,
     pub(super) emitter: Arc<Emitter>,
+    /// Frames with more pixels are not read ([`super::too_large`]).
+    pub(super) max_pixels: u64,
 }
 
 impl Decoder {
@@ -77,6 +79,11 @@ impl Decoder {
                     continue;
                 }
             };
+            // A live stream is probed here, and may claim any size.
+            if let Some(reason) = super::too_large(&p, self.max_pixels) {
+                end_reason = Some(reason);
+                break;
+            }
             let (w, h, fps) = *size.get_or_insert((p.width, p.height, p.fps));
             let mut child = match self.spawn_ffmpeg(w, h) {
                 Ok(c) => c,
@@ -450,6 +457,7 @@ mod tests {
             pid: Arc::default(),
             cancel: CancellationToken::new(),
             emitter: Arc::new(Emitter::open(&config).unwrap()),
+            max_pixels: config.max_pixels,
         };
         let (w, h) = (32, 24);
         let mut selector = FrameSelector::new(decoder.src.select.clone());

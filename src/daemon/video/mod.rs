@@ -65,6 +65,8 @@ pub enum VideoError {
     Probe { input: String, reason: String },
     #[error("{path}: cannot read the mask: {reason}")]
     Mask { path: PathBuf, reason: String },
+    #[error("{input}: {reason}")]
+    TooLarge { input: String, reason: String },
     #[error("{path}: the mask is {mask_w}x{mask_h} but the video is {width}x{height}")]
     MaskSize { path: PathBuf, mask_w: usize, mask_h: usize, width: usize, height: usize },
     #[error("cannot start a video thread: {0}")]
@@ -174,6 +176,9 @@ impl Videos {
                         .map_err(|reason| VideoError::Probe { input: src.input.clone(), reason })?,
                 )
             };
+            if let Some(reason) = probe.and_then(|p| too_large(&p, config.max_pixels)) {
+                return Err(VideoError::TooLarge { input: src.input.clone(), reason });
+            }
             let mask = match &src.mask {
                 VideoMask::File(path) => {
                     let img = image::open(path)
@@ -200,6 +205,7 @@ impl Videos {
             let (done_tx, done_rx) = tokio::sync::oneshot::channel();
             let decoder = Decoder {
                 src: src.clone(),
+                max_pixels: config.max_pixels,
                 out: tx,
                 stats: vstats.clone(),
                 pid: pid.clone(),
@@ -327,6 +333,22 @@ impl Drop for Reaped {
     }
 }
 
+/// Why frames of `p`'s size are not read: more pixels than `max_pixels`
+/// (`watch.max_pixels`, the limit every photograph is held to). A frame is held several
+/// times over (the pipe's buffer, the kept frames, the session's crops), and a stream can
+/// claim any size.
+pub fn too_large(p: &Probe, max_pixels: u64) -> Option<String> {
+    let pixels = p.width as u64 * p.height as u64;
+    (pixels > max_pixels).then(|| {
+        format!(
+            "its frames are {}x{} ({:.1} MP), more than watch.max_pixels ({max_pixels})",
+            p.width,
+            p.height,
+            pixels as f64 / 1e6
+        )
+    })
+}
+
 /// Asks ffprobe for the first video stream's size and rate (within 20 s).
 pub fn probe(src: &VideoSource, cancel: &CancellationToken) -> Result<Probe, String> {
     let mut cmd = Command::new(&src.ffprobe);
@@ -430,6 +452,16 @@ mod tests {
         assert_eq!(p.fps, 25.0);
         assert!(parse_probe(r#"{"streams":[]}"#).is_none());
         assert!(parse_probe("not json").is_none());
+    }
+
+    #[test]
+    fn frames_larger_than_a_photograph_may_be_are_not_read() {
+        let p = |width, height| Probe { width, height, fps: 25.0 };
+        assert_eq!(too_large(&p(4000, 3000), 12_000_000), None);
+        assert_eq!(
+            too_large(&p(4000, 3001), 12_000_000).as_deref(),
+            Some("its frames are 4000x3001 (12.0 MP), more than watch.max_pixels (12000000)")
+        );
     }
 
     #[test]
