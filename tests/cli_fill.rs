@@ -265,6 +265,31 @@ fn a_photograph_given_as_the_mask_is_refused() {
     assert!(!out.exists());
 }
 
+/// A mask painted in an editor on a transparent layer, in red, exported with the
+/// transparency stored as white: read by luminance alone, every transparent pixel was
+/// white ("the mask covers the whole keyframe") and the red stroke was kept. It is read as
+/// the editor shows it, and the result is the one made with the black-and-white mask.
+#[test]
+fn a_mask_painted_on_a_transparent_layer_removes_what_was_painted() {
+    let s = scene();
+    let (plain, report) = (s.path("plain.png"), s.path("plain.json"));
+    fill_ok(args(&s, &plain, &report));
+    let layer = image::RgbaImage::from_fn(W as u32, H as u32, |x, y| {
+        if s.mask.is_hole(x as usize, y as usize) {
+            image::Rgba([220, 30, 30, 255])
+        } else {
+            image::Rgba([255, 255, 255, 0])
+        }
+    });
+    layer.save(s.path("key.mask.png")).unwrap();
+    let (out, report) = (s.path("clear.png"), s.path("report.json"));
+    let o = fill_ok(args(&s, &out, &report));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!err.contains("covers the whole keyframe") && !err.contains("marks no pixel"), "{err}");
+    let (a, b) = (image::open(&plain).unwrap().to_rgb8(), image::open(&out).unwrap().to_rgb8());
+    assert!(a == b, "the painted layer was not read as the mask it shows");
+}
+
 /// A glob that takes in the keyframe (`*.jpg`), or a view given twice, is what a user
 /// types. The keyframe as a view shows the occluder where the mask is and painted it back
 /// (on a facade with slabs, 25.3 dB fell to 16.6 dB and most of the mask went doubtful); a

@@ -326,11 +326,14 @@ fn a_late_mask_fills_from_the_buffered_views_and_a_new_keyframe_restarts_the_ses
 
     // The mask arrives after the views: they are aligned again (the keyframe's corners
     // under the mask are not matched, so an alignment made without it is not the one the
-    // mask-first order gives), then filled.
-    put(&session.join("key.mask.png"), &mask_png(&scene.mask));
+    // mask-first order gives), then filled. It was painted in red on a transparent layer:
+    // what was painted is the mask (read by luminance, the transparency stored as white
+    // was the mask and the red stroke was not).
+    put(&session.join("key.mask.png"), &painted_layer_png(&scene.mask));
     let ev = wait_for(&f, "a result from the buffered views", 30, |e| {
         of_kind(e, "result_updated").iter().any(|r| r["views"] == 2)
     });
+    assert_eq!(of_kind(&ev, "mask_set")[0]["masked"].as_u64(), Some(scene.mask.hole_count() as u64));
     let after_mask: Vec<&Value> = ev
         .iter()
         .skip_while(|e| e["event"] != "mask_set")

@@ -8,10 +8,10 @@ use clap::Args;
 use serde::Serialize;
 
 use super::exit;
-use super::load::load_image;
+use super::load::{load_image, load_mask};
 use crate::align::{AlignParams, Frame, align};
 use crate::geometry::{Method, Rows};
-use crate::imaging::convert::{to_luminance, to_mask};
+use crate::imaging::convert::to_luminance;
 use crate::imaging::decode::DecodeLimits;
 
 #[derive(Debug, Args)]
@@ -87,8 +87,8 @@ pub fn run(args: &AlignArgs) -> u8 {
     }
     let mask = match &args.mask {
         None => None,
-        Some(path) => match load_image(path, &limits) {
-            Ok(m) if (m.width(), m.height()) == (key.width(), key.height()) => Some(to_mask(&m)),
+        Some(path) => match load_mask(path, &limits) {
+            Ok(m) if (m.width(), m.height()) == (key.width() as usize, key.height() as usize) => Some(m),
             Ok(m) => {
                 eprintln!(
                     "clearview align: {}: the mask is {}x{} but the keyframe is {}x{}",

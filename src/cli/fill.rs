@@ -13,13 +13,12 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
 use super::exit;
-use super::load::{LoadError, load_image, load_photo};
+use super::load::{LoadError, load_image, load_mask, load_photo};
 use super::save::{output_format, result_format, save_image, save_result};
 use crate::align::{AlignParams, Frame, align};
 use crate::geometry::{Homography, Rows};
 use crate::imaging::convert::{
-    MASK_MAX_GREY, crop_rgb8, luminance, mask_grey_share, mask_to_luma8, plane_to_luma8, to_luminance,
-    to_mask, to_rgb,
+    MASK_MAX_GREY, crop_rgb8, luminance, mask_grey_share, mask_to_luma8, plane_to_luma8, to_luminance, to_rgb,
 };
 use crate::imaging::decode::DecodeLimits;
 use crate::imaging::encode::{EncodeOptions, OutputSpace};
@@ -592,7 +591,7 @@ fn load_key(
         None
     } else {
         let path = Path::new(&args.mask);
-        let m = to_mask(&load_image(path, limits).map_err(|e| failure(e.to_string()))?);
+        let m = load_mask(path, limits).map_err(|e| failure(e.to_string()))?;
         if (m.width(), m.height()) != (kw, kh) {
             return Err(failure(format!(
                 "{}: the mask is {}x{} but the keyframe {} is {kw}x{kh}",

@@ -6,7 +6,8 @@ use std::path::{Path, PathBuf};
 use image::DynamicImage;
 use thiserror::Error;
 
-use crate::imaging::decode::{DecodeError, DecodeLimits, Photo, decode_photo};
+use crate::imaging::Mask;
+use crate::imaging::decode::{DecodeError, DecodeLimits, Photo, decode_mask, decode_photo};
 
 /// A file that did not become an image.
 #[derive(Debug, Error)]
@@ -32,4 +33,11 @@ pub fn load_photo(path: &Path, limits: &DecodeLimits) -> Result<Photo, LoadError
         eprintln!("clearview: {}: {w}", path.display());
     }
     Ok(photo)
+}
+
+/// Reads and decodes the mask `path` within `limits`, upright, as
+/// [`crate::imaging::convert::to_mask`] reads it (transparency is what is kept).
+pub fn load_mask(path: &Path, limits: &DecodeLimits) -> Result<Mask, LoadError> {
+    let bytes = std::fs::read(path).map_err(|source| LoadError::Io { path: path.to_owned(), source })?;
+    decode_mask(&bytes, limits).map_err(|source| LoadError::Decode { path: path.to_owned(), source })
 }

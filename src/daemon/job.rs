@@ -11,7 +11,8 @@ use image::DynamicImage;
 use super::paths::{Inbox, Refusal};
 use super::state;
 use super::watch::Role;
-use crate::imaging::decode::{DecodeError, DecodeLimits, decode};
+use crate::imaging::convert::plane_to_luma8;
+use crate::imaging::decode::{DecodeError, DecodeLimits, decode, decode_mask};
 
 /// Keyframes and views with a side shorter than this are refused: too few pixels for
 /// corners to be found and matched.
@@ -159,13 +160,15 @@ pub fn read_and_decode(
 }
 
 /// The bytes half of [`read_and_decode`] (also what the fuzz targets drive): decoded
-/// within `limits`, views and keyframes as 8-bit RGB, masks as 8-bit grey.
+/// within `limits`, views and keyframes as 8-bit RGB, masks as 8-bit grey
+/// ([`crate::imaging::convert::to_mask`]: what is transparent is kept).
 pub fn decode_as(bytes: &[u8], role: Role, limits: &DecodeLimits) -> Result<DynamicImage, DecodeError> {
-    Ok(match (role, decode(bytes, limits)?) {
-        (Role::Mask, DynamicImage::ImageLuma8(g)) => DynamicImage::ImageLuma8(g),
-        (Role::Mask, other) => DynamicImage::ImageLuma8(other.to_luma8()),
-        (_, DynamicImage::ImageRgb8(c)) => DynamicImage::ImageRgb8(c),
-        (_, other) => DynamicImage::ImageRgb8(other.to_rgb8()),
+    if role == Role::Mask {
+        return Ok(DynamicImage::ImageLuma8(plane_to_luma8(&decode_mask(bytes, limits)?)));
+    }
+    Ok(match decode(bytes, limits)? {
+        DynamicImage::ImageRgb8(c) => DynamicImage::ImageRgb8(c),
+        other => DynamicImage::ImageRgb8(other.to_rgb8()),
     })
 }
 

@@ -147,10 +147,46 @@ pub fn gray_to_luma8(gray: &GrayF32) -> GrayImage {
 }
 
 /// A decoded image as a mask: luminance > 127 (of 255) means "fill".
+///
+/// A mask painted in an editor on a transparent layer is read as the user sees it there:
+/// what is transparent is kept, whatever colour the file stores under the transparency (an
+/// editor may keep white there, which read by luminance alone marked the whole keyframe).
+/// Where the opaque part holds both near-black and brighter pixels, it is a black-and-white
+/// mask with transparent parts and is read by luminance (laid on black); otherwise every
+/// opaque pixel was painted, in whatever colour (a red or a black brush), and is removed.
 pub fn to_mask(img: &DynamicImage) -> Mask {
-    let g = img.to_luma8();
-    Mask::from_vec(g.width() as usize, g.height() as usize, g.into_raw())
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    if img.color().has_alpha() {
+        let la = img.to_luma_alpha8();
+        let opaque = |p: &[u8]| p[1] > 127;
+        if la.as_raw().chunks_exact(2).any(|p| !opaque(p)) {
+            let (mut painted, mut black, mut bright) = (0usize, 0usize, 0usize);
+            for p in la.as_raw().chunks_exact(2).filter(|p| opaque(p)) {
+                painted += 1;
+                black += usize::from(p[0] < NEAR_BLACK);
+                bright += usize::from(p[0] > 127);
+            }
+            let share = |n: usize, of: f64| n > 0 && n as f64 >= of * painted as f64;
+            let by_luminance = share(black, BLACK_SHARE) && share(bright, BRIGHT_SHARE);
+            let data = la
+                .as_raw()
+                .chunks_exact(2)
+                .map(|p| if opaque(p) && (!by_luminance || p[0] > 127) { 255 } else { 0 })
+                .collect();
+            return Mask::from_vec(w, h, data);
+        }
+    }
+    Mask::from_vec(w, h, img.to_luma8().into_raw())
 }
+
+/// In a mask with transparent parts, luminance below this (of 255) is black...
+const NEAR_BLACK: u8 = 32;
+/// ...and its opaque part is a black-and-white mask when at least this share of it is black
+/// (a black brush's anti-aliased edge is partly transparent, not an opaque share)...
+const BLACK_SHARE: f64 = 0.01;
+/// ...and this share brighter than mid-grey (a small white stroke on a black layer still
+/// counts; a stray pixel does not).
+const BRIGHT_SHARE: f64 = 0.001;
 
 /// The share of a mask's pixels that are neither near black nor near white (32..=223). A
 /// painted mask has grey only along its edges (a soft brush, a JPEG's ringing); a
@@ -326,5 +362,57 @@ mod tests {
         for (p, q) in a.as_slice().iter().zip(b.as_slice()) {
             assert!((p - q).abs() < 1e-5);
         }
+    }
+
+    /// A 40 × 30 mask painted as a user paints one on a transparent layer: `stroke` where
+    /// `x < 10` (opaque), `under` elsewhere with alpha `alpha`.
+    fn layer(stroke: [u8; 3], under: [u8; 3], alpha: u8) -> DynamicImage {
+        DynamicImage::ImageRgba8(image::RgbaImage::from_fn(40, 30, |x, _| {
+            if x < 10 {
+                image::Rgba([stroke[0], stroke[1], stroke[2], 255])
+            } else {
+                image::Rgba([under[0], under[1], under[2], alpha])
+            }
+        }))
+    }
+
+    fn painted(m: &Mask) -> usize {
+        m.hole_count()
+    }
+
+    #[test]
+    fn what_is_transparent_in_a_mask_is_kept_whatever_colour_it_stores() {
+        // The stroke alone is removed: white, black or red, over transparency stored white
+        // (which read by luminance alone marked the whole keyframe) or black.
+        for stroke in [[255, 255, 255], [0, 0, 0], [255, 0, 0]] {
+            for under in [[255, 255, 255], [0, 0, 0]] {
+                let m = to_mask(&layer(stroke, under, 0));
+                assert_eq!(painted(&m), 10 * 30, "stroke {stroke:?} over {under:?}");
+                assert!((0..30).all(|y| m.is_hole(5, y) && !m.is_hole(20, y)));
+            }
+        }
+        // Opaque everywhere: luminance, as before (white removes, black keeps).
+        assert_eq!(painted(&to_mask(&layer([255; 3], [0; 3], 255))), 10 * 30);
+        assert_eq!(painted(&to_mask(&layer([0; 3], [255; 3], 255))), 30 * 30);
+        assert_eq!(painted(&to_mask(&layer([255, 0, 0], [0; 3], 255))), 0, "red is darker than mid-grey");
+    }
+
+    #[test]
+    fn a_black_and_white_mask_with_transparent_parts_is_read_by_luminance() {
+        // Black with a white stroke, opaque, and a transparent strip at the top: the black
+        // is kept, the stroke removed, the strip kept.
+        let img = DynamicImage::ImageRgba8(image::RgbaImage::from_fn(40, 30, |x, y| match (x, y) {
+            (_, 0..3) => image::Rgba([255, 255, 255, 0]),
+            (0..10, _) => image::Rgba([255, 255, 255, 255]),
+            _ => image::Rgba([0, 0, 0, 255]),
+        }));
+        let m = to_mask(&img);
+        assert_eq!(painted(&m), 10 * 27);
+        assert!(m.is_hole(5, 10) && !m.is_hole(5, 1) && !m.is_hole(20, 10));
+        // Grey and alpha as 16 bits read the same.
+        let grey = DynamicImage::ImageLumaA16(image::ImageBuffer::from_fn(40, 30, |x, _| {
+            image::LumaA([65535, if x < 10 { 65535 } else { 0 }])
+        }));
+        assert_eq!(painted(&to_mask(&grey)), 10 * 30);
     }
 }

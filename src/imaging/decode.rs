@@ -8,10 +8,10 @@ use std::io::Cursor;
 use image::{DynamicImage, ImageDecoder, ImageReader, Limits};
 use thiserror::Error;
 
-use super::RgbF32;
 use super::colour::{Space, to_working};
-use super::convert::to_rgb;
+use super::convert::{to_mask, to_rgb};
 use super::meta::{Metadata, strip_exif_header};
+use super::{Mask, RgbF32};
 
 /// HEIC and AVIF through libheif: a backend of this module's, behind [`decode`].
 mod heif;
@@ -67,6 +67,14 @@ pub fn decode(bytes: &[u8], limits: &DecodeLimits) -> Result<DynamicImage, Decod
         tracing::warn!(warning = %w, "image read with a warning");
     }
     Ok(photo.image)
+}
+
+/// Decodes a mask: upright, within `limits`, with its pixels as stored (a mask's white is
+/// white in any colour space, and an embedded profile would cost it its transparency), read
+/// as [`to_mask`] reads an image.
+pub fn decode_mask(bytes: &[u8], limits: &DecodeLimits) -> Result<Mask, DecodeError> {
+    let (image, _) = decode_stored(bytes, limits)?;
+    Ok(to_mask(&image))
 }
 
 /// [`decode`] with the metadata and the warnings.
@@ -364,5 +372,27 @@ mod tests {
         let limits = DecodeLimits { max_pixels: 100 };
         let err = decode(&png_bytes(11, 10), &limits).unwrap_err();
         assert!(matches!(err, DecodeError::TooLarge { pixels: 110, .. }), "{err}");
+    }
+
+    #[test]
+    fn a_mask_keeps_its_transparency_under_a_colour_profile() {
+        // A PNG mask with an embedded profile (an editor's export): a photograph is read
+        // through the profile into RGB, which drops the alpha; the mask is read as stored.
+        let img = image::RgbaImage::from_fn(40, 30, |x, _| {
+            if x < 10 { image::Rgba([255, 255, 255, 255]) } else { image::Rgba([255, 255, 255, 0]) }
+        });
+        let mut bytes = Vec::new();
+        let mut enc = image::codecs::png::PngEncoder::new(&mut bytes);
+        image::ImageEncoder::set_icc_profile(&mut enc, super::super::colour::adobe_rgb_icc()).unwrap();
+        image::ImageEncoder::write_image(enc, img.as_raw(), 40, 30, image::ExtendedColorType::Rgba8).unwrap();
+        let limits = DecodeLimits::default();
+        assert!(decode_photo(&bytes, &limits).unwrap().meta.icc.is_some(), "the profile is read");
+        let mask = decode_mask(&bytes, &limits).unwrap();
+        assert_eq!(mask.hole_count(), 10 * 30);
+        assert!(mask.is_hole(0, 0) && !mask.is_hole(10, 0));
+        assert!(matches!(
+            decode_mask(&bytes, &DecodeLimits { max_pixels: 100 }),
+            Err(DecodeError::TooLarge { .. })
+        ));
     }
 }

@@ -139,6 +139,21 @@ pub fn mask_png(mask: &Mask) -> Vec<u8> {
     out.into_inner()
 }
 
+/// `mask` as a user paints it in an editor on a transparent layer: a red stroke, and
+/// transparency stored as white elsewhere.
+pub fn painted_layer_png(mask: &Mask) -> Vec<u8> {
+    let layer = image::RgbaImage::from_fn(mask.width() as u32, mask.height() as u32, |x, y| {
+        if mask.is_hole(x as usize, y as usize) {
+            image::Rgba([220, 30, 30, 255])
+        } else {
+            image::Rgba([255, 255, 255, 0])
+        }
+    });
+    let mut out = std::io::Cursor::new(Vec::new());
+    layer.write_to(&mut out, image::ImageFormat::Png).unwrap();
+    out.into_inner()
+}
+
 /// Writes under a hidden name and renames, as a careful uploader does.
 pub fn put(path: &Path, bytes: &[u8]) {
     std::fs::create_dir_all(path.parent().unwrap()).unwrap();

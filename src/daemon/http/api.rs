@@ -37,7 +37,8 @@ use crate::daemon::paths::{Inbox, Refusal};
 use crate::daemon::registry::SessionSnapshot;
 use crate::daemon::watch;
 use crate::fsio::atomic_write;
-use crate::imaging::decode::{DecodeLimits, decode};
+use crate::imaging::convert::mask_to_luma8;
+use crate::imaging::decode::{DecodeLimits, decode, decode_mask};
 
 /// A refusal with its status and a JSON `{"error": ...}` body.
 pub struct ApiError(StatusCode, String);
@@ -351,20 +352,16 @@ pub async fn put_mask(
     }
     let _turn = s.limits.decode().await;
     let stored = tokio::task::spawn_blocking(move || -> Result<serde_json::Value, ApiError> {
-        let img = decode(&body, &limits)
+        let mask = decode_mask(&body, &limits)
             .map_err(|e| err(StatusCode::BAD_REQUEST, format!("not a readable image: {e}")))?;
-        if (img.width() as usize, img.height() as usize) != (kw, kh) {
+        if (mask.width(), mask.height()) != (kw, kh) {
             return Err(err(
                 StatusCode::BAD_REQUEST,
-                format!("the mask is {}x{}, the keyframe {kw}x{kh}", img.width(), img.height()),
+                format!("the mask is {}x{}, the keyframe {kw}x{kh}", mask.width(), mask.height()),
             ));
         }
-        let mut luma = img.to_luma8();
-        let mut masked = 0usize;
-        for p in luma.pixels_mut() {
-            p.0[0] = if p.0[0] > 127 { 255 } else { 0 };
-            masked += usize::from(p.0[0] == 255);
-        }
+        let masked = mask.hole_count();
+        let luma = mask_to_luma8(&mask);
         let mut png = std::io::Cursor::new(Vec::new());
         luma.write_to(&mut png, image::ImageFormat::Png)
             .map_err(|e| err(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;

@@ -47,7 +47,7 @@ use super::event::VideoCounters;
 use super::registry::Registry;
 use super::{Backlog, Stats};
 use crate::config::{Config, VideoMask, VideoSource};
-use crate::imaging::convert::to_mask;
+use crate::imaging::decode::{DecodeLimits, decode_mask};
 use decoder::Decoder;
 use runner::Runner;
 
@@ -181,9 +181,11 @@ impl Videos {
             }
             let mask = match &src.mask {
                 VideoMask::File(path) => {
-                    let img = image::open(path)
-                        .map_err(|e| VideoError::Mask { path: path.clone(), reason: e.to_string() })?;
-                    let mask = to_mask(&img);
+                    let limits = DecodeLimits { max_pixels: config.max_pixels };
+                    let mask = std::fs::read(path)
+                        .map_err(|e| e.to_string())
+                        .and_then(|bytes| decode_mask(&bytes, &limits).map_err(|e| e.to_string()))
+                        .map_err(|reason| VideoError::Mask { path: path.clone(), reason })?;
                     if let Some(p) = probe
                         && (mask.width(), mask.height()) != (p.width, p.height)
                     {
