@@ -290,6 +290,20 @@ fn a_mask_painted_on_a_transparent_layer_removes_what_was_painted() {
     assert!(a == b, "the painted layer was not read as the mask it shows");
 }
 
+/// A mask painted the other way round (black strokes on white) asks to remove all but the
+/// occluder: the fill goes on, as asked (here every view is refused: the keyframe's few
+/// corners left outside the mask match nothing), and says what the mask probably is.
+#[test]
+fn a_mask_over_most_of_the_keyframe_is_called_probably_inverted() {
+    let s = scene();
+    let inverted = s.mask.map(|&v| 255 - v);
+    mask_to_luma8(&inverted).save(s.path("key.mask.png")).unwrap();
+    let (out, report) = (s.path("clear.png"), s.path("report.json"));
+    let o = fill(args(&s, &out, &report));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("key.mask.png") && err.contains("is it inverted?"), "{err}");
+}
+
 /// A glob that takes in the keyframe (`*.jpg`), or a view given twice, is what a user
 /// types. The keyframe as a view shows the occluder where the mask is and painted it back
 /// (on a facade with slabs, 25.3 dB fell to 16.6 dB and most of the mask went doubtful); a

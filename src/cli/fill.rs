@@ -609,7 +609,7 @@ fn load_key(
                 100.0 * grey
             )));
         }
-        if let Some(w) = m.mistake() {
+        if let Some(w) = m.mistake().or_else(|| m.inverted()) {
             eprintln!("clearview fill: {}: {w}", path.display());
         }
         Some(m)

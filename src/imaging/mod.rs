@@ -316,7 +316,23 @@ impl Mask {
             None
         }
     }
+
+    /// What a mask file that covers most of the keyframe but not all of it probably is, in
+    /// a user's words (black strokes on white, the convention of some editors, mark all but
+    /// the strokes); `None` for any other. [`Mask::mistake`] says the rest.
+    pub fn inverted(&self) -> Option<&'static str> {
+        let masked = self.hole_count() as f64;
+        let all = self.data.len() as f64;
+        (masked >= MOSTLY_MASKED * all && masked < 0.999 * all).then_some(
+            "the mask covers most of the keyframe: white is what is removed and black what is kept; is it inverted?",
+        )
+    }
 }
+
+/// A mask file that asks to remove more than this share of the keyframe is probably
+/// inverted ([`Mask::inverted`]): people, cars and trees in front of a facade leave most of
+/// it to be seen.
+const MOSTLY_MASKED: f64 = 0.75;
 
 /// The four samples around a real-valued position of a `w × h` image and the weights
 /// between them: indices of the top-left, top-right, bottom-left and bottom-right
@@ -440,6 +456,15 @@ mod tests {
         blank.paste(&part, r);
         assert_eq!(blank.get(11, 7), 711.0);
         assert_eq!(blank.get(2, 4), 0.0);
+    }
+
+    #[test]
+    fn a_mask_over_most_of_the_keyframe_is_probably_inverted() {
+        let mask = |holes: usize| Mask::from_fn(100, 10, |x, y| if y * 100 + x < holes { 255 } else { 0 });
+        assert_eq!(mask(740).inverted(), None);
+        assert!(mask(760).inverted().is_some_and(|w| w.contains("inverted")));
+        assert_eq!(mask(1000).inverted(), None, "all white: `mistake` says so");
+        assert!(mask(1000).mistake().is_some() && mask(760).mistake().is_none());
     }
 
     #[test]

@@ -357,7 +357,10 @@ impl Slot {
         let masked = mask.hole_count();
         let share = masked as f64 / mask.len().max(1) as f64;
         // Masks that are probably mistakes say what will come of them.
-        let warning = mask.mistake();
+        let warning = match origin {
+            MaskOrigin::File(_) => mask.mistake().or_else(|| mask.inverted()),
+            MaskOrigin::Auto(_) => mask.mistake(),
+        };
         let again = self.session.set_mask(id, mask).map_err(|e| e.to_string())?;
         self.decided.clear();
         let (file, views) = match origin {
