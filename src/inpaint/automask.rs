@@ -378,13 +378,16 @@ fn grow_by_colour(
                 }
             }
         }
-        // Beyond its box, only where the views see and disagree, or where what views there
-        // are all differ from the keyframe: a stretch that a view sees as the keyframe does,
-        // or none sees (a frame's edge), says nothing of an object there.
-        let open = |x: usize, y: usize| {
-            growth != Growth::ThroughUnjudged
-                || (!judged.get(x, y)
-                    && (component.contains(x, y) || ev.contested.get(x, y) || ev.weak.get(x, y)))
+        // Beyond its box, through what the views did not judge, only where they see and
+        // disagree, or where what views there are all differ from the keyframe: a stretch
+        // that a view sees as the keyframe does, or none sees (a frame's edge), says nothing
+        // of an object there.
+        let doubted =
+            |x: usize, y: usize| component.contains(x, y) || ev.contested.get(x, y) || ev.weak.get(x, y);
+        let open = |x: usize, y: usize| match growth {
+            Growth::Around => true,
+            Growth::Regrowth => judged.get(x, y) || doubted(x, y),
+            Growth::ThroughUnjudged => !judged.get(x, y) && doubted(x, y),
         };
         grow_into(&mut out, stack, |x, y| zone.contains(x, y) && open(x, y) && likely(x, y));
     }
@@ -397,7 +400,11 @@ enum Growth {
     /// Into its surroundings, up to a quarter of its size beyond its box.
     Around,
     /// The same again from the object as grown (`AutoMaskParams::regrowth_passes`), through
-    /// judged pixels only on stronger colour evidence.
+    /// judged pixels only on stronger colour evidence, and beyond its box through unjudged
+    /// ones only where the views doubt the keyframe, as [`Growth::ThroughUnjudged`] goes:
+    /// grown through what no view saw, a strip flagged at the edge of the views' reach (the
+    /// far side of a wall's corner, `oxford-wall`) spread over the frame's corner that no
+    /// view reached.
     Regrowth,
     /// Through pixels no two views agreed on only, within its box grown by
     /// [`AutoMaskParams::unjudged_reach`] quarters of its size (a later pass: the object's
@@ -1814,7 +1821,7 @@ mod tests {
         });
         let object = Plane::from_fn(w, h, |x, y| (10..20).contains(&x) && (10..20).contains(&y));
         let beside = |x: usize, y: usize| (20..28).contains(&x) && (10..20).contains(&y);
-        let grown = |contested: bool, weak: bool| {
+        let grown_by = |growth: Growth, contested: bool, weak: bool| {
             let ev = Evidence {
                 strong: object.clone(),
                 weak: Plane::from_fn(w, h, |x, y| beside(x, y) && weak),
@@ -1822,13 +1829,21 @@ mod tests {
                 contested: Plane::from_fn(w, h, |x, y| beside(x, y) && contested),
                 consensus: key.clone(),
             };
-            let out = grow_by_colour(&key, &object, &ev, &AutoMaskParams::default(), Growth::ThroughUnjudged);
+            let out = grow_by_colour(&key, &object, &ev, &AutoMaskParams::default(), growth);
             (0..w * h).filter(|&i| out.get(i % w, i / w) && beside(i % w, i / w)).count()
         };
+        let grown = |contested: bool, weak: bool| grown_by(Growth::ThroughUnjudged, contested, weak);
         // The box (10..20) grown by twice a quarter of its size reaches x = 24: 4 columns.
         assert_eq!(grown(true, false), 40, "seen and contested");
         assert_eq!(grown(false, true), 40, "every view unlike the keyframe");
         assert_eq!(grown(false, false), 0, "seen by too few views to say");
+        // The regrowth passes reach a quarter of its size beyond the box (x = 22), by the
+        // same rule where the views did not judge (they took 20 pixels there too).
+        let regrown = |contested: bool, weak: bool| grown_by(Growth::Regrowth, contested, weak);
+        assert_eq!(regrown(true, false), 20);
+        assert_eq!(regrown(false, true), 20);
+        assert_eq!(regrown(false, false), 0, "seen by too few views to say");
+        assert_eq!(grown_by(Growth::Around, false, false), 20, "the first growth goes anywhere near");
     }
 
     #[test]
