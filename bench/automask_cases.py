@@ -30,6 +30,18 @@ def masked_psnr(a, b, mask):
     return float("inf") if mse == 0 else 10 * np.log10(255.0**2 / mse)
 
 
+def read_case(case):
+    """A `service_cases` folder: (truth, its mask as booleans, the views in their numbers'
+    order), or None (said) when it has no truth.png or mask.png."""
+    truth = cv2.imread(str(case / "truth.png"))
+    mask = cv2.imread(str(case / "mask.png"), cv2.IMREAD_GRAYSCALE)
+    if truth is None or mask is None:
+        print(f"{case}: no truth.png or mask.png, skipped")
+        return None
+    views = sorted((str(p) for p in case.glob("view-*.png")), key=lambda p: int(p.rsplit("-", 1)[1][:-4]))
+    return truth, mask > 127, views
+
+
 def family(name):
     return name.rsplit("-", 1)[0]
 
@@ -45,13 +57,10 @@ def main():
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
     rows = []
     for case in args.cases:
-        truth = cv2.imread(str(case / "truth.png"))
-        mask = cv2.imread(str(case / "mask.png"), cv2.IMREAD_GRAYSCALE)
-        if truth is None or mask is None:
-            print(f"{case}: no truth.png or mask.png, skipped")
+        read = read_case(case)
+        if read is None:
             continue
-        mask = mask > 127
-        views = sorted((str(p) for p in case.glob("view-*.png")), key=lambda p: int(p.rsplit("-", 1)[1][:-4]))
+        truth, mask, views = read
         fills = {}
         for kind in ("true", "auto"):
             out = args.work / f"{case.name}.{kind}.png"

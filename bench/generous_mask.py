@@ -21,7 +21,7 @@ import subprocess
 import cv2
 import numpy as np
 
-from automask_cases import masked_psnr
+from automask_cases import masked_psnr, read_case
 
 LOSS_BOUND_DB = 1.5
 
@@ -39,13 +39,10 @@ def main():
     print("|---|" + "---:|" * (1 + len(radii)))
     rows = []
     for case in args.cases:
-        truth = cv2.imread(str(case / "truth.png"))
-        painted = cv2.imread(str(case / "mask.png"), cv2.IMREAD_GRAYSCALE)
-        if truth is None or painted is None:
-            print(f"{case}: no truth.png or mask.png, skipped")
+        read = read_case(case)
+        if read is None:
             continue
-        scored = painted > 127
-        views = sorted((str(p) for p in case.glob("view-*.png")), key=lambda p: int(p.rsplit("-", 1)[1][:-4]))
+        truth, scored, views = read
         row = []
         for r in [0] + radii:
             stem = f"{case.parent.name}-{case.name}.r{r}"
