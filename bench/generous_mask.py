@@ -21,9 +21,7 @@ import subprocess
 import cv2
 import numpy as np
 
-from automask_cases import masked_psnr, read_case
-
-LOSS_BOUND_DB = 1.5
+from automask_cases import LOSS_BOUND_DB, masked_psnr, read_case
 
 
 def main():
@@ -46,12 +44,13 @@ def main():
         row = []
         for r in [0] + radii:
             stem = f"{case.parent.name}-{case.name}.r{r}"
-            out, mask = args.work / f"{stem}.png", args.work / f"{stem}.mask.png"
+            out, mask = args.work / f"{stem}.png", case / "mask.png"
             if not out.exists():
-                grown = (scored * 255).astype(np.uint8)
                 if r:
+                    mask = args.work / f"{stem}.mask.png"
+                    grown = (scored * 255).astype(np.uint8)
                     grown = cv2.dilate(grown, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
-                cv2.imwrite(str(mask), grown)
+                    cv2.imwrite(str(mask), grown)
                 cmd = [args.clearview, "fill", "--keyframe", str(case / "key.png"), "--mask", str(mask), "--out", str(out)]
                 done = subprocess.run(cmd + views, capture_output=True, text=True)
                 # Exit 3: every view refused; the result (the single-image fallback) is still
