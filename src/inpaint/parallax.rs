@@ -1675,12 +1675,14 @@ impl Band {
             }
         };
         let mean = |vs: &[(usize, f64)], om: &[Vec<Vec<Option<f32>>>], e: &V3, wall: bool| -> f32 {
-            let total: f32 = vs
+            // Computed in parallel, added in order: a parallel sum's order follows the work
+            // stealing, and its last bits could tip the search from one run to the next.
+            let costs: Vec<f32> = vs
                 .par_iter()
                 .zip(om)
                 .map(|(&(i, g), o)| cost_one(i, &at(v, e, if wall { 0.0 } else { g }), o))
-                .sum();
-            total / vs.len().max(1) as f32
+                .collect();
+            costs.iter().sum::<f32>() / vs.len().max(1) as f32
         };
         let (om_fine, om_coarse) =
             (theirs(&fine, &others_at(&fine, false)), theirs(&coarse, &others_at(&coarse, false)));
