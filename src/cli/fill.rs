@@ -419,12 +419,14 @@ fn try_run(args: &FillArgs) -> Result<u8, (u8, String)> {
     let (mask, auto): (Mask, Option<AutoMaskSummary>) = match given_mask {
         Some(m) => (m, None),
         None => {
-            if aligned.len() < 2 {
-                eprintln!(
-                    "clearview fill: --mask auto: the mask is what two views agree the keyframe shows wrongly, and {} view{} aligned: nothing can be judged, the result is the keyframe (paint a mask, or add views)",
-                    aligned.len(),
-                    if aligned.len() == 1 { "" } else { "s" }
-                );
+            match aligned.len() {
+                0 => eprintln!(
+                    "clearview fill: --mask auto: the mask is what the views show otherwise than the keyframe, and 0 views aligned: nothing can be judged, the result is the keyframe (paint a mask, or add views)"
+                ),
+                1 => eprintln!(
+                    "clearview fill: --mask auto: 1 view aligned: the mask is what it shows otherwise and nowhere near, where two views agreeing would be surer (check the mask with --save-mask, or add views)"
+                ),
+                _ => {}
             }
             progress.begin("auto mask", 0);
             let sources: Vec<Source<'_, [u8; 3]>> = aligned.iter().map(Aligned::source).collect();

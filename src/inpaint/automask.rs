@@ -90,6 +90,15 @@ pub struct AutoMaskParams {
     /// corners matched in the views ([`super::parallax::parallax_family_with`]); a view without
     /// one explains nothing.
     pub epipolar_reach: f32,
+    /// With a single view there is no consensus: where the keyframe and that view differ,
+    /// either may show something in front, or the scene may stand off the wall and be seen
+    /// from elsewhere (parallax tens of pixels wide, in directions no one epipole explains
+    /// when the alignment's plane is itself a compromise). A person is where it is in one
+    /// photograph only: the keyframe's 5 × 5 patch that the view shows anywhere within this
+    /// share of the work image's diagonal (a nearest-patch search, PatchMatch's) is the
+    /// scene, displaced, and no evidence of an occluder; the keyframe's own object is found
+    /// nowhere near. 0: a single view judges nothing (`min_views` holds).
+    pub lone_view_reach: f32,
     /// The sky is never an occluder: clouds drift between the shots, and the views agree on
     /// a sky the keyframe does not show, but there is no building behind it to bring back
     /// (filled, it came out a patchwork of the views' skies). Sky here is what is smooth and
@@ -142,6 +151,7 @@ impl Default for AutoMaskParams {
             unjudged_reach: 2,
             parallax_radius: 3,
             epipolar_reach: 0.12,
+            lone_view_reach: 0.05,
             sky_gradient: 0.015,
             sky_luma: 0.35,
             sky_edge: 0.02,
@@ -197,7 +207,8 @@ struct Evidence {
 /// Stages: (1) each view warped into a reduced keyframe and compensated; (2) per pixel, the
 /// consensus of the views that agree with each other, and the keyframe's distance to it
 /// (strong and weak evidence), less what the views show moved along their epipolar lines
-/// (the scene off the wall, [`AutoMaskParams::epipolar_reach`]); (3) strong pixels where
+/// (the scene off the wall, [`AutoMaskParams::epipolar_reach`]) and, with a single view,
+/// what it shows displaced ([`AutoMaskParams::lone_view_reach`]); (3) strong pixels where
 /// the keyframe looks like its own surroundings and the consensus does not are dropped (the
 /// views share an occluder there), and so is the sky ([`AutoMaskParams::sky_gradient`]), here and after every growth;
 /// (4) seeds (strong, opened) grown by hysteresis through the weak pixels connected to them;
@@ -231,6 +242,16 @@ fn auto_mask_excluding<P: RgbPixel>(
         certain_share: 0.0,
         judged_share: 0.0,
         judged: Mask::new(w, h, 0),
+    };
+    // One view, where two are asked for: judged by that view, each difference searched for
+    // nearby in it ([`AutoMaskParams::lone_view_reach`]).
+    let lone = sources.len() == 1 && params.min_views > 1 && params.lone_view_reach > 0.0;
+    let lone_params;
+    let params = if lone {
+        lone_params = AutoMaskParams { min_views: 1, ..params.clone() };
+        &lone_params
+    } else {
+        params
     };
     if sources.len() < params.min_views.max(1) || w == 0 || h == 0 {
         return empty();
@@ -267,6 +288,9 @@ fn auto_mask_excluding<P: RgbPixel>(
         explain_by_own_occluders(&key_b, &warped, &mut ev, params);
     }
     explain_by_parallax(&key_b, &mut ev, params);
+    if lone {
+        explain_by_displacement(&key_b, &warped, &mut ev, params);
+    }
     if params.epipolar_reach > 0.0 {
         let epipoles = keyframe_epipoles(key, sources, &from_full);
         explain_by_epipoles(&key_b, &warped, &epipoles, &mut ev, params);
@@ -592,19 +616,35 @@ const WINDOW: usize = ((2 * HALF + 1) * (2 * HALF + 1)) as usize;
 
 /// Whether the keyframe's 5×5 window at `(x, y)` (`key`, an image of `size`) matches
 /// `other`'s moved by `(dx, dy)`: over the pixels inside both and `usable` at the moved
-/// place, more than half the window, with a mean squared RGB distance of at most `t2`.
-/// Row by row, taps in the order of a plain double loop (the sums are those of one); it
-/// stops once the sum is past what any count of the window's pixels would pass.
+/// place, more than half the window, with a mean squared RGB distance of at most `t2`
+/// ([`window_sum`]).
 fn window_matches(
+    key: &[[f32; 3]],
+    other: &[[f32; 3]],
+    usable: &[bool],
+    size: (isize, isize),
+    at: (isize, isize),
+    by: (isize, isize),
+    t2: f32,
+) -> bool {
+    window_sum(key, other, usable, size, at, by, t2)
+        .is_some_and(|(sum, n)| n * 2 > WINDOW && sum <= t2 * n as f32)
+}
+
+/// The summed squared RGB distance of `key`'s 5 × 5 window at `(x, y)` to `other`'s moved
+/// by `(dx, dy)` over the window's pixels `usable` in `other`, and their count; `None` as
+/// soon as the sum is past what any count would bring to a mean of `bound`. Row by row,
+/// taps in the order of a plain double loop.
+fn window_sum(
     key: &[[f32; 3]],
     other: &[[f32; 3]],
     usable: &[bool],
     (wi, hi): (isize, isize),
     (x, y): (isize, isize),
     (dx, dy): (isize, isize),
-    t2: f32,
-) -> bool {
-    let hopeless = t2 * WINDOW as f32;
+    bound: f32,
+) -> Option<(f32, usize)> {
+    let hopeless = bound * WINDOW as f32;
     let (mut sum, mut n) = (0.0f32, 0usize);
     let (lo, up) = ((x - HALF).max(0).max(-dx), (x + HALF).min(wi - 1).min(wi - 1 - dx));
     for py in y - HALF..=y + HALF {
@@ -622,10 +662,10 @@ fn window_matches(
             }
         }
         if sum > hopeless {
-            return false;
+            return None;
         }
     }
-    n * 2 > WINDOW && sum <= t2 * n as f32
+    Some((sum, n))
 }
 
 /// Strong pixels whose 5×5 patch matches the consensus moved by at most `parallax_radius`
@@ -659,6 +699,232 @@ fn explain_by_parallax(key: &RgbF32, ev: &mut Evidence, params: &AutoMaskParams)
     for i in explained {
         ev.strong.as_mut_slice()[i] = false;
         ev.weak.as_mut_slice()[i] = true;
+    }
+}
+
+/// Stage (2b'), a single view ([`AutoMaskParams::lone_view_reach`]): strong and weak
+/// pixels whose keyframe patch the view shows displaced by more than `parallax_radius` and
+/// at most the reach are the scene seen from elsewhere: no evidence of an occluder. Only
+/// patches with detail are searched (a plain one matches any plain patch of its colour);
+/// the view's nearest patches are found as PatchMatch finds them ([`Displacements`]). A
+/// plain stretch of flagged pixels goes with the detail around it ([`PLAIN_VERDICT`]).
+fn explain_by_displacement(
+    key: &RgbF32,
+    warped: &[(RgbF32, Plane<bool>)],
+    ev: &mut Evidence,
+    params: &AutoMaskParams,
+) {
+    let (w, h) = (key.width(), key.height());
+    let reach = (f64::from(params.lone_view_reach) * (w as f64).hypot(h as f64)).round() as isize;
+    if reach <= params.parallax_radius as isize {
+        return;
+    }
+    let t2 = params.threshold * params.threshold;
+    // A patch whose own colours stray from their mean by less than the tolerance matches
+    // any plain patch of its mean colour: found elsewhere, it says nothing of where it is
+    // (the plain coat of a passer-by, found in a dark window nearby). Only patches with more
+    // detail than that are searched.
+    let spread = window_spread(key);
+    let any: Vec<bool> = (0..w * h).map(|i| ev.strong.as_slice()[i] || ev.weak.as_slice()[i]).collect();
+    let detailed: Vec<bool> = spread.as_slice().iter().map(|&v| v > t2).collect();
+    let flagged: Vec<bool> = any.iter().zip(&detailed).map(|(&a, &d)| a && d).collect();
+    let found: Vec<Vec<bool>> = warped
+        .par_iter()
+        .enumerate()
+        .map(|(v, (img, valid))| {
+            let search = Displacements { reach, near: params.parallax_radius as isize, t2 };
+            search.matches(key, img, valid, &flagged, DISPLACEMENT_SEED ^ v as u64)
+        })
+        .collect();
+    let explained: Vec<bool> = (0..w * h)
+        .map(|i| {
+            let seeing = warped.iter().filter(|(_, valid)| valid.as_slice()[i]).count();
+            let found = found.iter().filter(|f| f[i]).count();
+            flagged[i] && found >= params.min_views && 2 * found >= seeing
+        })
+        .collect();
+    // A plain stretch takes the verdict of the detail around it: a plain wall between
+    // window frames that the view shows displaced is the scene displaced too, while the
+    // plain coat of a passer-by is bordered by the outline of the passer-by, found nowhere.
+    // Where an object's colour runs on into the scene's without an edge, the stretch is
+    // both, and is kept unless the detail found displaced outnumbers the rest
+    // `PLAIN_VERDICT` times.
+    let plain: Vec<bool> = any.iter().zip(&detailed).map(|(&a, &d)| a && !d).collect();
+    let mut seen = vec![false; w * h];
+    let mut drop = explained.clone();
+    for start in 0..w * h {
+        if !plain[start] || seen[start] {
+            continue;
+        }
+        seen[start] = true;
+        let (mut members, mut stack) = (Vec::new(), vec![start]);
+        let (mut for_scene, mut against) = (0usize, 0usize);
+        while let Some(i) = stack.pop() {
+            members.push(i);
+            let (x, y) = ((i % w) as isize, (i / w) as isize);
+            for (dx, dy) in NEIGHBOURS_8 {
+                let (nx, ny) = (x + dx, y + dy);
+                if nx < 0 || ny < 0 || nx >= w as isize || ny >= h as isize {
+                    continue;
+                }
+                let j = ny as usize * w + nx as usize;
+                if plain[j] {
+                    if !seen[j] {
+                        seen[j] = true;
+                        stack.push(j);
+                    }
+                } else if flagged[j] {
+                    if explained[j] {
+                        for_scene += 1;
+                    } else {
+                        against += 1;
+                    }
+                }
+            }
+        }
+        if for_scene > PLAIN_VERDICT * against {
+            members.into_iter().for_each(|i| drop[i] = true);
+        }
+    }
+    for (i, _) in drop.iter().enumerate().filter(|&(_, &d)| d) {
+        ev.strong.as_mut_slice()[i] = false;
+        ev.weak.as_mut_slice()[i] = false;
+    }
+}
+
+/// How many times the flagged detail found displaced must outnumber the detail found
+/// nowhere around a plain stretch for the stretch to be the scene displaced
+/// ([`explain_by_displacement`]). Over 95 one-view cases (`bench/automask_cases.py`):
+/// 1 lost whole trees whose plain crowns ran into the plain scene; 6 kept a whole roofscape
+/// seen with parallax; 3 keeps the most of both (BENCHMARKS.md, sixty-sixth session).
+const PLAIN_VERDICT: usize = 3;
+
+/// Per pixel, the mean squared RGB distance of the 5 × 5 window's pixels to their mean
+/// (the window clipped at the border).
+fn window_spread(img: &RgbF32) -> Plane<f32> {
+    let (w, h) = (img.width(), img.height());
+    let all = Plane::new(w, h, true);
+    let mut spread = Plane::new(w, h, 0.0f32);
+    for c in 0..3 {
+        let v = Plane::from_fn(w, h, |x, y| img.get(x, y)[c]);
+        let sq = v.map(|&a| a * a);
+        let (mean, mean_sq) = (box_mean(&v, &all, HALF as usize), box_mean(&sq, &all, HALF as usize));
+        for (s, (m, m2)) in
+            spread.as_mut_slice().iter_mut().zip(mean.as_slice().iter().zip(mean_sq.as_slice()))
+        {
+            *s += (m2 - m * m).max(0.0);
+        }
+    }
+    spread
+}
+
+/// The seed of [`explain_by_displacement`]'s random search.
+const DISPLACEMENT_SEED: u64 = 0xd15b_1ace;
+
+/// A nearest-patch search of the keyframe's flagged pixels in one view (Barnes et al.,
+/// PatchMatch, 2009): displacements up to `reach` on either axis, those within `near` of
+/// none left out (the small moves are [`explain_by_parallax`]'s).
+struct Displacements {
+    reach: isize,
+    near: isize,
+    t2: f32,
+}
+
+impl Displacements {
+    /// Rounds of propagation and random search, alternately forwards and backwards.
+    const ROUNDS: usize = 5;
+
+    /// Per pixel of `key`: whether it is flagged and the view `other` shows its 5 × 5 patch
+    /// at some allowed displacement with a mean squared RGB distance of at most `t2` (over
+    /// the window's usable pixels, more than half of it).
+    fn matches(
+        &self,
+        key: &RgbF32,
+        other: &RgbF32,
+        usable: &Plane<bool>,
+        flagged: &[bool],
+        seed: u64,
+    ) -> Vec<bool> {
+        use rand::{Rng, SeedableRng};
+        let (w, h) = (key.width(), key.height());
+        let (ks, os, us) = (key.as_slice(), other.as_slice(), usable.as_slice());
+        let size = (w as isize, h as isize);
+        let allowed = |(dx, dy): (isize, isize)| {
+            dx.abs().max(dy.abs()) > self.near && dx.abs() <= self.reach && dy.abs() <= self.reach
+        };
+        let cost = |i: usize, d: (isize, isize), bound: f32| {
+            let (x, y) = ((i % w) as isize, (i / w) as isize);
+            let (tx, ty) = (x + d.0, y + d.1);
+            if !allowed(d) || tx < 0 || ty < 0 || tx >= size.0 || ty >= size.1 {
+                return f32::INFINITY;
+            }
+            window_cost(ks, os, us, size, (x, y), d, bound)
+        };
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        // rand draws no `isize` (its width is the platform's): drawn as i64.
+        let mut pick = |r: isize| rng.random_range(-(r as i64)..=r as i64) as isize;
+        let mut best: Vec<((isize, isize), f32)> = vec![((0, 0), f32::INFINITY); w * h];
+        for i in (0..w * h).filter(|&i| flagged[i]) {
+            let d = (pick(self.reach), pick(self.reach));
+            best[i] = (d, cost(i, d, f32::INFINITY));
+        }
+        for round in 0..Self::ROUNDS {
+            let forward = round % 2 == 0;
+            let step: isize = if forward { -1 } else { 1 };
+            for k in 0..w * h {
+                let i = if forward { k } else { w * h - 1 - k };
+                if !flagged[i] {
+                    continue;
+                }
+                let (x, y) = ((i % w) as isize, (i / w) as isize);
+                // The displacements of the neighbours already visited this round.
+                for (nx, ny) in [(x + step, y), (x, y + step)] {
+                    if nx < 0 || ny < 0 || nx >= size.0 || ny >= size.1 {
+                        continue;
+                    }
+                    let j = (ny * size.0 + nx) as usize;
+                    if flagged[j] && best[j].0 != best[i].0 {
+                        let c = cost(i, best[j].0, best[i].1);
+                        if c < best[i].1 {
+                            best[i] = (best[j].0, c);
+                        }
+                    }
+                }
+                // Random search around the best, the radius halved each time.
+                let mut r = self.reach;
+                while r >= 1 {
+                    let (bx, by) = best[i].0;
+                    let d = (
+                        (bx + pick(r)).clamp(-self.reach, self.reach),
+                        (by + pick(r)).clamp(-self.reach, self.reach),
+                    );
+                    let c = cost(i, d, best[i].1);
+                    if c < best[i].1 {
+                        best[i] = (d, c);
+                    }
+                    r /= 2;
+                }
+            }
+        }
+        best.iter().zip(flagged).map(|(&(_, c), &f)| f && c <= self.t2).collect()
+    }
+}
+
+/// The mean squared RGB distance of `key`'s 5 × 5 window at `(x, y)` to `other`'s moved by
+/// `(dx, dy)` ([`window_sum`]): infinite where half the window or less is usable, or as soon
+/// as the sum shows it cannot come under `bound`.
+fn window_cost(
+    key: &[[f32; 3]],
+    other: &[[f32; 3]],
+    usable: &[bool],
+    size: (isize, isize),
+    at: (isize, isize),
+    by: (isize, isize),
+    bound: f32,
+) -> f32 {
+    match window_sum(key, other, usable, size, at, by, bound) {
+        Some((sum, n)) if n * 2 > WINDOW => sum / n as f32,
+        _ => f32::INFINITY,
     }
 }
 
@@ -1339,9 +1605,10 @@ pub fn own_occluders_memo<'m, P: RgbPixel>(
         // the fills of 2 of the 106 evaluation cases, both for the worse (photo-ece-2
         // −0.12 dB, shared-5 −0.19 dB), and improved none.
         auto.unjudged_reach = 0;
-        // Nor are the views' epipoles looked for: the views' own marks were measured
-        // without them.
+        // Nor are the views' epipoles looked for, nor a lone witness's displaced patches:
+        // the views' own marks were measured without them.
         auto.epipolar_reach = 0.0;
+        auto.lone_view_reach = 0.0;
         let found: Vec<Option<Mask>> = stale
             .par_iter()
             .map(|&k| {
@@ -1732,6 +1999,40 @@ mod tests {
     /// the views as an occluder does; each view shows them moved along its epipolar line.
     /// Without that explanation 2 007 to 9 382 pixels away from the occluders are masked,
     /// with it 261 to 4 247; every occluder pixel is found either way.
+    /// With one view there is no consensus. Judged by that view alone, with what it shows
+    /// displaced not searched for (`min_views` 1, the way a walk's frame is judged), the
+    /// slabs off the wall and the view's own occluders are masked too; searched for, the mask
+    /// keeps to the keyframe's occluders.
+    #[test]
+    fn a_lone_view_masks_what_it_shows_nowhere_near() {
+        let (mut away_naive, mut away_lone, mut recalls) = (0, 0, Vec::new());
+        for seed in [6003, 6005, 8005, 8011] {
+            let c = crate::synth::occlusion_case(crate::synth::CaseFamily::NonPlanar, 480, 360, 1, seed);
+            let near = dilate(&c.mask.map(|&m| m > 127), 6);
+            let found = |p: &AutoMaskParams| {
+                let m = auto_mask_report(&c.key, &c.sources(), p).mask;
+                let on = |i: usize| m.as_slice()[i] > 127;
+                let away = (0..m.as_slice().len()).filter(|&i| on(i) && !near.as_slice()[i]).count();
+                let hit = (0..m.as_slice().len()).filter(|&i| on(i) && c.mask.as_slice()[i] > 127).count();
+                (away, hit as f64 / c.mask.hole_count() as f64)
+            };
+            let (naive, naive_recall) = found(&AutoMaskParams { min_views: 1, ..AutoMaskParams::default() });
+            let (lone, recall) = found(&AutoMaskParams::default());
+            println!(
+                "seed {seed}: {naive} → {lone} pixels away from the occluders, recall {naive_recall:.3} → {recall:.3}"
+            );
+            (away_naive, away_lone) = (away_naive + naive, away_lone + lone);
+            recalls.push(recall);
+        }
+        assert!(away_naive > 4000, "the cases hold: {away_naive} pixels off the occluders");
+        assert!(
+            2 * away_lone < away_naive,
+            "{away_lone} pixels off the occluders, {away_naive} without the search"
+        );
+        let mean = recalls.iter().sum::<f64>() / recalls.len() as f64;
+        assert!(mean > 0.8, "recall {recalls:?}");
+    }
+
     #[test]
     fn what_stands_off_the_wall_is_explained_along_the_epipolar_lines() {
         for (seed, views) in [(6003, 3), (6005, 4), (8005, 2)] {
