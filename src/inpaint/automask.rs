@@ -757,31 +757,31 @@ fn explain_by_displacement(
             continue;
         }
         seen[start] = true;
-        let (mut members, mut stack) = (Vec::new(), vec![start]);
+        let mut members = Vec::new();
         let (mut for_scene, mut against) = (0usize, 0usize);
-        while let Some(i) = stack.pop() {
-            members.push(i);
-            let (x, y) = ((i % w) as isize, (i / w) as isize);
-            for (dx, dy) in NEIGHBOURS_8 {
-                let (nx, ny) = (x + dx, y + dy);
-                if nx < 0 || ny < 0 || nx >= w as isize || ny >= h as isize {
-                    continue;
-                }
-                let j = ny as usize * w + nx as usize;
+        let start = (start % w, start / w);
+        flood(
+            (w, h),
+            vec![start],
+            &NEIGHBOURS_8,
+            |x, y| members.push(y * w + x),
+            |x, y| {
+                let j = y * w + x;
                 if plain[j] {
-                    if !seen[j] {
-                        seen[j] = true;
-                        stack.push(j);
-                    }
-                } else if flagged[j] {
+                    let enter = !seen[j];
+                    seen[j] = true;
+                    return enter;
+                }
+                if flagged[j] {
                     if explained[j] {
                         for_scene += 1;
                     } else {
                         against += 1;
                     }
                 }
-            }
-        }
+                false
+            },
+        );
         if for_scene > PLAIN_VERDICT * against {
             members.into_iter().for_each(|i| drop[i] = true);
         }
