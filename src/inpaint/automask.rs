@@ -99,19 +99,6 @@ pub struct AutoMaskParams {
     /// scene, displaced, and no evidence of an occluder; the keyframe's own object is found
     /// nowhere near. 0: a single view judges nothing (`min_views` holds).
     pub lone_view_reach: f32,
-    /// With several views, the same search within this share of the work image's diagonal
-    /// (0: not looked for): the keyframe's patch that at least `min_views` views, and half of
-    /// those that see it, show displaced is the scene seen from elsewhere (a wall's far face
-    /// round a corner, mullions standing off glass, a parked car), where no epipole is found
-    /// to explain it. Two checks keep the occluders the views share or half-match:
-    /// - a pixel where the views agree with each other on something else (strong evidence)
-    ///   goes only if what they agree on is itself shown displaced in the keyframe: behind
-    ///   a tree that every view shows shifted, the views agree on the wall the keyframe
-    ///   hides everywhere near;
-    /// - what was found displaced goes only where, within the reach, it outnumbers the
-    ///   flagged detail found nowhere: a passer-by's dark legs matched on a dark car
-    ///   nearby stay with the passer-by.
-    pub displaced_reach: f32,
     /// The sky is never an occluder: clouds drift between the shots, and the views agree on
     /// a sky the keyframe does not show, but there is no building behind it to bring back
     /// (filled, it came out a patchwork of the views' skies). Sky here is what is smooth and
@@ -165,7 +152,6 @@ impl Default for AutoMaskParams {
             parallax_radius: 3,
             epipolar_reach: 0.12,
             lone_view_reach: 0.05,
-            displaced_reach: 0.02,
             sky_gradient: 0.015,
             sky_luma: 0.35,
             sky_edge: 0.02,
@@ -222,8 +208,7 @@ struct Evidence {
 /// consensus of the views that agree with each other, and the keyframe's distance to it
 /// (strong and weak evidence), less what the views show moved along their epipolar lines
 /// (the scene off the wall, [`AutoMaskParams::epipolar_reach`]) and, with a single view,
-/// what they show displaced ([`AutoMaskParams::lone_view_reach`],
-/// [`AutoMaskParams::displaced_reach`]); (3) strong pixels where
+/// what it shows displaced ([`AutoMaskParams::lone_view_reach`]); (3) strong pixels where
 /// the keyframe looks like its own surroundings and the consensus does not are dropped (the
 /// views share an occluder there), and so is the sky ([`AutoMaskParams::sky_gradient`]), here and after every growth;
 /// (4) seeds (strong, opened) grown by hysteresis through the weak pixels connected to them;
@@ -304,9 +289,7 @@ fn auto_mask_excluding<P: RgbPixel>(
     }
     explain_by_parallax(&key_b, &mut ev, params);
     if lone {
-        explain_by_displacement(&key_b, &warped, &mut ev, params, Witnesses::Lone);
-    } else if params.displaced_reach > 0.0 {
-        explain_by_displacement(&key_b, &warped, &mut ev, params, Witnesses::Several);
+        explain_by_displacement(&key_b, &warped, &mut ev, params);
     }
     if params.epipolar_reach > 0.0 {
         let epipoles = keyframe_epipoles(key, sources, &from_full);
@@ -719,36 +702,20 @@ fn explain_by_parallax(key: &RgbF32, ev: &mut Evidence, params: &AutoMaskParams)
     }
 }
 
-/// Who judges in [`explain_by_displacement`].
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Witnesses {
-    /// One view where two are asked for ([`AutoMaskParams::lone_view_reach`]).
-    Lone,
-    /// Enough views ([`AutoMaskParams::displaced_reach`]).
-    Several,
-}
-
-/// Stage (2b'): strong and weak pixels whose keyframe patch the views show displaced by
-/// more than `parallax_radius` and at most the reach are the scene seen from elsewhere: no
-/// evidence of an occluder. Only patches with detail are searched (a plain one matches any
-/// plain patch of its colour); the views' nearest patches are found as PatchMatch finds
-/// them ([`Displacements`]). A plain stretch of flagged pixels goes with the detail around
-/// it ([`PLAIN_VERDICT`]). With several views, what is found amid detail found nowhere stays,
-/// and so does what the views agree on and the keyframe hides
-/// ([`AutoMaskParams::displaced_reach`]).
+/// Stage (2b'), a single view ([`AutoMaskParams::lone_view_reach`]): strong and weak
+/// pixels whose keyframe patch the view shows displaced by more than `parallax_radius` and
+/// at most the reach are the scene seen from elsewhere: no evidence of an occluder. Only
+/// patches with detail are searched (a plain one matches any plain patch of its colour);
+/// the view's nearest patches are found as PatchMatch finds them ([`Displacements`]). A
+/// plain stretch of flagged pixels goes with the detail around it ([`PLAIN_VERDICT`]).
 fn explain_by_displacement(
     key: &RgbF32,
     warped: &[(RgbF32, Plane<bool>)],
     ev: &mut Evidence,
     params: &AutoMaskParams,
-    witnesses: Witnesses,
 ) {
     let (w, h) = (key.width(), key.height());
-    let share = match witnesses {
-        Witnesses::Lone => params.lone_view_reach,
-        Witnesses::Several => params.displaced_reach,
-    };
-    let reach = (f64::from(share) * (w as f64).hypot(h as f64)).round() as isize;
+    let reach = (f64::from(params.lone_view_reach) * (w as f64).hypot(h as f64)).round() as isize;
     if reach <= params.parallax_radius as isize {
         return;
     }
@@ -761,11 +728,13 @@ fn explain_by_displacement(
     let any: Vec<bool> = (0..w * h).map(|i| ev.strong.as_slice()[i] || ev.weak.as_slice()[i]).collect();
     let detailed: Vec<bool> = spread.as_slice().iter().map(|&v| v > t2).collect();
     let flagged: Vec<bool> = any.iter().zip(&detailed).map(|(&a, &d)| a && d).collect();
-    let search = Displacements { reach, near: params.parallax_radius as isize, t2 };
     let found: Vec<Vec<bool>> = warped
         .par_iter()
         .enumerate()
-        .map(|(v, (img, valid))| search.matches(key, img, valid, &flagged, DISPLACEMENT_SEED ^ v as u64))
+        .map(|(v, (img, valid))| {
+            let search = Displacements { reach, near: params.parallax_radius as isize, t2 };
+            search.matches(key, img, valid, &flagged, DISPLACEMENT_SEED ^ v as u64)
+        })
         .collect();
     let explained: Vec<bool> = (0..w * h)
         .map(|i| {
@@ -817,50 +786,9 @@ fn explain_by_displacement(
             members.into_iter().for_each(|i| drop[i] = true);
         }
     }
-    if witnesses == Witnesses::Several {
-        keep_what_is_found_amid_what_is_not(w, h, reach as usize, &any, &detailed, &mut drop);
-        // Where the views agree with each other on something else, that is the building
-        // unless the keyframe shows it displaced too.
-        let consensus_spread = window_spread(&ev.consensus);
-        let asked: Vec<bool> = (0..w * h)
-            .map(|i| drop[i] && ev.strong.as_slice()[i] && consensus_spread.as_slice()[i] > t2)
-            .collect();
-        let everywhere = Plane::new(w, h, true);
-        let shown =
-            search.matches(&ev.consensus, key, &everywhere, &asked, DISPLACEMENT_SEED ^ CONSENSUS_SEED);
-        for (i, d) in drop.iter_mut().enumerate() {
-            *d &= !ev.strong.as_slice()[i] || shown[i];
-        }
-    }
     for (i, _) in drop.iter().enumerate().filter(|&(_, &d)| d) {
         ev.strong.as_mut_slice()[i] = false;
         ev.weak.as_mut_slice()[i] = false;
-    }
-}
-
-/// The seed of the consensus' search in the keyframe ([`explain_by_displacement`]), mixed
-/// into [`DISPLACEMENT_SEED`].
-const CONSENSUS_SEED: u64 = 0xbac;
-
-/// What `drop` says was found displaced stays dropped only where, within `r` of it, the
-/// flagged detail so found outnumbers the flagged detail found nowhere: pieces of an
-/// occluder that happen to match something nearby (a passer-by's dark legs on a dark car)
-/// stay with the rest of it ([`AutoMaskParams::displaced_reach`]).
-fn keep_what_is_found_amid_what_is_not(
-    w: usize,
-    h: usize,
-    r: usize,
-    flagged: &[bool],
-    detailed: &[bool],
-    drop: &mut [bool],
-) {
-    let count = |found: bool| -> Vec<f32> {
-        (0..w * h).map(|i| f32::from(u8::from(flagged[i] && detailed[i] && drop[i] == found))).collect()
-    };
-    let found = super::parallax::box_sum(&count(true), w, h, r);
-    let nowhere = super::parallax::box_sum(&count(false), w, h, r);
-    for (i, d) in drop.iter_mut().enumerate() {
-        *d &= found[i] > nowhere[i];
     }
 }
 
@@ -1677,11 +1605,10 @@ pub fn own_occluders_memo<'m, P: RgbPixel>(
         // the fills of 2 of the 106 evaluation cases, both for the worse (photo-ece-2
         // −0.12 dB, shared-5 −0.19 dB), and improved none.
         auto.unjudged_reach = 0;
-        // Nor are the views' epipoles looked for, nor the witnesses' displaced patches:
+        // Nor are the views' epipoles looked for, nor a lone witness's displaced patches:
         // the views' own marks were measured without them.
         auto.epipolar_reach = 0.0;
         auto.lone_view_reach = 0.0;
-        auto.displaced_reach = 0.0;
         let found: Vec<Option<Mask>> = stale
             .par_iter()
             .map(|&k| {
@@ -2067,17 +1994,6 @@ mod tests {
         crate::imaging::metrics::mask_iou(&found.mask, &c.mask)
     }
 
-    /// The automatic mask of case `c` under `params`: how many pixels it takes more than
-    /// 6 px away from the true occluders, and the share of the true mask it covers.
-    fn masked_away_and_recall(c: &crate::synth::OcclusionCase, params: &AutoMaskParams) -> (usize, f64) {
-        let near = dilate(&c.mask.map(|&m| m > 127), 6);
-        let m = auto_mask_report(&c.key, &c.sources(), params).mask;
-        let on = |i: usize| m.as_slice()[i] > 127;
-        let away = (0..m.as_slice().len()).filter(|&i| on(i) && !near.as_slice()[i]).count();
-        let hit = (0..m.as_slice().len()).filter(|&i| on(i) && c.mask.as_slice()[i] > 127).count();
-        (away, hit as f64 / c.mask.hole_count() as f64)
-    }
-
     /// A facade with slabs standing off the wall (piers, sign boards) and the keyframe's own
     /// tree and passer-by. Seen through the wall's homography, the slabs' edges disagree with
     /// the views as an occluder does; each view shows them moved along its epipolar line.
@@ -2092,9 +2008,15 @@ mod tests {
         let (mut away_naive, mut away_lone, mut recalls) = (0, 0, Vec::new());
         for seed in [6003, 6005, 8005, 8011] {
             let c = crate::synth::occlusion_case(crate::synth::CaseFamily::NonPlanar, 480, 360, 1, seed);
-            let found = |p: &AutoMaskParams| masked_away_and_recall(&c, p);
-            let (naive, naive_recall) =
-                found(&AutoMaskParams { min_views: 1, displaced_reach: 0.0, ..AutoMaskParams::default() });
+            let near = dilate(&c.mask.map(|&m| m > 127), 6);
+            let found = |p: &AutoMaskParams| {
+                let m = auto_mask_report(&c.key, &c.sources(), p).mask;
+                let on = |i: usize| m.as_slice()[i] > 127;
+                let away = (0..m.as_slice().len()).filter(|&i| on(i) && !near.as_slice()[i]).count();
+                let hit = (0..m.as_slice().len()).filter(|&i| on(i) && c.mask.as_slice()[i] > 127).count();
+                (away, hit as f64 / c.mask.hole_count() as f64)
+            };
+            let (naive, naive_recall) = found(&AutoMaskParams { min_views: 1, ..AutoMaskParams::default() });
             let (lone, recall) = found(&AutoMaskParams::default());
             println!(
                 "seed {seed}: {naive} → {lone} pixels away from the occluders, recall {naive_recall:.3} → {recall:.3}"
@@ -2111,53 +2033,18 @@ mod tests {
         assert!(mean > 0.8, "recall {recalls:?}");
     }
 
-    /// Several views, and no epipole to explain what stands off the wall (none is found on
-    /// Oxford wall's corner, nor behind photo-building's mullions): the slabs are found
-    /// displaced in the views and are not masked, the keyframe's occluders are, whole
-    /// (2 007, 5 151 and 9 382 pixels away from the occluders without the search; 128, 566
-    /// and 1 582 with it). A tree that every view shows shifted stays masked: behind it the
-    /// views agree on the wall, which the keyframe shows nowhere near (without that check,
-    /// seed 2002's IoU falls from 0.875 to 0.479).
-    #[test]
-    fn several_views_mask_what_they_show_nowhere_near() {
-        let no_epipoles = AutoMaskParams { epipolar_reach: 0.0, ..AutoMaskParams::default() };
-        let without_search = AutoMaskParams { displaced_reach: 0.0, ..no_epipoles.clone() };
-        for (seed, views) in [(6003, 3), (6005, 4), (8005, 2)] {
-            let c = crate::synth::occlusion_case(crate::synth::CaseFamily::NonPlanar, 480, 360, views, seed);
-            let found = |p: &AutoMaskParams| masked_away_and_recall(&c, p);
-            let (without, recall_without) = found(&without_search);
-            let (with, recall) = found(&no_epipoles);
-            println!(
-                "seed {seed}, {views} views: {without} → {with} pixels away, recall {recall_without:.3} → {recall:.3}"
-            );
-            assert!(without > 1500, "seed {seed}: the case holds ({without} pixels off the occluders)");
-            assert!(4 * with < without, "seed {seed}: {with} pixels off the occluders, {without} without");
-            assert!(recall > 0.98 && recall >= recall_without - 0.01, "seed {seed}: recall {recall:.3}");
-        }
-        for (seed, views) in [(2001, 3), (2002, 4), (2003, 3), (2004, 4), (2005, 3), (2006, 4)] {
-            let c = crate::synth::occlusion_case(crate::synth::CaseFamily::Shared, 320, 240, views, seed);
-            let iou = |p: &AutoMaskParams| {
-                crate::imaging::metrics::mask_iou(&auto_mask_report(&c.key, &c.sources(), p).mask, &c.mask)
-            };
-            let (without, with) = (iou(&without_search), iou(&no_epipoles));
-            println!("shared seed {seed}, {views} views: IoU {without:.3} → {with:.3}");
-            assert!(with >= without - 0.02, "seed {seed}: IoU {without:.3} → {with:.3}");
-        }
-    }
-
     #[test]
     fn what_stands_off_the_wall_is_explained_along_the_epipolar_lines() {
         for (seed, views) in [(6003, 3), (6005, 4), (8005, 2)] {
             let c = crate::synth::occlusion_case(crate::synth::CaseFamily::NonPlanar, 480, 360, views, seed);
+            let near = dilate(&c.mask.map(|&m| m > 127), 6);
             let found = |reach: f32| {
-                masked_away_and_recall(
-                    &c,
-                    &AutoMaskParams {
-                        epipolar_reach: reach,
-                        displaced_reach: 0.0,
-                        ..AutoMaskParams::default()
-                    },
-                )
+                let p = AutoMaskParams { epipolar_reach: reach, ..AutoMaskParams::default() };
+                let m = auto_mask_report(&c.key, &c.sources(), &p).mask;
+                let on = |i: usize| m.as_slice()[i] > 127;
+                let away = (0..m.as_slice().len()).filter(|&i| on(i) && !near.as_slice()[i]).count();
+                let hit = (0..m.as_slice().len()).filter(|&i| on(i) && c.mask.as_slice()[i] > 127).count();
+                (away, hit as f64 / c.mask.hole_count() as f64)
             };
             let (without, recall_without) = found(0.0);
             let (with, recall) = found(AutoMaskParams::default().epipolar_reach);
