@@ -450,6 +450,9 @@ impl Runner {
         // Nor the clouds joined to the sky: in a walk's soft frames the sky ran on into the
         // glass reflecting it, and one walk lost 3.3 dB (BENCHMARKS.md, "Bands of cloud").
         params.sky_cloud_gradient = 0.0;
+        // Nor faces shaded otherwise (`shading_ncc`): the walks were not
+        // measured with it (sixty-eighth session).
+        params.shading_ncc = 0.0;
         let found = auto_mask_report(&rgb8_to_f32(px), &sources, &params);
         let share = found.mask.as_slice().iter().filter(|&&v| v > 127).count() as f64
             / found.mask.as_slice().len().max(1) as f64;
