@@ -139,7 +139,11 @@ pub struct AutoMaskParams {
     /// sky's, and stops it.
     pub sky_cloud_gradient: f32,
     pub sky_cloud_edge: f32,
-    /// The mask is finally grown by this many pixels (full resolution).
+    /// The mask is finally grown by this many pixels (full resolution). The comparison's
+    /// blur already reaches a reduced pixel past the outline (2 px on a 1440 × 1080
+    /// keyframe), so 1 px more ends about where a person paints, 2 px past it: at 3 px the
+    /// mask lay 3 px and more past that and the IoU with it was held near 0.94 on cases with
+    /// nothing else to find (`the_mask_keeps_near_the_outline_a_person_paints`).
     pub dilate_radius: usize,
     /// The comparison runs on an image box-reduced to at most this many pixels.
     pub work_pixels: usize,
@@ -171,7 +175,7 @@ impl Default for AutoMaskParams {
             sky_edge: 0.02,
             sky_cloud_gradient: 0.03,
             sky_cloud_edge: 0.04,
-            dilate_radius: 3,
+            dilate_radius: 1,
             work_pixels: 1_500_000,
         }
     }
@@ -2141,6 +2145,47 @@ mod tests {
         crate::imaging::metrics::mask_iou(&found.mask, &c.mask)
     }
 
+    /// The mask ends near the outline a person paints, 2 px past the occluder, and every
+    /// occluder pixel is in it. Grown by 3 px after the comparison's blur, it lay 3 px and
+    /// more past that outline all round (the IoU with it 0.92 to 0.945 on these cases; now
+    /// 0.98). At 480 × 360 the comparison runs at full resolution, at 1 800 × 1 000 on a
+    /// half-size image.
+    #[test]
+    fn the_mask_keeps_near_the_outline_a_person_paints() {
+        for (w, h, seed) in [(480, 360, 7001), (480, 360, 7002), (1800, 1000, 7003)] {
+            let c = crate::synth::occlusion_case(crate::synth::CaseFamily::Planar, w, h, 3, seed);
+            let found = |p: &AutoMaskParams| auto_mask_report(&c.key, &c.sources(), p).mask;
+            let on = |m: &Mask, i: usize| m.as_slice()[i] > 127;
+            let n = c.key.as_slice().len();
+            // The painted mask's outline: its pixels with an unmasked 4-neighbour.
+            let painted = c.mask.map(|&v| v > 127);
+            let outline = n
+                - erode(&painted, 1).as_slice().iter().filter(|&&v| v).count()
+                - (0..n).filter(|&i| !painted.as_slice()[i]).count();
+            let near = dilate(&painted, 1);
+            let past = |m: &Mask| (0..n).filter(|&i| on(m, i) && !near.as_slice()[i]).count();
+            let occluder = (0..n).filter(|&i| on(&c.key_occluders, i)).count();
+            let m = found(&AutoMaskParams::default());
+            let kept = (0..n).filter(|&i| on(&c.key_occluders, i) && on(&m, i)).count();
+            let wide = found(&AutoMaskParams { dilate_radius: 3, ..AutoMaskParams::default() });
+            println!(
+                "{w} x {h} seed {seed}: outline {outline} px; masked more than 1 px past it {} (grown by 3 px: {}); IoU {:.3} ({:.3}); occluder {kept} of {occluder}",
+                past(&m),
+                past(&wide),
+                crate::imaging::metrics::mask_iou(&m, &c.mask),
+                crate::imaging::metrics::mask_iou(&wide, &c.mask),
+            );
+            assert_eq!(kept, occluder, "every occluder pixel is masked");
+            assert!(2 * past(&m) < outline, "{} px more than 1 px past an outline of {outline}", past(&m));
+            // The case holds: grown by 3 px, the mask is a ring wider all round.
+            assert!(
+                past(&wide) > outline / 2,
+                "grown by 3 px: {} px past an outline of {outline}",
+                past(&wide)
+            );
+        }
+    }
+
     /// The automatic mask of case `c` under `params`: how many pixels it takes more than
     /// 6 px from the true occluders, and the share of the true mask it covers.
     fn masked_away_and_recall(c: &crate::synth::OcclusionCase, params: &AutoMaskParams) -> (usize, f64) {
@@ -2155,8 +2200,8 @@ mod tests {
     /// A facade with slabs standing off the wall (piers, sign boards) and the keyframe's own
     /// tree and passer-by. Seen through the wall's homography, the slabs' edges disagree with
     /// the views as an occluder does; each view shows them moved along its epipolar line.
-    /// Without that explanation 2 007 to 9 382 pixels away from the occluders are masked,
-    /// with it 261 to 4 247; every occluder pixel is found either way.
+    /// Without that explanation 1 169 to 9 092 pixels away from the occluders are masked,
+    /// with it 12 to 2 323; every occluder pixel is found either way.
     /// With one view there is no consensus. Judged by that view alone, with what it shows
     /// displaced not searched for (`min_views` 1, the way a walk's frame is judged), the
     /// slabs off the wall and the view's own occluders are masked too; searched for, the mask
@@ -2190,8 +2235,8 @@ mod tests {
     /// A facade with a slab standing off the wall, seen with another parallax in each view:
     /// the views' consensus there is a blend that matches neither the keyframe nor any view,
     /// while views one by one can show the keyframe's texture. Without the stage that asks them
-    /// one by one ([`AutoMaskParams::shading_ncc`]) the slab is masked (804, 4 247 and 705
-    /// pixels more than 6 px from the occluders); with it, 46, 124 and 28. The occluders are
+    /// one by one ([`AutoMaskParams::shading_ncc`]) the slab is masked (375, 2 851 and 343
+    /// pixels more than 6 px from the occluders); with it, 7, 32 and 3. The occluders are
     /// found whole.
     #[test]
     fn faces_shaded_otherwise_are_not_occluders() {
@@ -2205,7 +2250,7 @@ mod tests {
             println!(
                 "seed {seed}, {views} views: {without} → {with} pixels away from the occluders, recall {recall_without:.3} → {recall:.3}"
             );
-            assert!(without > 500, "seed {seed}: the case holds ({without} pixels off the occluders)");
+            assert!(without > 300, "seed {seed}: the case holds ({without} pixels off the occluders)");
             assert!(3 * with < without, "seed {seed}: {with} pixels off the occluders, {without} without");
             assert!(recall > 0.98 && recall >= recall_without - 0.01, "seed {seed}: recall {recall:.3}");
         }
@@ -2225,7 +2270,7 @@ mod tests {
             let (without, recall_without) = found(0.0);
             let (with, recall) = found(AutoMaskParams::default().epipolar_reach);
             println!("seed {seed}, {views} views: {without} → {with} pixels away from the occluders");
-            assert!(without > 1500, "seed {seed}: the case holds ({without} pixels off the occluders)");
+            assert!(without > 1000, "seed {seed}: the case holds ({without} pixels off the occluders)");
             assert!(2 * with < without, "seed {seed}: {with} pixels off the occluders, {without} without");
             assert!(recall > 0.98 && recall >= recall_without - 0.01, "seed {seed}: recall {recall:.3}");
         }
@@ -2585,8 +2630,8 @@ mod tests {
         let (m, truth, sky_rows) = under_drifting_clouds(&AutoMaskParams::default());
         let w = m.width();
         assert_most_found(&truth, &m);
-        // The sky but its last rows, where the mask's final growth (`dilate_radius`, 3 px)
-        // reaches over the skyline from what stands against it.
+        // The sky but its last rows, where the mask's blur and final growth
+        // (`dilate_radius`) reach over the skyline from what stands against it.
         let above = sky_rows - 4;
         let sky = holes_in_rows(&m, 0..above);
         assert!(sky < w * above / 100, "{sky} of the {} sky pixels taken", w * above);
