@@ -108,9 +108,8 @@ pub struct AutoMaskParams {
     /// window enough views show within a pixel, with this normalised cross-correlation or
     /// more (mean and contrast left free, the contrasts within [`SHADING_CONTRAST`] of each
     /// other), is no evidence of an occluder; not within [`SHADING_APART`] (or
-    /// [`SHADING_APART_GREY`]) of what stays
-    /// strong evidence (the outline of a passer-by's dark legs on a dark car correlates
-    /// with the car). 0: not looked for.
+    /// [`SHADING_APART_GREY`]) of what stays strong evidence (the outline of a passer-by's
+    /// dark legs on a dark car correlates with the car). 0: not looked for.
     pub shading_ncc: f32,
     /// The sky is never an occluder: clouds drift between the shots, and the views agree on
     /// a sky the keyframe does not show, but there is no building behind it to bring back
@@ -220,6 +219,15 @@ struct Evidence {
     consensus: RgbF32,
 }
 
+impl Evidence {
+    /// Where there is evidence of an occluder, strong or weak.
+    fn flagged(&self) -> Plane<bool> {
+        Plane::from_fn(self.strong.width(), self.strong.height(), |x, y| {
+            self.strong.get(x, y) || self.weak.get(x, y)
+        })
+    }
+}
+
 /// [`auto_mask`] with the figures that say how sure it is.
 ///
 /// Stages: (1) each view warped into a reduced keyframe and compensated; (2) per pixel, the
@@ -327,7 +335,7 @@ fn auto_mask_excluding<P: RgbPixel>(
     let keep = |p: &Plane<bool>| Plane::from_fn(rw, rh, |x, y| p.get(x, y) && !veto.get(x, y));
     let seeds = keep(&ev.strong);
     let seeds = dilate(&erode(&seeds, params.open_radius), params.open_radius);
-    let reach = keep(&Plane::from_fn(rw, rh, |x, y| ev.strong.get(x, y) || ev.weak.get(x, y)));
+    let reach = keep(&ev.flagged());
     let grown = grow_from(&seeds, &reach);
     // Up to `passes` growths of one kind, each from the objects as the last left them.
     let regrow = |mut objects: Plane<bool>, growth: Growth, passes: usize| {
@@ -750,7 +758,7 @@ fn explain_by_displacement(
     // (the plain coat of a passer-by, found in a dark window nearby). Only patches with more
     // detail than that are searched.
     let spread = window_spread(key);
-    let any: Vec<bool> = (0..w * h).map(|i| ev.strong.as_slice()[i] || ev.weak.as_slice()[i]).collect();
+    let any = ev.flagged().as_slice().to_vec();
     let detailed: Vec<bool> = spread.as_slice().iter().map(|&v| v > t2).collect();
     let flagged: Vec<bool> = any.iter().zip(&detailed).map(|(&a, &d)| a && d).collect();
     let found: Vec<Vec<bool>> = warped
@@ -867,7 +875,7 @@ fn explain_by_shading(
     let k = key.map(|&p| luma(p));
     let kk = k.map(|&a| a * a);
     let (km, kkm) = (box_mean(&k, &all, R), box_mean(&kk, &all, R));
-    let flagged: Vec<bool> = (0..w * h).map(|i| ev.strong.as_slice()[i] || ev.weak.as_slice()[i]).collect();
+    let flagged = ev.flagged().as_slice().to_vec();
     let textured: Vec<bool> = (0..w * h)
         .map(|i| {
             let (m, m2) = (km.as_slice()[i], kkm.as_slice()[i]);
@@ -925,9 +933,12 @@ fn explain_by_shading(
         .collect();
     let explained: Vec<bool> = (0..w * h)
         .map(|i| {
+            if !asked[i] {
+                return false;
+            }
             let seeing = warped.iter().filter(|(_, valid)| valid.as_slice()[i]).count();
             let same = found.iter().filter(|f| f[i]).count();
-            asked[i] && same >= params.min_views.max(1) && 2 * same >= seeing
+            same >= params.min_views.max(1) && 2 * same >= seeing
         })
         .collect();
     let standing = Plane::from_fn(w, h, |x, y| ev.strong.get(x, y) && !explained[y * w + x]);
@@ -1159,12 +1170,13 @@ fn explain_by_epipoles(
         runs == 1
     };
     let seen: &Evidence = ev;
-    let flagged = dilate(&Plane::from_fn(w, h, |x, y| seen.strong.get(x, y) || seen.weak.get(x, y)), 2);
+    let any = seen.flagged();
+    let flagged = dilate(&any, 2);
     let scene = ColourHistogram::of(key, &flagged);
     let objects = ColourHistogram::within(key, &Rect::full(w, h), |x, y| flagged.get(x, y));
     let explained: Vec<usize> = (0..w * h)
         .into_par_iter()
-        .filter(|&i| seen.strong.as_slice()[i] || seen.weak.as_slice()[i])
+        .filter(|&i| any.as_slice()[i])
         .filter(|&i| scene.density(ks[i]) >= objects.density(ks[i]))
         .filter(|&i| {
             let (x, y) = ((i % w) as isize, (i / w) as isize);
@@ -1200,7 +1212,7 @@ fn explain_by_epipoles(
 /// facade take all sorts of colours.
 fn shared_occluders(key: &RgbF32, ev: &Evidence, params: &AutoMaskParams) -> Plane<bool> {
     let (w, h) = (key.width(), key.height());
-    let flagged = dilate(&Plane::from_fn(w, h, |x, y| ev.strong.get(x, y) || ev.weak.get(x, y)), 2);
+    let flagged = dilate(&ev.flagged(), 2);
     let hist = ColourHistogram::of(key, &flagged);
     let ratio = Plane::from_fn(w, h, |x, y| {
         if ev.strong.get(x, y) {
@@ -2159,9 +2171,8 @@ mod tests {
             let n = c.key.as_slice().len();
             // The painted mask's outline: its pixels with an unmasked 4-neighbour.
             let painted = c.mask.map(|&v| v > 127);
-            let outline = n
-                - erode(&painted, 1).as_slice().iter().filter(|&&v| v).count()
-                - (0..n).filter(|&i| !painted.as_slice()[i]).count();
+            let inside = erode(&painted, 1);
+            let outline = (0..n).filter(|&i| painted.as_slice()[i] && !inside.as_slice()[i]).count();
             let near = dilate(&painted, 1);
             let past = |m: &Mask| (0..n).filter(|&i| on(m, i) && !near.as_slice()[i]).count();
             let occluder = (0..n).filter(|&i| on(&c.key_occluders, i)).count();
