@@ -141,3 +141,38 @@ fn reading_only_a_video_still_pings_the_watchdog() {
     };
     assert_eq!(status.code(), Some(0), "{}", text());
 }
+
+/// A manager that stops reading the notification socket (its queue holds 10 datagrams on a
+/// stock kernel; pings come every 400 ms here) must not stop the service: before, the send
+/// waited for room, first in the watchdog's task and then in the shutdown itself, and the
+/// service never ended (a CI run saw it after a video: "the service did not end with its
+/// video"). Now a message that finds the queue full is dropped and SIGTERM still stops it.
+#[test]
+fn a_manager_that_stops_reading_does_not_hold_up_the_service() {
+    let f = folders("");
+    let notify = Notify::bind(&f.root);
+    let log = f.root.join("service.log");
+    let mut child = notify.command(&["run", "--config", f.config.to_str().unwrap()], &log);
+    let got = notify.read_for(Duration::from_millis(WATCHDOG_MS));
+    let text = || format!("{got:#?}\nlog:\n{}", std::fs::read_to_string(&log).unwrap_or_default());
+    assert!(got.first().is_some_and(|(_, m)| m.contains("READY=1")), "READY first: {}", text());
+    // Twenty pings' time, read by nobody.
+    std::thread::sleep(Duration::from_millis(10 * WATCHDOG_MS));
+    assert!(child.try_wait().unwrap().is_none(), "the service is still watching: {}", text());
+    let ok = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    assert!(ok.success());
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if Instant::now() >= deadline {
+            let _ = child.kill();
+            panic!("SIGTERM did not stop the service while its notifications went unread: {}", text());
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(status.code(), Some(0), "{}", text());
+    let log = std::fs::read_to_string(&log).unwrap();
+    assert!(log.contains("notification queue is full"), "the dropped messages are said: {log}");
+}

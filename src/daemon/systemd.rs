@@ -2,8 +2,11 @@
 //! sd_notify. Every call is a no-op unless `NOTIFY_SOCKET` is set (the service runs under
 //! `Type=notify`).
 
+use std::ffi::OsStr;
+use std::io;
+use std::os::unix::net::UnixDatagram;
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use sd_notify::NotifyState;
@@ -11,13 +14,51 @@ use tokio_util::sync::CancellationToken;
 
 use super::Stats;
 
+/// Sends `states` to systemd without ever waiting for it. The notification socket is a
+/// datagram socket with a short queue (10 messages on a stock kernel): when the manager
+/// does not read it, a blocking send (`sd_notify::notify`'s) waits for room, and it did so
+/// inside the watchdog's task and then in the shutdown itself, so that the service never
+/// stopped. A message that finds the queue full is dropped (a missed WATCHDOG ping is what
+/// a manager that cannot keep up should see).
 fn send(states: &[NotifyState<'_>]) {
-    if std::env::var_os("NOTIFY_SOCKET").is_none() {
+    let Some(path) = std::env::var_os("NOTIFY_SOCKET") else {
         return;
+    };
+    let msg: String = states.iter().map(|s| format!("{s}\n")).collect();
+    match deliver(&path, msg.as_bytes()) {
+        Ok(()) => {}
+        Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+            static WARNED: AtomicBool = AtomicBool::new(false);
+            if WARNED.swap(true, Ordering::Relaxed) {
+                tracing::debug!("systemd's notification queue is full: a message was dropped");
+            } else {
+                tracing::warn!(
+                    "systemd's notification queue is full: messages are dropped until it reads them"
+                );
+            }
+        }
+        Err(e) => tracing::warn!(error = %e, "cannot notify systemd"),
     }
-    if let Err(e) = sd_notify::notify(states) {
-        tracing::warn!(error = %e, "cannot notify systemd");
+}
+
+/// One datagram to the socket at `path` (a leading `@` names an abstract socket, as
+/// systemd writes it), never blocking.
+fn deliver(path: &OsStr, msg: &[u8]) -> io::Result<()> {
+    let sock = UnixDatagram::unbound()?;
+    sock.set_nonblocking(true)?;
+    #[cfg(target_os = "linux")]
+    if let Some(name) = std::os::unix::ffi::OsStrExt::as_bytes(path).strip_prefix(b"@") {
+        use std::os::linux::net::SocketAddrExt;
+        let addr = std::os::unix::net::SocketAddr::from_abstract_name(name)?;
+        sock.connect_addr(&addr)?;
+        return sent(sock.send(msg)?, msg);
     }
+    sock.connect(path)?;
+    sent(sock.send(msg)?, msg)
+}
+
+fn sent(n: usize, msg: &[u8]) -> io::Result<()> {
+    if n == msg.len() { Ok(()) } else { Err(io::Error::new(io::ErrorKind::WriteZero, "incomplete datagram")) }
 }
 
 pub fn ready() {
