@@ -99,6 +99,12 @@ pub struct AutoMaskParams {
     /// scene, displaced, and no evidence of an occluder; the keyframe's own object is found
     /// nowhere near. 0: a single view judges nothing (`min_views` holds).
     pub lone_view_reach: f32,
+    /// Where the views overlap in part, what one view alone sees is judged by that view, by
+    /// the lone view's rule (`lone_view_reach`; 0 there: not judged); its disagreement
+    /// seeds an object only where it is one 8-connected region of at least this share of the
+    /// work image (0.001: about 1 500 work pixels, a passer-by's torso on a 1.5 MP work
+    /// image), since one view alone has no second opinion.
+    pub seen_once_seed: f32,
     /// The evidence compares the keyframe with the views' consensus in colour. Where the
     /// views show the building each a little differently (a slab off the wall, seen with
     /// another parallax in each; a face lit otherwise; mullions off curved glass), the
@@ -168,6 +174,7 @@ impl Default for AutoMaskParams {
             parallax_radius: 3,
             epipolar_reach: 0.12,
             lone_view_reach: 0.05,
+            seen_once_seed: 0.001,
             shading_ncc: 0.8,
             sky_gradient: 0.015,
             sky_luma: 0.35,
@@ -324,9 +331,15 @@ fn auto_mask_excluding<P: RgbPixel>(
     if lone {
         explain_by_displacement(&key_b, &warped, &mut ev, params);
     }
+    let epipoles =
+        if params.epipolar_reach > 0.0 { keyframe_epipoles(key, sources, &from_full) } else { Vec::new() };
     if params.epipolar_reach > 0.0 {
-        let epipoles = keyframe_epipoles(key, sources, &from_full);
         explain_by_epipoles(&key_b, &warped, &epipoles, &mut ev, params);
+    }
+    // Where the views overlap only in part, what a single one of them sees is judged by it
+    // alone, as a lone view is.
+    if !lone && params.min_views > 1 && params.lone_view_reach > 0.0 {
+        judge_seen_once(&key_b, &warped, &epipoles, &mut ev, params);
     }
 
     let sky = sky(&key_b, &key_r, params);
@@ -378,6 +391,97 @@ fn auto_mask_excluding<P: RgbPixel>(
         judged_share: judged as f64 / (rw * rh) as f64,
         judged: full(&ev.judged).map(byte),
     }
+}
+
+/// Stage (2d): the pixels that one view only sees, when several were given. The views
+/// often overlap in part: a passer-by at the keyframe's edge that one view reaches and the
+/// others do not was judged by nobody (`min_views` agreeing views are asked for), and stayed
+/// in the fill whole (photo-building-6: building1 and building3 for building2, the person on
+/// the right seen by building3 alone, recall 0.75 and the fill 4.1 dB under the true mask's).
+/// There the one view judges, by the rule a lone view is judged by
+/// ([`AutoMaskParams::lone_view_reach`]: what it shows anywhere near is the scene,
+/// displaced), and the epipolar lines are looked along as for the others.
+///
+/// One view's word is weaker than the views' consensus, and it only adds:
+/// - it seeds an object only where its disagreement covers an object's size
+///   ([`AutoMaskParams::seen_once_seed`]): the dark lip of a poster's frame at the keyframe's
+///   edge, shown by one view as the grass beyond, seeded a blob grown through the speckle of a
+///   vignette (hpatches-churchill, IoU 0.15–0.18 lower on all eight cases);
+/// - where the stages before left a pixel flagged (no view shows the keyframe's colour, and
+///   no object of the view's own explains that), it stays flagged, even where the one view
+///   shows the keyframe's patch displaced: a passer-by's dark legs, found in a dark window
+///   nearby, were cleared and stayed in the fill (photo-building-10, +0.8 → +4.2 dB).
+fn judge_seen_once(
+    key: &RgbF32,
+    warped: &[(RgbF32, Plane<bool>)],
+    epipoles: &[Option<Vector3<f64>>],
+    ev: &mut Evidence,
+    params: &AutoMaskParams,
+) {
+    let (w, h) = (key.width(), key.height());
+    let once = Plane::from_fn(w, h, |x, y| warped.iter().filter(|(_, valid)| valid.get(x, y)).count() == 1);
+    if !once.as_slice().iter().any(|&v| v) {
+        return;
+    }
+    let one = AutoMaskParams { min_views: 1, ..params.clone() };
+    let mut single = evidence(key, warped, &one);
+    // Only those pixels are asked (the search is the costly part).
+    for (i, _) in once.as_slice().iter().enumerate().filter(|&(_, &o)| !o) {
+        single.strong.as_mut_slice()[i] = false;
+        single.weak.as_mut_slice()[i] = false;
+    }
+    explain_by_parallax(key, &mut single, &one);
+    explain_by_displacement(key, warped, &mut single, &one);
+    if one.epipolar_reach > 0.0 {
+        explain_by_epipoles(key, warped, epipoles, &mut single, &one);
+    }
+    let least = (f64::from(params.seen_once_seed.max(0.0)) * (w * h) as f64).ceil() as usize;
+    // Measured as the seeds are: opened first ([`AutoMaskParams::open_radius`]).
+    let r = params.open_radius;
+    let seeds = without_specks(&dilate(&erode(&single.strong, r), r), least);
+    for (i, _) in once.as_slice().iter().enumerate().filter(|&(_, &o)| o) {
+        let flagged = ev.weak.as_slice()[i];
+        ev.strong.as_mut_slice()[i] = seeds.as_slice()[i] && flagged;
+        ev.weak.as_mut_slice()[i] = flagged || single.weak.as_slice()[i];
+        ev.judged.as_mut_slice()[i] = single.judged.as_slice()[i];
+        ev.contested.as_mut_slice()[i] = false;
+        ev.consensus.as_mut_slice()[i] = single.consensus.as_slice()[i];
+    }
+}
+
+/// `m` without its 8-connected components of fewer than `least` pixels.
+fn without_specks(m: &Plane<bool>, least: usize) -> Plane<bool> {
+    let (w, h) = (m.width(), m.height());
+    let mut out = m.clone();
+    if least <= 1 {
+        return out;
+    }
+    let mut seen = Plane::new(w, h, false);
+    for start in 0..w * h {
+        let (sx, sy) = (start % w, start / w);
+        if !m.get(sx, sy) || seen.get(sx, sy) {
+            continue;
+        }
+        seen.set(sx, sy, true);
+        let mut members = Vec::new();
+        flood(
+            (w, h),
+            vec![(sx, sy)],
+            &NEIGHBOURS_8,
+            |x, y| members.push((x, y)),
+            |x, y| {
+                let enter = m.get(x, y) && !seen.get(x, y);
+                if enter {
+                    seen.set(x, y, true);
+                }
+                enter
+            },
+        );
+        if members.len() < least {
+            members.into_iter().for_each(|(x, y)| out.set(x, y, false));
+        }
+    }
+    out
 }
 
 /// Stage (4b): each object grows into the neighbouring pixels whose colour is much more
@@ -2241,6 +2345,117 @@ mod tests {
         );
         let mean = recalls.iter().sum::<f64>() / recalls.len() as f64;
         assert!(mean > 0.8, "recall {recalls:?}");
+    }
+
+    /// Two views, one of them cut to the left part of its frame: the keyframe's occluders
+    /// that only the other view reaches are judged by that view alone, as a lone view is.
+    /// Before, nobody judged them (two agreeing views were asked for) and they stayed in
+    /// the fill whole.
+    #[test]
+    fn what_one_view_alone_sees_is_judged_by_it() {
+        let (mut off, mut on, mut cases) = (0.0, 0.0, 0);
+        for seed in [7101, 7102, 7103, 7104, 7105, 7106] {
+            let c = crate::synth::occlusion_case(crate::synth::CaseFamily::Planar, 480, 360, 2, seed);
+            let v = &c.views[0];
+            let cut = Plane::from_fn(v.width() * 2 / 5, v.height(), |x, y| v.get(x, y));
+            let sources = vec![
+                Source { image: &cut, homography: c.homographies[0] },
+                Source { image: &c.views[1], homography: c.homographies[1] },
+            ];
+            // The keyframe's occluder pixels that only the whole view sees.
+            let sees = |s: &Source<'_>, x: usize, y: usize| {
+                s.homography.apply(nalgebra::Point2::new(x as f64, y as f64)).is_some_and(|p| {
+                    p.x >= 0.0
+                        && p.y >= 0.0
+                        && p.x < (s.image.width() - 1) as f64
+                        && p.y < (s.image.height() - 1) as f64
+                })
+            };
+            let (w, h) = (c.key.width(), c.key.height());
+            let once: Vec<usize> = (0..w * h)
+                .filter(|&i| c.key_occluders.as_slice()[i] > 127)
+                .filter(|&i| !sees(&sources[0], i % w, i / w) && sees(&sources[1], i % w, i / w))
+                .collect();
+            if once.len() < 2000 {
+                continue;
+            }
+            let recall = |p: &AutoMaskParams| {
+                let m = auto_mask(&c.key, &sources, p);
+                once.iter().filter(|&&i| m.as_slice()[i] > 127).count() as f64 / once.len() as f64
+            };
+            let (without, with) = (
+                recall(&AutoMaskParams { lone_view_reach: 0.0, ..AutoMaskParams::default() }),
+                recall(&AutoMaskParams::default()),
+            );
+            println!(
+                "seed {seed}: {} occluder pixels seen by one view only, found {without:.3} -> {with:.3}",
+                once.len()
+            );
+            (off, on, cases) = (off + without, on + with, cases + 1);
+        }
+        assert!(cases >= 3, "only {cases} cases with an occluder one view alone sees");
+        let (off, on) = (off / cases as f64, on / cases as f64);
+        // Without the stage, only what grows into it from the occluders' other parts is
+        // found (0.40 over these seeds).
+        assert!(off < 0.6, "the case holds: {off:.3} found without the stage");
+        assert!(on > 0.9, "{on:.3} of what one view alone sees found");
+    }
+
+    /// One view's word alone seeds no sliver: a dark lip 3 px high along the keyframe's
+    /// lower edge, where only one view reaches and shows the wall (a poster's frame, which
+    /// the view sees from elsewhere), is no object. With any size taken as a seed, it grew
+    /// through the keyframe's speckle (hpatches-churchill).
+    #[test]
+    fn one_view_alone_seeds_no_sliver() {
+        let (mut kept, mut taken, mut cases) = (0.0, 0.0, 0);
+        for seed in [7101, 7102, 7103, 7104, 7105, 7106] {
+            let mut c = crate::synth::occlusion_case(crate::synth::CaseFamily::Planar, 480, 360, 2, seed);
+            let v = &c.views[0];
+            let cut = Plane::from_fn(v.width() * 2 / 5, v.height(), |x, y| v.get(x, y));
+            let sees = |image: &RgbF32, hom: &Homography, x: usize, y: usize| {
+                hom.apply(nalgebra::Point2::new(x as f64, y as f64)).is_some_and(|p| {
+                    p.x >= 0.0
+                        && p.y >= 0.0
+                        && p.x < (image.width() - 1) as f64
+                        && p.y < (image.height() - 1) as f64
+                })
+            };
+            let (w, h) = (c.key.width(), c.key.height());
+            let near_occluder = dilate(&c.key_occluders.map(|&v| v > 127), 12);
+            // 30 columns along the lower edge (off the corners) that the whole view alone sees,
+            // clear of occluders.
+            let clear = |x: usize| {
+                (h - 6..h).all(|y| {
+                    !sees(&cut, &c.homographies[0], x, y)
+                        && sees(&c.views[1], &c.homographies[1], x, y)
+                        && !near_occluder.get(x, y)
+                })
+            };
+            let Some(x0) = (10..w - 40).find(|&x0| (x0..x0 + 30).all(clear)) else { continue };
+            let lip: Vec<(usize, usize)> =
+                (h - 3..h).flat_map(|y| (x0..x0 + 30).map(move |x| (x, y))).collect();
+            lip.iter().for_each(|&(x, y)| c.key.set(x, y, [0.03; 3]));
+            let sources = vec![
+                Source { image: &cut, homography: c.homographies[0] },
+                Source { image: &c.views[1], homography: c.homographies[1] },
+            ];
+            let share = |p: &AutoMaskParams| {
+                let m = auto_mask(&c.key, &sources, p);
+                lip.iter().filter(|&&(x, y)| m.get(x, y) > 127).count() as f64 / lip.len() as f64
+            };
+            let (without, with) = (
+                share(&AutoMaskParams { seen_once_seed: 0.0, ..AutoMaskParams::default() }),
+                share(&AutoMaskParams::default()),
+            );
+            println!(
+                "seed {seed}: the lip at x {x0}, masked {without:.3} without a least seed, {with:.3} with"
+            );
+            (taken, kept, cases) = (taken + without, kept + with, cases + 1);
+        }
+        assert!(cases >= 3, "only {cases} cases with a lower edge one view alone sees");
+        let (taken, kept) = (taken / cases as f64, kept / cases as f64);
+        assert!(taken > 0.5, "the case holds: {taken:.3} of the lip masked with any seed");
+        assert!(kept < 0.1, "{kept:.3} of the lip masked");
     }
 
     /// A facade with a slab standing off the wall, seen with another parallax in each view:
