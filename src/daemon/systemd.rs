@@ -46,19 +46,19 @@ fn send(states: &[NotifyState<'_>]) {
 fn deliver(path: &OsStr, msg: &[u8]) -> io::Result<()> {
     let sock = UnixDatagram::unbound()?;
     sock.set_nonblocking(true)?;
-    #[cfg(target_os = "linux")]
-    if let Some(name) = std::os::unix::ffi::OsStrExt::as_bytes(path).strip_prefix(b"@") {
-        use std::os::linux::net::SocketAddrExt;
-        let addr = std::os::unix::net::SocketAddr::from_abstract_name(name)?;
-        sock.connect_addr(&addr)?;
-        return sent(sock.send(msg)?, msg);
+    match std::os::unix::ffi::OsStrExt::as_bytes(path).strip_prefix(b"@") {
+        #[cfg(target_os = "linux")]
+        Some(name) => {
+            use std::os::linux::net::SocketAddrExt;
+            sock.connect_addr(&std::os::unix::net::SocketAddr::from_abstract_name(name)?)?;
+        }
+        _ => sock.connect(path)?,
     }
-    sock.connect(path)?;
-    sent(sock.send(msg)?, msg)
-}
-
-fn sent(n: usize, msg: &[u8]) -> io::Result<()> {
-    if n == msg.len() { Ok(()) } else { Err(io::Error::new(io::ErrorKind::WriteZero, "incomplete datagram")) }
+    if sock.send(msg)? == msg.len() {
+        Ok(())
+    } else {
+        Err(io::Error::new(io::ErrorKind::WriteZero, "incomplete datagram"))
+    }
 }
 
 pub fn ready() {

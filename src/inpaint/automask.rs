@@ -451,36 +451,12 @@ fn judge_seen_once(
 
 /// `m` without its 8-connected components of fewer than `least` pixels.
 fn without_specks(m: &Plane<bool>, least: usize) -> Plane<bool> {
-    let (w, h) = (m.width(), m.height());
     let mut out = m.clone();
-    if least <= 1 {
-        return out;
-    }
-    let mut seen = Plane::new(w, h, false);
-    for start in 0..w * h {
-        let (sx, sy) = (start % w, start / w);
-        if !m.get(sx, sy) || seen.get(sx, sy) {
-            continue;
-        }
-        seen.set(sx, sy, true);
-        let mut members = Vec::new();
-        flood(
-            (w, h),
-            vec![(sx, sy)],
-            &NEIGHBOURS_8,
-            |x, y| members.push((x, y)),
-            |x, y| {
-                let enter = m.get(x, y) && !seen.get(x, y);
-                if enter {
-                    seen.set(x, y, true);
-                }
-                enter
-            },
-        );
+    each_component(m, |members| {
         if members.len() < least {
-            members.into_iter().for_each(|(x, y)| out.set(x, y, false));
+            members.iter().for_each(|&(x, y)| out.set(x, y, false));
         }
-    }
+    });
     out
 }
 
@@ -575,27 +551,45 @@ enum Growth {
 
 /// Bounding boxes of the 8-connected components of `m`.
 fn components(m: &Plane<bool>) -> Vec<Rect> {
+    let mut out = Vec::new();
+    each_component(m, |members| {
+        let (x0, y0, x1, y1) =
+            members.iter().fold((usize::MAX, usize::MAX, 0, 0), |(x0, y0, x1, y1), &(x, y)| {
+                (x0.min(x), y0.min(y), x1.max(x), y1.max(y))
+            });
+        out.push(Rect::from_corners(x0, y0, x1 + 1, y1 + 1));
+    });
+    out
+}
+
+/// Calls `f` with the pixels of each 8-connected component of `m`, in the order of their
+/// first pixel in raster order.
+fn each_component(m: &Plane<bool>, mut f: impl FnMut(&[(usize, usize)])) {
     let (w, h) = (m.width(), m.height());
     let mut seen = Plane::new(w, h, false);
-    let mut out = Vec::new();
+    let mut members = Vec::new();
     for start in 0..w * h {
         let (sx, sy) = (start % w, start / w);
         if !m.get(sx, sy) || seen.get(sx, sy) {
             continue;
         }
         seen.set(sx, sy, true);
-        let (mut x0, mut y0, mut x1, mut y1) = (sx, sy, sx, sy);
-        let visit = |x: usize, y: usize| (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
-        flood((w, h), vec![(sx, sy)], &NEIGHBOURS_8, visit, |x, y| {
-            let enter = m.get(x, y) && !seen.get(x, y);
-            if enter {
-                seen.set(x, y, true);
-            }
-            enter
-        });
-        out.push(Rect::from_corners(x0, y0, x1 + 1, y1 + 1));
+        members.clear();
+        flood(
+            (w, h),
+            vec![(sx, sy)],
+            &NEIGHBOURS_8,
+            |x, y| members.push((x, y)),
+            |x, y| {
+                let enter = m.get(x, y) && !seen.get(x, y);
+                if enter {
+                    seen.set(x, y, true);
+                }
+                enter
+            },
+        );
+        f(&members);
     }
-    out
 }
 
 /// Euclidean RGB distance (0..=√3).
@@ -2347,6 +2341,33 @@ mod tests {
         assert!(mean > 0.8, "recall {recalls:?}");
     }
 
+    /// A planar case of two views whose first is cut to the left two fifths of its frame,
+    /// so that part of the keyframe is seen by the second alone; the cut view.
+    fn cut_case(seed: u64) -> (crate::synth::OcclusionCase, RgbF32) {
+        let c = crate::synth::occlusion_case(crate::synth::CaseFamily::Planar, 480, 360, 2, seed);
+        let v = &c.views[0];
+        let cut = Plane::from_fn(v.width() * 2 / 5, v.height(), |x, y| v.get(x, y));
+        (c, cut)
+    }
+
+    /// The cut view and the whole second view of [`cut_case`], as the fill takes them.
+    fn cut_sources<'a>(c: &'a crate::synth::OcclusionCase, cut: &'a RgbF32) -> Vec<Source<'a>> {
+        vec![
+            Source { image: cut, homography: c.homographies[0] },
+            Source { image: &c.views[1], homography: c.homographies[1] },
+        ]
+    }
+
+    /// Whether `s` shows the keyframe's pixel `(x, y)`.
+    fn shows(s: &Source<'_>, x: usize, y: usize) -> bool {
+        s.homography.apply(nalgebra::Point2::new(x as f64, y as f64)).is_some_and(|p| {
+            p.x >= 0.0
+                && p.y >= 0.0
+                && p.x < (s.image.width() - 1) as f64
+                && p.y < (s.image.height() - 1) as f64
+        })
+    }
+
     /// Two views, one of them cut to the left part of its frame: the keyframe's occluders
     /// that only the other view reaches are judged by that view alone, as a lone view is.
     /// Before, nobody judged them (two agreeing views were asked for) and they stayed in
@@ -2355,26 +2376,13 @@ mod tests {
     fn what_one_view_alone_sees_is_judged_by_it() {
         let (mut off, mut on, mut cases) = (0.0, 0.0, 0);
         for seed in [7101, 7102, 7103, 7104, 7105, 7106] {
-            let c = crate::synth::occlusion_case(crate::synth::CaseFamily::Planar, 480, 360, 2, seed);
-            let v = &c.views[0];
-            let cut = Plane::from_fn(v.width() * 2 / 5, v.height(), |x, y| v.get(x, y));
-            let sources = vec![
-                Source { image: &cut, homography: c.homographies[0] },
-                Source { image: &c.views[1], homography: c.homographies[1] },
-            ];
-            // The keyframe's occluder pixels that only the whole view sees.
-            let sees = |s: &Source<'_>, x: usize, y: usize| {
-                s.homography.apply(nalgebra::Point2::new(x as f64, y as f64)).is_some_and(|p| {
-                    p.x >= 0.0
-                        && p.y >= 0.0
-                        && p.x < (s.image.width() - 1) as f64
-                        && p.y < (s.image.height() - 1) as f64
-                })
-            };
+            let (c, cut) = cut_case(seed);
+            let sources = cut_sources(&c, &cut);
             let (w, h) = (c.key.width(), c.key.height());
             let once: Vec<usize> = (0..w * h)
                 .filter(|&i| c.key_occluders.as_slice()[i] > 127)
-                .filter(|&i| !sees(&sources[0], i % w, i / w) && sees(&sources[1], i % w, i / w))
+                // The keyframe's occluder pixels that only the whole view sees.
+                .filter(|&i| !shows(&sources[0], i % w, i / w) && shows(&sources[1], i % w, i / w))
                 .collect();
             if once.len() < 2000 {
                 continue;
@@ -2409,36 +2417,22 @@ mod tests {
     fn one_view_alone_seeds_no_sliver() {
         let (mut kept, mut taken, mut cases) = (0.0, 0.0, 0);
         for seed in [7101, 7102, 7103, 7104, 7105, 7106] {
-            let mut c = crate::synth::occlusion_case(crate::synth::CaseFamily::Planar, 480, 360, 2, seed);
-            let v = &c.views[0];
-            let cut = Plane::from_fn(v.width() * 2 / 5, v.height(), |x, y| v.get(x, y));
-            let sees = |image: &RgbF32, hom: &Homography, x: usize, y: usize| {
-                hom.apply(nalgebra::Point2::new(x as f64, y as f64)).is_some_and(|p| {
-                    p.x >= 0.0
-                        && p.y >= 0.0
-                        && p.x < (image.width() - 1) as f64
-                        && p.y < (image.height() - 1) as f64
-                })
-            };
+            let (mut c, cut) = cut_case(seed);
             let (w, h) = (c.key.width(), c.key.height());
             let near_occluder = dilate(&c.key_occluders.map(|&v| v > 127), 12);
             // 30 columns along the lower edge (off the corners) that the whole view alone sees,
             // clear of occluders.
             let clear = |x: usize| {
+                let sources = cut_sources(&c, &cut);
                 (h - 6..h).all(|y| {
-                    !sees(&cut, &c.homographies[0], x, y)
-                        && sees(&c.views[1], &c.homographies[1], x, y)
-                        && !near_occluder.get(x, y)
+                    !shows(&sources[0], x, y) && shows(&sources[1], x, y) && !near_occluder.get(x, y)
                 })
             };
             let Some(x0) = (10..w - 40).find(|&x0| (x0..x0 + 30).all(clear)) else { continue };
             let lip: Vec<(usize, usize)> =
                 (h - 3..h).flat_map(|y| (x0..x0 + 30).map(move |x| (x, y))).collect();
             lip.iter().for_each(|&(x, y)| c.key.set(x, y, [0.03; 3]));
-            let sources = vec![
-                Source { image: &cut, homography: c.homographies[0] },
-                Source { image: &c.views[1], homography: c.homographies[1] },
-            ];
+            let sources = cut_sources(&c, &cut);
             let share = |p: &AutoMaskParams| {
                 let m = auto_mask(&c.key, &sources, p);
                 lip.iter().filter(|&&(x, y)| m.get(x, y) > 127).count() as f64 / lip.len() as f64
