@@ -130,6 +130,16 @@ pub const SAME_SHOT_GROSS: f32 = 24.0 / 255.0;
 /// shot saved twice ([`the_same_shot`]): saving a shot again keeps its exposure, while two
 /// shots even from one tripod are seldom exposed alike.
 pub const SAME_SHOT_BIAS: f64 = 0.004;
+/// ...and where no object moved between them: the pixels grossly apart, on the grid they are
+/// compared on and opened by a 3 × 3 square, hold no 8-connected blob of this share of the
+/// pixels compared (or [`SAME_SHOT_MOVED_LEAST`], whichever is more). Saving a shot again
+/// leaves its gross differences scattered along fine detail (a JPEG at quality 75, or the
+/// same halved, of every photograph in `../shared/data`: no blob over 9 samples after the
+/// opening); two night shots from one tripod between which a car drove on differ grossly at
+/// only 2.4 % of the frame, under the share above, but all of it in the car's two places
+/// (blobs of 301 and 161 samples).
+pub const SAME_SHOT_MOVED_SHARE: f64 = 0.0005;
+pub const SAME_SHOT_MOVED_LEAST: usize = 50;
 /// Two views whose maps from the keyframe differ by more than this (keyframe pixels, at the
 /// corners of the mask's box), or this share of the box's diagonal, from a similarity are
 /// shots from two places.
@@ -141,9 +151,11 @@ pub const SAME_SHOT_VIEWPOINT_SHARE: f64 = 0.005;
 /// copy re-encoded), not only the same file's bytes under another name. Over the masked
 /// pixels both see (at least half of those the one that sees fewer sees), from one
 /// viewpoint, their colours agree within re-encoding noise: almost none grossly apart
-/// ([`SAME_SHOT_GROSS_SHARE`]) and the same exposure ([`SAME_SHOT_BIAS`]). Two shots from a
-/// tripod between which a passer-by moved differ grossly where the passer-by was, and both
-/// are kept. As a second witness, a copy would only add weight to its original's own errors.
+/// ([`SAME_SHOT_GROSS_SHARE`]), the same exposure ([`SAME_SHOT_BIAS`]), and nothing that
+/// moved ([`SAME_SHOT_MOVED_SHARE`]). Two shots from a tripod between which a passer-by
+/// moved differ grossly where the passer-by was, however small a part of the frame that is
+/// (the mask is the whole frame while `--mask auto` still has to find it), and both are
+/// kept. As a second witness, a copy would only add weight to its original's own errors.
 /// When either is black and white ([`monochrome`]) their luma is compared: a
 /// black-and-white export of a shot is that shot.
 pub fn the_same_shot(mask: &Mask, a: (&Homography, &Rgb8), b: (&Homography, &Rgb8)) -> bool {
@@ -172,8 +184,10 @@ pub fn the_same_shot(mask: &Mask, a: (&Homography, &Rgb8), b: (&Homography, &Rgb
     };
     let (mut gross, mut both, mut seen_a, mut seen_b) = (0usize, 0usize, 0usize, 0usize);
     let mut bias = [0.0f64; 3];
-    for y in (region.y..region.y1()).step_by(step) {
-        for x in (region.x..region.x1()).step_by(step) {
+    // Where they are grossly apart, on the grid they are compared on.
+    let mut apart = Plane::new(region.width.div_ceil(step), region.height.div_ceil(step), false);
+    for (j, y) in (region.y..region.y1()).step_by(step).enumerate() {
+        for (i, x) in (region.x..region.x1()).step_by(step).enumerate() {
             if !mask.is_hole(x, y) {
                 continue;
             }
@@ -183,13 +197,21 @@ pub fn the_same_shot(mask: &Mask, a: (&Homography, &Rgb8), b: (&Homography, &Rgb
             let (Some(pa), Some(pb)) = (pa, pb) else { continue };
             both += 1;
             (0..3).for_each(|c| bias[c] += f64::from(pa[c] - pb[c]));
-            gross += usize::from((0..3).any(|c| (pa[c] - pb[c]).abs() > SAME_SHOT_GROSS));
+            let far = (0..3).any(|c| (pa[c] - pb[c]).abs() > SAME_SHOT_GROSS);
+            gross += usize::from(far);
+            apart.set(i, j, far);
         }
     }
+    let moved = || {
+        let opened = inpaint::automask::dilate(&inpaint::automask::erode(&apart, 1), 1);
+        let least = SAME_SHOT_MOVED_LEAST.max((SAME_SHOT_MOVED_SHARE * both as f64).ceil() as usize);
+        inpaint::automask::largest_component(&opened) >= least
+    };
     both > 0
         && both * 2 >= seen_a.min(seen_b)
         && bias.iter().all(|b| (b / both as f64).abs() < SAME_SHOT_BIAS)
         && (gross as f64) < SAME_SHOT_GROSS_SHARE * both as f64
+        && !moved()
 }
 
 /// Whether two views see the keyframe's `region` from one viewpoint: one view's pixels are
@@ -1419,6 +1441,28 @@ mod tests {
             }
         }
         assert!(!same(&id, &moved), "a passer-by moved");
+        // Over the whole frame (the mask still to be found), a car that drove on between two
+        // shots from one tripod is a small share of the pixels: 2 × 1.1 % grossly apart here,
+        // under `SAME_SHOT_GROSS_SHARE`, but all in one place each. A copy saved again, or
+        // halved, is still one shot there.
+        let whole = Mask::new(w, h, 255);
+        let mut drove = a.clone();
+        for y in 20..42 {
+            for x in 30..52 {
+                drove.set(x, y, a.get(x + 140, y + 110));
+                drove.set(x + 140, y + 110, a.get(x, y));
+            }
+        }
+        let gross = (0..w * h)
+            .filter(|&i| {
+                let (p, q) = (a.get(i % w, i / w), drove.get(i % w, i / w));
+                (0..3).any(|c| f32::from(p[c].abs_diff(q[c])) / 255.0 > SAME_SHOT_GROSS)
+            })
+            .count();
+        assert!((gross as f64) < SAME_SHOT_GROSS_SHARE * (w * h) as f64, "{gross} grossly apart");
+        assert!(!the_same_shot(&whole, (&id, &a), (&id, &drove)), "a car drove on");
+        assert!(the_same_shot(&whole, (&id, &a), (&id, &to8(&noisy))), "saved again, whole frame");
+        assert!(the_same_shot(&whole, (&id, &soft8), (&half, &halved)), "halved, whole frame");
         // Exposed 1.5 % brighter.
         let brighter = to8(&RgbF32::from_fn(w, h, |x, y| facade.get(x, y).map(|v| v + 0.015)));
         assert!(!same(&id, &brighter), "exposed apart");

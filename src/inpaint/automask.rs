@@ -562,6 +562,13 @@ fn components(m: &Plane<bool>) -> Vec<Rect> {
     out
 }
 
+/// The number of pixels of the largest 8-connected component of `m` (0 when it has none).
+pub(crate) fn largest_component(m: &Plane<bool>) -> usize {
+    let mut largest = 0;
+    each_component(m, |members| largest = largest.max(members.len()));
+    largest
+}
+
 /// Calls `f` with the pixels of each 8-connected component of `m`, in the order of their
 /// first pixel in raster order.
 fn each_component(m: &Plane<bool>, mut f: impl FnMut(&[(usize, usize)])) {
