@@ -25,7 +25,7 @@ pixel centres, row-major):
          v_wormhole 1 -> 2..6. Ground truth: H1toNp.refined where present, else H1toNp.
 
 Sets for "real multi-view cases with partial overlap: no good view rejected" (`prepare
---sets mvnat,mvskip12,mvcrop,mvcrop12`), each with the mv12 kind of reference, made at native
+--sets mvnat,mvskip12,mvcrop,mvcrop12,mvfar`), each with the mv12 kind of reference, made at native
 size from the two source photos:
   mvnat     every adjacent and skip-one pair of every multiview set (building, hunt, ece,
             incline, roofs) at native size, PNG (23 pairs);
@@ -34,7 +34,11 @@ size from the two source photos:
             they see 30-60 % of the keyframe: per pair, the two windows of CROPS (halves,
             40 % strips, 70 % corners) whose share seen through the reference is in 30-60 %
             and nearest 45 % (42);
-  mvcrop12  the same cut from the adjacent pairs at 12 MP (28).
+  mvcrop12  the same cut from the adjacent pairs at 12 MP (28);
+  mvfar     the pairs three or more apart in their set, both ways, at native size, where the view sees
+            at least 5 % of the keyframe and the reference rests on at least 40 SIFT +
+            MAGSAC inliers (the others are left out, and said so): a view from far along
+            the facade that sees its last strip.
 A rejection of a view SIFT + MAGSAC aligns within 3 px is the failure these look for.
 
 Error of an estimate: the median, over a grid of keyframe points (every 1 % of the width)
@@ -313,7 +317,7 @@ def prepare(args):
         prepare_simroll(data, work)
     if "others" in args.sets.split(","):
         prepare_others(data, work)
-    for which in ("mvnat", "mvskip12", "mvcrop", "mvcrop12"):
+    for which in ("mvnat", "mvskip12", "mvcrop", "mvcrop12", "mvfar"):
         if which in args.sets.split(","):
             prepare_partial(data, work, which)
     # The clean pairs are read in place.
@@ -383,6 +387,11 @@ CROPS = {"left": (0, 0, 0.5, 1), "right": (0.5, 0, 1, 1), "top": (0, 0, 1, 0.55)
          "bottomright": (0.3, 0.3, 1, 1)}
 
 
+# A far pair (three or more apart in its set) is in mvfar only with a reference this sure.
+MVFAR_INLIERS = 40
+MVFAR_SEEN = 0.05
+
+
 def prepare_partial(data, work, which):
     """Issue 13's "real multi-view cases with partial overlap": every adjacent and skip-one
     pair of every multiview set at native size (mvnat); the skip-one pairs at 12 MP
@@ -392,12 +401,26 @@ def prepare_partial(data, work, which):
     reference, falls in 30-60 % and is nearest 45 %."""
     pairs = []
     for folder, names in MULTIVIEW:
-        for step in (1, 2):
+        steps = range(3, len(names)) if which == "mvfar" else (1, 2)
+        for step in steps:
             for a, b in zip(names, names[step:]):
                 pairs.append((data / "multiview" / folder, a, b, step))
+                if which == "mvfar":
+                    pairs.append((data / "multiview" / folder, b, a, step))
     for folder, a, b, step in pairs:
         name = f"{Path(a).stem}-{Path(b).stem}"
-        if which == "mvnat":
+        if which == "mvfar":
+            # Only where the reference can be trusted over the little the view sees: SIFT +
+            # MAGSAC agreeing on at least MVFAR_INLIERS matches, the view seeing at least
+            # MVFAR_SEEN of the keyframe.
+            ref, c1, c2, meta = multiview_reference(folder, a, b)
+            seen = seen_share(ref, c1.shape[:2][::-1], c2.shape[:2][::-1])
+            if meta["sift_inliers"] >= MVFAR_INLIERS and seen >= MVFAR_SEEN:
+                write_multiview_pair(work / which / name, folder, a, b, scaled=False)
+            else:
+                print(f"mvfar/{name}: left out ({meta['sift_inliers']} SIFT inliers, seen {seen:.0%})",
+                      file=sys.stderr)
+        elif which == "mvnat":
             write_multiview_pair(work / which / name, folder, a, b, scaled=False)
         elif which == "mvskip12" and step == 2:
             write_multiview_pair(work / which / name, folder, a, b, scaled=True)
@@ -697,7 +720,7 @@ def main():
     ap.add_argument("--work", default="/tmp/clearview-eval")
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data"))
     ap.add_argument("--binary", default=str(ROOT / "target" / "release" / "clearview"))
-    ap.add_argument("--sets", default="mv12,occl,clean", help="also simroll, others, mvnat, mvskip12, mvcrop, mvcrop12")
+    ap.add_argument("--sets", default="mv12,occl,clean", help="also simroll, others, mvnat, mvskip12, mvcrop, mvcrop12, mvfar")
     ap.add_argument("--only", default="")
     ap.add_argument("--no-peer", action="store_true")
     ap.add_argument("--peer-from", default="", help="take SIFT + MAGSAC's errors from an earlier run's tables (.md)")
