@@ -26,7 +26,7 @@ use crate::daemon::state;
 use crate::geometry::Homography;
 use crate::imaging::convert::to_luminance;
 use crate::imaging::{GrayF32, Mask, RgbF32};
-use crate::inpaint::{AutoMask, Source, auto_mask_report};
+use crate::inpaint::{AutoMask, AutoMaskParams, Source, auto_mask_report};
 use crate::session::{AlignRecord, Rgb8, Session, SessionParams};
 
 /// Kept frames from before the keyframe that wait for it (the latest ones): four seconds
@@ -439,20 +439,7 @@ impl Runner {
                 Source { image: &n.pixels, homography: n.h.after(&back) }
             })
             .collect();
-        let mut params = self.slot.session.params().auto_mask.clone();
-        params.min_views = params.min_views.min(sources.len());
-        // The walk's marks were measured without the regrowth (BENCHMARKS.md, "Video
-        // target, tenth pass"), and they already cover too much on some walks. Neighbouring
-        // frames' own objects explaining their disagreement cost two walks 3 and 4 dB
-        // (BENCHMARKS.md, "--mask auto: the views' own objects").
-        params.regrowth_passes = 0;
-        params.own_objects = false;
-        // Nor the clouds joined to the sky: in a walk's soft frames the sky ran on into the
-        // glass reflecting it, and one walk lost 3.3 dB (BENCHMARKS.md, "Bands of cloud").
-        params.sky_cloud_gradient = 0.0;
-        // Nor faces shaded otherwise (`shading_ncc`): the walks were not
-        // measured with it (sixty-eighth session).
-        params.shading_ncc = 0.0;
+        let params = frame_judgement(&self.slot.session.params().auto_mask, sources.len());
         let found = auto_mask_report(&rgb8_to_f32(px), &sources, &params);
         let share = found.mask.as_slice().iter().filter(|&&v| v > 127).count() as f64
             / found.mask.as_slice().len().max(1) as f64;
@@ -559,6 +546,26 @@ fn judged_again(first: &Mask, again: &AutoMask, px: &Rgb8, motion: [f32; 2]) -> 
         }
     }
     marks
+}
+
+/// The automatic mask's parameters for judging a frame against `sources` others, from the
+/// session's (`base`).
+fn frame_judgement(base: &AutoMaskParams, sources: usize) -> AutoMaskParams {
+    let mut params = base.clone();
+    params.min_views = params.min_views.min(sources);
+    // The walk's marks were measured without the regrowth (BENCHMARKS.md, "Video
+    // target, tenth pass"), and they already cover too much on some walks. Neighbouring
+    // frames' own objects explaining their disagreement cost two walks 3 and 4 dB
+    // (BENCHMARKS.md, "--mask auto: the views' own objects").
+    params.regrowth_passes = 0;
+    params.own_objects = false;
+    // Nor the clouds joined to the sky: in a walk's soft frames the sky ran on into the
+    // glass reflecting it, and one walk lost 3.3 dB (BENCHMARKS.md, "Bands of cloud").
+    params.sky_cloud_gradient = 0.0;
+    // Nor faces shaded otherwise (`shading_ncc`): the walks were not
+    // measured with it (sixty-eighth session).
+    params.shading_ncc = 0.0;
+    params
 }
 
 /// A mark the second judgement lifted: the fill copies the pixel only where every frame
@@ -745,9 +752,7 @@ mod tests {
         let sources = |of: &[usize]| -> Vec<Source<'_, [u8; 3]>> {
             of.iter().map(|&k| Source { image: &pixels[k], homography: Homography::identity() }).collect()
         };
-        let mut params = SessionParams::default().auto_mask;
-        params.regrowth_passes = 0;
-        params.own_objects = false;
+        let params = frame_judgement(&SessionParams::default().auto_mask, 3);
         let (img, tree) = &frames[3];
         let first = auto_mask_report(img, &sources(&[0, 1, 2]), &params).mask;
         let again = auto_mask_report(img, &sources(&[0, 1, 2, 4, 5]), &params);
