@@ -1268,12 +1268,7 @@ mod tests {
         assert!(b.accepted(), "{b:?}");
         // Over the half the view sees (blurred by σ = 4.5 px): within a pixel, nowhere 2 px off.
         for h in [a.homography.unwrap(), b.homography.unwrap()] {
-            let mut errors: Vec<f64> = (20..460)
-                .step_by(40)
-                .flat_map(|y| (340..620).step_by(40).map(move |x| Point2::new(x as f64, y as f64)))
-                .map(|p| (h.apply(p).unwrap() - truth.apply(p).unwrap()).norm())
-                .collect();
-            errors.sort_by(f64::total_cmp);
+            let errors = sorted_errors(&h, &truth, (20..460).step_by(40), (340..620).step_by(40));
             assert!(errors[errors.len() / 2] < 1.0 && errors[errors.len() - 1] < 2.0, "{errors:?}");
         }
     }
@@ -1304,15 +1299,23 @@ mod tests {
         let a = align(&kf, &vf, &params, None);
         assert!(a.accepted(), "{a:?}");
         assert!(a.coverage < params.acceptance.min_coverage, "not the case tested: {a:?}");
-        let hm = a.homography.unwrap();
-        let mut errors: Vec<f64> = band
-            .clone()
-            .step_by(8)
-            .flat_map(|y| (566..636).step_by(10).map(move |x| Point2::new(x as f64, y as f64)))
-            .map(|p| (hm.apply(p).unwrap() - truth.apply(p).unwrap()).norm())
+        let errors = sorted_errors(&a.homography.unwrap(), &truth, band.step_by(8), (566..636).step_by(10));
+        assert!(errors[errors.len() / 2] < 0.5 && errors[errors.len() - 1] < 1.5, "{errors:?}");
+    }
+
+    /// The distances between where `h` and `truth` send the grid of `ys` × `xs`, ascending.
+    fn sorted_errors(
+        h: &Homography,
+        truth: &Homography,
+        ys: impl Iterator<Item = usize>,
+        xs: impl Iterator<Item = usize> + Clone,
+    ) -> Vec<f64> {
+        let mut errors: Vec<f64> = ys
+            .flat_map(|y| xs.clone().map(move |x| Point2::new(x as f64, y as f64)))
+            .map(|p| (h.apply(p).unwrap() - truth.apply(p).unwrap()).norm())
             .collect();
         errors.sort_by(f64::total_cmp);
-        assert!(errors[errors.len() / 2] < 0.5 && errors[errors.len() - 1] < 1.5, "{errors:?}");
+        errors
     }
 
     const BLUR: f32 = 4.5;

@@ -8,6 +8,8 @@ use clearview::imaging::metrics::masked_psnr;
 use clearview::imaging::{Mask, RgbF32};
 use clearview::synth;
 
+mod common;
+
 const BIN: &str = env!("CARGO_BIN_EXE_clearview");
 const W: usize = 480;
 const H: usize = 360;
@@ -575,11 +577,8 @@ fn surfaces_the_views_do_not_back_are_found_but_not_used() {
 /// place only, the walkers matched dark things further along the lines and were lost.)
 #[test]
 fn an_automatic_mask_takes_the_walkers_and_leaves_the_paths_edges() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/multiview/parapano_hunt");
-    if !dir.is_dir() {
-        println!("skipped: {} is absent", dir.display());
-        return;
-    }
+    let Some(data) = common::data_dir() else { return };
+    let dir = data.join("multiview/parapano_hunt");
     let tmp = tempfile::tempdir().unwrap();
     let found = tmp.path().join("found.png");
     let mut a: Vec<PathBuf> = vec![
@@ -627,11 +626,8 @@ fn an_automatic_mask_takes_the_walkers_and_leaves_the_paths_edges() {
 /// view and no consensus.
 #[test]
 fn night_shots_from_one_tripod_with_cars_moved_are_two_views() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/transient/night_street_cars");
-    if !dir.is_dir() {
-        println!("skipped: {} is absent", dir.display());
-        return;
-    }
+    let Some(data) = common::data_dir() else { return };
+    let dir = data.join("transient/night_street_cars");
     let tmp = tempfile::tempdir().unwrap();
     let report = tmp.path().join("report.json");
     let mut a: Vec<PathBuf> = vec![
