@@ -69,6 +69,13 @@ const LIFTED_CONFIDENCE: f32 = 0.45;
 /// of a crown over the sky, which the frames around had agreed with (BENCHMARKS.md,
 /// "Video target, eighteenth session").
 const LIFTED_RESEMBLES: f32 = 0.08;
+/// A soft mark of at most this level ([`FillExtras::occluders`]) is faint: its view did not
+/// judge the pixel an occluder, it only lies near one (the rim a walk's frame is marked
+/// with past what was found). [`LIFTED_RESEMBLES`] is not asked of it: inside a generous
+/// mask's margin the keyframe shows the wall, and a view like it there shows the wall
+/// too. On the rendered walks the rule had dropped the wall every frame saw in the margin,
+/// and the fallback invented it (BENCHMARKS.md, "A frame's rim is faint").
+pub const FAINT_MARK: u8 = 144;
 /// Nor is a soft-marked pixel whose 3 × 3 mean is at least this foreign to the colours of
 /// the building around the mask (the keyframe outside the mask near the part,
 /// [`LIFTED_FOREIGN_REACH`]; [`occlusion::Histogram::foreign`], 0 common .. 1 never seen):
@@ -426,7 +433,8 @@ pub struct FillExtras<'a> {
     /// than the building (an occluder found by other means); they are never copied. A
     /// soft mark (128..255, exclusive) is a doubt, not a verdict: such a pixel may be
     /// copied where every source that sees it is marked there, and is then never
-    /// reported sure ([`LIFTED_CONFIDENCE`], [`LIFTED_RESEMBLES`], [`LIFTED_FOREIGN`]).
+    /// reported sure ([`LIFTED_CONFIDENCE`], [`LIFTED_RESEMBLES`], [`LIFTED_FOREIGN`]); a
+    /// faint one ([`FAINT_MARK`] or below) says only that an occluder is near.
     pub occluders: &'a [Option<&'a Mask>],
     /// Another result of the same keyframe and mask (keyframe-sized), to be judged on the
     /// same evidence as this fill ([`Filled::rival_quality`]).
@@ -1393,7 +1401,8 @@ fn mark_levels(wv: &Warped, h: &Homography, occluders: Option<&Mask>) -> Option<
 
 /// Marks invalid the views' pixels on their occluders (`levels` > 127), but where every
 /// view that sees a pixel is marked there, those whose mark is soft (below 255) stay,
-/// unless, inside the mask, they look like the keyframe ([`LIFTED_RESEMBLES`]), or their
+/// unless, inside the mask, they look like the keyframe ([`LIFTED_RESEMBLES`]; not asked of
+/// a faint mark, [`FAINT_MARK`]), or their
 /// colour is foreign to the building around the mask ([`LIFTED_FOREIGN`]). Returns,
 /// per view, the pixels that stayed under a soft mark (`None`: none did).
 fn exclude_marked(
@@ -1455,7 +1464,8 @@ fn exclude_marked(
                     // have is right, whatever the other views' marks.
                     let (a, b) = (view_mean(&ws[v], x, y), key_mean(x, y));
                     let d = (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>().sqrt();
-                    if (inside && d < LIFTED_RESEMBLES) || building.foreign(a) >= LIFTED_FOREIGN {
+                    let like_keys_occluder = inside && d < LIFTED_RESEMBLES && l > FAINT_MARK;
+                    if like_keys_occluder || building.foreign(a) >= LIFTED_FOREIGN {
                         drop.push((v, x, y));
                     } else {
                         lifted[v].get_or_insert_with(|| Plane::new(w, h, false)).set(x, y, true);
@@ -2461,6 +2471,63 @@ mod tests {
                 assert!(copied < 0.05, "{what}, model {occlusion}: {copied:.2} copied");
             }
         }
+    }
+
+    /// A generous mask (the person grown by 6 px, as a walk's masks are) that every view
+    /// marks: the second view wholly, the first softly over the person and faintly on a rim
+    /// past it (as a walk's frame is marked). The first view shows what the keyframe shows.
+    /// On the rim it is the wall, copied (doubtful) rather than invented; on the person it
+    /// is the keyframe's own occluder, refused. Marked softly on the rim too, the wall there
+    /// is refused as the person is.
+    #[test]
+    fn a_faint_mark_like_the_keyframe_in_the_masks_margin_is_copied() {
+        let scene = facade(160, 120, 5);
+        let (w, h) = (scene.width(), scene.height());
+        let mut key = scene.clone();
+        let mut person = Mask::new(w, h, 0);
+        paint_occluder(&mut key, Some(&mut person), Occluder::Person, 80.0, 65.0, 60.0, 2);
+        let mask = crate::synth::dilate_mask(&person, 6);
+        let rim = crate::synth::dilate_mask(&person, 7);
+        let (hole, on_person) = (mask.as_slice(), person.as_slice());
+        let margin_px: Vec<usize> = (0..w * h).filter(|&i| hole[i] > 127 && on_person[i] <= 127).collect();
+        let person_px: Vec<usize> = (0..w * h).filter(|&i| on_person[i] > 127).collect();
+        assert!(margin_px.len() > 500 && person_px.len() > 500, "a margin and a person in the hole");
+        let hs = [Homography::translation(4.0, -2.0), Homography::translation(-3.0, 1.0)];
+        let views: Vec<RgbF32> = [&key, &scene]
+            .iter()
+            .zip(&hs)
+            .map(|(img, hm)| render_view(img, &hm.inverse().unwrap(), w, h, [0.5; 3]))
+            .collect();
+        let sources: Vec<Source<'_>> =
+            views.iter().zip(&hs).map(|(image, &homography)| Source { image, homography }).collect();
+        let at =
+            |m: &Mask, x: usize, y: usize| m.get_checked(x as isize, y as isize).is_some_and(|l| l > 127);
+        let fill = |rim_level: u8| {
+            let marks = marks_in_views(&hs, w, h, |v, x, y| match (v, at(&person, x, y), at(&rim, x, y)) {
+                (_, false, false) => 0,
+                (0, true, _) => 160,
+                (0, false, true) => rim_level,
+                _ => 255,
+            });
+            let occluders: Vec<Option<&Mask>> = marks.iter().map(Some).collect();
+            let extras = FillExtras { occluders: &occluders, ..FillExtras::default() };
+            fill_with(&key, &mask, &sources, &extras, &FillParams::default(), 3, &mut ())
+        };
+        let share = |px: &[usize], of: &dyn Fn(usize) -> bool| {
+            px.iter().filter(|&&i| of(i)).count() as f64 / px.len() as f64
+        };
+        let f = fill(FAINT_MARK);
+        let (p, c) = (f.provenance.as_slice(), f.confidence.as_slice());
+        let copied = share(&margin_px, &|i| p[i] == 1);
+        assert!(copied > 0.8, "the wall under a faint mark: {copied:.2} copied");
+        let sure = share(&margin_px, &|i| p[i] == 1 && c[i] >= CONFIDENT);
+        assert_eq!(sure, 0.0, "a lifted pixel reported sure");
+        let person_copied = share(&person_px, &|i| p[i] == 1);
+        assert!(person_copied < 0.05, "the keyframe's own person: {person_copied:.2} copied");
+        let f = fill(160);
+        let p = f.provenance.as_slice();
+        let copied = share(&margin_px, &|i| p[i] == 1);
+        assert!(copied < 0.3, "the wall under a soft mark: {copied:.2} copied");
     }
 
     /// The colours a lifted pixel is judged foreign to ([`LIFTED_FOREIGN_REACH`] around the
