@@ -2350,6 +2350,16 @@ mod tests {
         (scene, key, mask)
     }
 
+    /// Each of `images` (keyframe-sized) seen through its keyframe → view map in `hs`, at
+    /// the keyframe's size.
+    fn rendered_views(images: &[&RgbF32], hs: &[Homography]) -> Vec<RgbF32> {
+        images
+            .iter()
+            .zip(hs)
+            .map(|(img, hm)| render_view(img, &hm.inverse().unwrap(), img.width(), img.height(), [0.5; 3]))
+            .collect()
+    }
+
     /// Per view (keyframe → view a translation, `hs`), view-sized occluder marks: `level(v,
     /// x, y)` at keyframe pixel (x, y).
     fn marks_in_views(
@@ -2435,11 +2445,7 @@ mod tests {
         let occluders: Vec<Option<&Mask>> = marks.iter().map(Some).collect();
         let extras = FillExtras { occluders: &occluders, ..FillExtras::default() };
         let fill = |first: &RgbF32, params: &FillParams| {
-            let views: Vec<RgbF32> = [first, &scene]
-                .iter()
-                .zip(&hs)
-                .map(|(img, hm)| render_view(img, &hm.inverse().unwrap(), w, h, [0.5; 3]))
-                .collect();
+            let views = rendered_views(&[first, &scene], &hs);
             let sources: Vec<Source<'_>> =
                 views.iter().zip(&hs).map(|(image, &homography)| Source { image, homography }).collect();
             fill_with(&key, &mask, &sources, &extras, params, 3, &mut ())
@@ -2493,11 +2499,7 @@ mod tests {
         let person_px: Vec<usize> = (0..w * h).filter(|&i| on_person[i] > 127).collect();
         assert!(margin_px.len() > 500 && person_px.len() > 500, "a margin and a person in the hole");
         let hs = [Homography::translation(4.0, -2.0), Homography::translation(-3.0, 1.0)];
-        let views: Vec<RgbF32> = [&key, &scene]
-            .iter()
-            .zip(&hs)
-            .map(|(img, hm)| render_view(img, &hm.inverse().unwrap(), w, h, [0.5; 3]))
-            .collect();
+        let views = rendered_views(&[&key, &scene], &hs);
         let sources: Vec<Source<'_>> =
             views.iter().zip(&hs).map(|(image, &homography)| Source { image, homography }).collect();
         let at =
