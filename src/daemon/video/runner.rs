@@ -380,7 +380,7 @@ impl Runner {
     fn own_occluders(&mut self, id: &str, h: Homography, px: Rgb8) {
         let n = self.neighbours.len();
         let before: Vec<usize> = std::iter::once(0).chain(n.saturating_sub(LOOK_BACK).max(1)..n).collect();
-        let marks = self.judge(id, &h, &px, &before).map(|found| with_soft_rim(&found.mask, SOFT_RIM));
+        let marks = self.judge(id, &h, &px, &before).map(|found| with_faint_rim(&found.mask, FAINT_RIM));
         if let Some(marks) = &marks {
             self.slot.session.set_view_occluders(id, marks);
         }
@@ -571,7 +571,7 @@ fn frame_judgement(base: &AutoMaskParams, sources: usize) -> AutoMaskParams {
 
 /// `marks` with the pixels within `r` of a mark (a `(2r + 1)²` square), and not on one,
 /// marked faintly ([`FAINT_MARK`]: near an occluder, not judged one).
-fn with_soft_rim(marks: &Mask, r: usize) -> Mask {
+fn with_faint_rim(marks: &Mask, r: usize) -> Mask {
     let (w, h) = (marks.width(), marks.height());
     let hard = crate::imaging::Plane::from_fn(w, h, |x, y| marks.get(x, y) > 127);
     let near = crate::inpaint::automask::dilate(&hard, r);
@@ -594,7 +594,7 @@ fn with_soft_rim(marks: &Mask, r: usize) -> Mask {
 /// frame's marks go on softly past what was found"). Marked faint rather than soft, the
 /// first-frame cases no longer lose (the mean 33.39 → 33.53 dB; BENCHMARKS.md, "A frame's
 /// rim is faint").
-const SOFT_RIM: usize = 2;
+const FAINT_RIM: usize = 2;
 
 /// A mark the second judgement lifted: the fill copies the pixel only where every frame
 /// that sees it is marked there ([`crate::inpaint::FillExtras::occluders`]).
@@ -822,7 +822,7 @@ mod tests {
             (30, 20) => SOFT_MARK,
             _ => 0,
         });
-        let marks = with_soft_rim(&found, 2);
+        let marks = with_faint_rim(&found, 2);
         for y in 0..30usize {
             for x in 0..40usize {
                 // The distance (a square's) to the nearest pixel found.
