@@ -189,20 +189,25 @@ fn a_view_that_only_adds_disagreement_does_not_make_the_fill_worse() {
 
 /// Where views with no occluder fill a planar wall, what goes grossly wrong is edges (brick,
 /// window frames) a fraction of a pixel off; the confidence must flag most of those too, not
-/// only the occluders. (Pooled over these three cases: flagged recall 0.42 with edges counted
-/// at a quarter of their step, 0.55 at 0.4; the 0.6 is met over all families, not on
-/// this one: BENCHMARKS.md, "Confidence at edges".)
+/// only the occluders. With edges counted at a fixed share of their step (0.4), seed 2's
+/// mortar lines, split in its softer views, stayed confident: 0.40 of its gross errors were
+/// flagged. Each view's share is now what its ring shows, and the 0.6 holds on each
+/// case (BENCHMARKS.md, "Confidence at edges, measured on the ring").
 #[test]
 fn gross_errors_along_edges_are_flagged() {
-    let mut pooled = Honesty::default();
     for seed in 1..=3 {
         let c = occlusion_case(CaseFamily::Planar, 480, 360, 4, seed);
         let (_, h) = figures(&c, &FillParams::default());
-        pooled.add(&h);
+        eprintln!(
+            "planar seed {seed}: flagged recall {:.3}, confident {:.3}, confident wrong {:.4}",
+            h.flagged_recall(),
+            h.confident_share(),
+            h.confident_error_rate()
+        );
+        assert!(h.flagged_recall() >= 0.6, "seed {seed}: {h:?}: flagged recall {:.2}", h.flagged_recall());
+        assert!(h.confident_error_rate() <= 0.08, "seed {seed}: {h:?}");
+        assert!(h.confident_share() >= 0.5, "seed {seed}: {h:?}");
     }
-    assert!(pooled.flagged_recall() >= 0.5, "{pooled:?}: flagged recall {:.2}", pooled.flagged_recall());
-    assert!(pooled.confident_error_rate() <= 0.08, "{pooled:?}");
-    assert!(pooled.confident_share() >= 0.5, "{pooled:?}");
 }
 
 /// Per view of `c`, the share of its occluder pixels that `own` marks and the share of its
@@ -307,7 +312,8 @@ fn the_views_own_occluders_are_kept_out_of_the_fill() {
 /// each other as before, so each copied pixel is as well witnessed as without the pier. Only
 /// where the pier meets the mask's edge does the blend see the disagreement, and it spreads
 /// the pier's colour inwards as a glow: those pixels are no longer what a view saw, and none
-/// of them may be reported sure (without the pier, two in five of them are).
+/// of them may be reported sure (without the pier, one in four of them are: the others lie
+/// on edges the views' ring shows a little off).
 #[test]
 fn pixels_the_blend_moved_grossly_are_not_called_confident() {
     let plain = occlusion_case(CaseFamily::Planar, 320, 240, 4, 1);
@@ -335,7 +341,7 @@ fn pixels_the_blend_moved_grossly_are_not_called_confident() {
         "{moved} masked pixels moved by the pier's glow: {sure} reported sure, {sure_before} without the pier"
     );
     assert!(moved >= 100, "the blend did not glow: {moved} pixels moved");
-    assert!(sure_before * 3 >= moved, "{sure_before} of {moved} sure without the pier");
+    assert!(sure_before * 5 >= moved, "{sure_before} of {moved} sure without the pier");
     assert!(sure * 50 <= moved, "{sure} of {moved} moved pixels reported sure");
 }
 

@@ -591,10 +591,11 @@ fn fill_gathered<P: RgbPixel>(
     else {
         return (unfinished(surface, report), None);
     };
-    let Gathered { parts, warps, lifted, maps, errors, reach, diagonal } = &evidence;
+    let Gathered { parts, warps, lifted, maps, errors, edge_shares, reach, diagonal } = &evidence;
     let diagonal = *diagonal;
     let judge = |img: &RgbF32| evidence.judge(key, mask, img);
-    let stage = Staged { key, mask, parts, warps, lifted, maps, errors, reach, diagonal, params, seed };
+    let stage =
+        Staged { key, mask, parts, warps, lifted, maps, errors, edge_shares, reach, diagonal, params, seed };
     if observer.cancelled() {
         return (unfinished(surface, report), None);
     }
@@ -737,6 +738,8 @@ struct Gathered {
     maps: Vec<OcclusionMap>,
     /// Per part, per source ([`view_errors`]).
     errors: Vec<Vec<f32>>,
+    /// Per part, per source ([`view_edge_shares`]).
+    edge_shares: Vec<Vec<f32>>,
     /// Per part, per source ([`view_reach`]).
     reach: Vec<Vec<usize>>,
     /// The whole keyframe's diagonal ([`FillExtras::whole`]).
@@ -963,7 +966,14 @@ impl Gathered {
 
         let errors: Vec<Vec<f32>> =
             parts.par_iter().zip(warps.par_iter()).map(|(part, ws)| view_errors(key, part, ws)).collect();
-        Some(Gathered { parts, warps, lifted, maps, errors, reach, diagonal })
+        let edge_shares: Vec<Vec<f32>> = parts
+            .par_iter()
+            .zip(warps.par_iter())
+            .zip(maps.par_iter())
+            .zip(reach.par_iter())
+            .map(|(((part, ws), map), reach)| view_edge_shares(key, part, ws, map, reach))
+            .collect();
+        Some(Gathered { parts, warps, lifted, maps, errors, edge_shares, reach, diagonal })
     }
 
     /// A result against what every view shows, each view a witness as far as the model
@@ -1052,6 +1062,8 @@ struct Staged<'a> {
     maps: &'a [OcclusionMap],
     /// Per part, per source ([`view_errors`]: each view's own, whatever the others).
     errors: &'a [Vec<f32>],
+    /// Per part, per source ([`view_edge_shares`]).
+    edge_shares: &'a [Vec<f32>],
     /// Per part, per source ([`view_reach`]).
     reach: &'a [Vec<usize>],
     /// The whole keyframe's diagonal ([`FillExtras::whole`]).
@@ -1135,6 +1147,7 @@ impl Staged<'_> {
                         warps: pick_views(&self.warps[k], &all_views(self.warps[k].len())),
                         map: &self.maps[k],
                         errors: &self.errors[k],
+                        edge_shares: &self.edge_shares[k],
                         reach: &self.reach[k],
                         views,
                     };
@@ -1782,6 +1795,8 @@ struct Evidence<'a> {
     warps: Vec<&'a Warped>,
     map: &'a OcclusionMap,
     errors: &'a [f32],
+    /// Per source ([`view_edge_shares`]).
+    edge_shares: &'a [f32],
     /// Per source ([`view_reach`]).
     reach: &'a [usize],
     views: &'a [usize],
@@ -1878,7 +1893,8 @@ fn fill_one(
                 .map_or(1.0, |&e| if e.is_finite() { occlusion::closeness(e.sqrt()) } else { 1.0 });
             let reach = evidence.reach.get(view).copied().unwrap_or(1);
             let c = occlusion::confidence(evidence.map, &refs, view, (at, reach), i, r.width, pixels[i]);
-            let value = fit * c.reported();
+            let value =
+                fit * c.reported(evidence.edge_shares.get(view).copied().unwrap_or(occlusion::EDGE_SHARE));
             // Its own frame took it for an occluder: never reported as sure.
             let lifted = lifted.get(p.view as usize).copied().flatten().is_some_and(|l| l.as_slice()[at]);
             let value = if lifted { value.min(LIFTED_CONFIDENCE) } else { value };
@@ -2036,6 +2052,63 @@ fn view_errors(key: &RgbF32, part: &Part, warps: &[Warped]) -> Vec<f32> {
         })
         .collect()
 }
+
+/// Per view, the share of an edge's step by which its copies are expected to be wrong, as its
+/// ring says: of the ring's edges (a step of at least [`EDGE_MIN_STEP`] across the view's
+/// own pixel, as [`occlusion::PixelConfidence::reported`] measures it) where the model does
+/// not take the view for an occluder, the [`EDGE_QUANTILE`] of their error against the
+/// keyframe over their step; never below [`occlusion::EDGE_SHARE`], and that where the ring
+/// has fewer than [`EDGE_MIN_SAMPLES`] such edges. A view a fraction of a pixel off, or
+/// softer than the keyframe, or off the wall there (parallax) shows it along the ring's
+/// edges first: the keyframe's thin lines (mortar, mullions) come out split or shifted in
+/// it, wrong by most of the step the view shows, and so they will inside.
+fn view_edge_shares(
+    key: &RgbF32,
+    part: &Part,
+    warps: &[Warped],
+    map: &OcclusionMap,
+    reach: &[usize],
+) -> Vec<f32> {
+    let r = part.rect;
+    let ring = part.ring.as_slice();
+    warps
+        .iter()
+        .enumerate()
+        .map(|(v, wv)| {
+            let (img, ok) = (wv.image.as_slice(), wv.valid.as_slice());
+            let reach = reach.get(v).copied().unwrap_or(1);
+            let mut ratios: Vec<f32> = ring
+                .iter()
+                .enumerate()
+                .filter(|&(i, &on)| on && ok[i] && map.occluded[v][i] <= 0.5)
+                .filter_map(|(i, _)| {
+                    let step = occlusion::soft_step(img, ok, i, r.width, reach);
+                    (step >= EDGE_MIN_STEP).then(|| {
+                        let k = key.get(r.x + i % r.width, r.y + i / r.width);
+                        occlusion::max_channel(img[i], k) / step
+                    })
+                })
+                .collect();
+            if ratios.len() < EDGE_MIN_SAMPLES {
+                return occlusion::EDGE_SHARE;
+            }
+            let at = ((ratios.len() as f32 * EDGE_QUANTILE) as usize).min(ratios.len() - 1);
+            ratios.select_nth_unstable_by(at, f32::total_cmp);
+            ratios[at].max(occlusion::EDGE_SHARE)
+        })
+        .collect()
+}
+
+/// The step (0..=1) from which a ring pixel is an edge for [`view_edge_shares`]: a gross
+/// difference's worth. Across smaller steps the error is noise and light, not the edge.
+const EDGE_MIN_STEP: f32 = 30.0 / 255.0;
+/// The quantile of the ring edges' error over step that [`view_edge_shares`] takes. At 0.85
+/// the keyframe's mortar lines split in a softer view stayed confident (planar-2: 40 % of
+/// the gross errors flagged); at 0.95, 70 % (BENCHMARKS.md, "Confidence at edges, measured
+/// on the ring").
+const EDGE_QUANTILE: f32 = 0.95;
+/// Ring edges a view must show for its own share to be measured.
+const EDGE_MIN_SAMPLES: usize = 16;
 
 /// The share of a view's ring pixels its expected error is taken over (the closest ones).
 const RING_TRUST: f32 = 0.7;

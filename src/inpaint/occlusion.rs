@@ -950,21 +950,30 @@ pub fn confidence(
     // fraction of a pixel the views are off (resampling, registration), however well the
     // witnesses agree (they are all resampled alike).
     let (img, ok) = views[picked];
-    let step_at = |d: usize| {
-        let mut step = 0.0f32;
-        for j in [at.wrapping_sub(d), at + d, at.wrapping_sub(d * width), at + d * width] {
-            if j < img.len() && ok[j] {
-                step = step.max(max_channel(img[j], img[at]));
-            }
-        }
-        step
-    };
-    let step = step_at(1);
-    // A coarser view's edge is spread over `reach` pixels: its whole step is that far apart.
-    let soft_step = if reach > 1 { step.max(step_at(reach)) } else { step };
+    let step = step_at(img, ok, at, width, 1);
+    let soft_step = soft_step(img, ok, at, width, reach);
     // Without witnesses, the view alone (as sure as that can be).
     let support = (agree + SOLE_WITNESS * (WITNESSES - wsum).max(0.0)) / wsum.max(WITNESSES);
     PixelConfidence { building: own * support.clamp(0.0, 1.0), step, soft_step }
+}
+
+/// The largest step (0..=1) from pixel `i` of a view (`img`, where `ok`; rows `width`
+/// long) to the pixels `d` away along a row or a column.
+fn step_at(img: &[[f32; 3]], ok: &[bool], i: usize, width: usize, d: usize) -> f32 {
+    let mut step = 0.0f32;
+    for j in [i.wrapping_sub(d), i + d, i.wrapping_sub(d * width), i + d * width] {
+        if j < img.len() && ok[j] {
+            step = step.max(max_channel(img[j], img[i]));
+        }
+    }
+    step
+}
+
+/// [`step_at`] across the view's own pixel: a coarser view's edge is spread over `reach`
+/// keyframe pixels, and its whole step is that far apart.
+pub(crate) fn soft_step(img: &[[f32; 3]], ok: &[bool], i: usize, width: usize, reach: usize) -> f32 {
+    let step = step_at(img, ok, i, width, 1);
+    if reach > 1 { step.max(step_at(img, ok, i, width, reach)) } else { step }
 }
 
 /// A filled pixel's [`confidence`], in its two halves: how sure the fill is that the pixel
@@ -987,22 +996,23 @@ impl PixelConfidence {
         self.building * closeness(edge_share * self.step)
     }
 
-    /// The confidence a result reports: an edge taken to be wrong by [`EDGE_SHARE`] of its
-    /// step across the picked view's own pixel. Where a view coarser than the keyframe
-    /// filled, the copy cannot say where within that pixel the edge lies, nor how sharp it
-    /// is (views at a half and a third of the keyframe's size made the report surer than
-    /// the views themselves, while its fills lost 3–6 dB).
-    pub fn reported(&self) -> f32 {
-        self.building * closeness(EDGE_SHARE * self.soft_step)
+    /// The confidence a result reports: an edge taken to be wrong by `edge_share` of its
+    /// step across the picked view's own pixel (the share the view's ring shows, at least
+    /// [`EDGE_SHARE`]). Where a view coarser than the keyframe filled, the copy cannot say
+    /// where within that pixel the edge lies, nor how sharp it is (views at a half and a
+    /// third of the keyframe's size made the report surer than the views themselves, while
+    /// its fills lost 3–6 dB).
+    pub fn reported(&self, edge_share: f32) -> f32 {
+        self.building * closeness(edge_share * self.soft_step)
     }
 }
 
 /// Witness weight from which the witnesses alone decide.
 const WITNESSES: f32 = 0.5;
-/// The share of an edge's step taken as its expected error in the confidence a result
-/// reports. At 0.25 most of the generated cases' gross errors that were marked confident lay
-/// along brick and window edges (flagged recall 60 % with 4 views); at 0.4, 68 %
-/// (BENCHMARKS.md, "Confidence at edges").
+/// The least share of an edge's step taken as its expected error in the confidence a result
+/// reports (a view's ring may show more). At 0.25 most of the generated cases' gross errors
+/// that were marked confident lay along brick and window edges (flagged recall 60 % with 4
+/// views); at 0.4, 68 % (BENCHMARKS.md, "Confidence at edges").
 pub const EDGE_SHARE: f32 = 0.4;
 /// The same share in the confidence the fill decides with (which view pixels border the
 /// fallback's guide): the value its thresholds were measured with.
@@ -1053,8 +1063,12 @@ mod tests {
         let fine = confidence(&map, &views, 0, (at, 1), at, w, img[at]);
         let coarse = confidence(&map, &views, 0, (at, 3), at, w, img[at]);
         let sure = f32::from(crate::inpaint::CONFIDENT) / 255.0;
-        assert!(fine.reported() >= sure, "one pixel apart: {:.3}", fine.reported());
-        assert!(coarse.reported() < sure, "across the view's pixel: {:.3}", coarse.reported());
+        assert!(fine.reported(EDGE_SHARE) >= sure, "one pixel apart: {:.3}", fine.reported(EDGE_SHARE));
+        assert!(
+            coarse.reported(EDGE_SHARE) < sure,
+            "across the view's pixel: {:.3}",
+            coarse.reported(EDGE_SHARE)
+        );
         assert_eq!(fine.value(GUIDE_EDGE_SHARE), coarse.value(GUIDE_EDGE_SHARE));
     }
 
