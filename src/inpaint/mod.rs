@@ -2082,7 +2082,7 @@ fn view_edge_shares(
                 .enumerate()
                 .filter(|&(i, &on)| on && ok[i] && map.occluded[v][i] <= 0.5)
                 .filter_map(|(i, _)| {
-                    let step = occlusion::soft_step(img, ok, i, r.width, reach);
+                    let (_, step) = occlusion::steps(img, ok, i, r.width, reach);
                     (step >= EDGE_MIN_STEP).then(|| {
                         let k = key.get(r.x + i % r.width, r.y + i / r.width);
                         occlusion::max_channel(img[i], k) / step

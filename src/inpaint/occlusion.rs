@@ -950,8 +950,7 @@ pub fn confidence(
     // fraction of a pixel the views are off (resampling, registration), however well the
     // witnesses agree (they are all resampled alike).
     let (img, ok) = views[picked];
-    let step = step_at(img, ok, at, width, 1);
-    let soft_step = soft_step(img, ok, at, width, reach);
+    let (step, soft_step) = steps(img, ok, at, width, reach);
     // Without witnesses, the view alone (as sure as that can be).
     let support = (agree + SOLE_WITNESS * (WITNESSES - wsum).max(0.0)) / wsum.max(WITNESSES);
     PixelConfidence { building: own * support.clamp(0.0, 1.0), step, soft_step }
@@ -969,11 +968,12 @@ fn step_at(img: &[[f32; 3]], ok: &[bool], i: usize, width: usize, d: usize) -> f
     step
 }
 
-/// [`step_at`] across the view's own pixel: a coarser view's edge is spread over `reach`
-/// keyframe pixels, and its whole step is that far apart.
-pub(crate) fn soft_step(img: &[[f32; 3]], ok: &[bool], i: usize, width: usize, reach: usize) -> f32 {
+/// [`step_at`] one pixel apart, and across the view's own pixel (`reach` keyframe pixels):
+/// a coarser view's edge is spread over `reach` pixels, and its whole step is that far
+/// apart. (step, soft step).
+pub(crate) fn steps(img: &[[f32; 3]], ok: &[bool], i: usize, width: usize, reach: usize) -> (f32, f32) {
     let step = step_at(img, ok, i, width, 1);
-    if reach > 1 { step.max(step_at(img, ok, i, width, reach)) } else { step }
+    (step, if reach > 1 { step.max(step_at(img, ok, i, width, reach)) } else { step })
 }
 
 /// A filled pixel's [`confidence`], in its two halves: how sure the fill is that the pixel
