@@ -327,8 +327,10 @@ pub struct FillParams {
     /// [`occlusion::GUIDE_EDGE_SHARE`] says); `None`: from no view pixel.
     /// The views' pixels next to what no view saw clear are the ones most likely to show
     /// a piece of an occluder; with few views they are mostly right, so the default keeps
-    /// the fairly sure ones. A video walk says otherwise (BENCHMARKS.md, "Video target,
-    /// ninth pass").
+    /// the fairly sure ones (half of [`CONFIDENT`]). A video walk takes only those it is
+    /// sure of: beside a walk's unseen sky the fairly sure ones were the rim of a crown
+    /// every frame showed, wrong one time in two, and the guide they gave grew glass into
+    /// that sky (BENCHMARKS.md, "A walk's fallback: guided by what the fill is sure of").
     pub fallback_guide_from: Option<u8>,
     /// Which surface each pixel shows, where [`FillExtras::planes`] gives surfaces off the
     /// wall: given for a 640 × 480 keyframe, and scaled to the keyframe's size
@@ -2407,6 +2409,13 @@ mod tests {
         let off_sky = |sure: u8| off_sky_from(sure, FillParams::default().fallback_guide_from);
         let (doubted, sure) = (off_sky(20), off_sky(220));
         assert!(doubted < 0.01, "doubted strip: the guide is {doubted:.3} off the sky");
+        // Fairly sure guides by default; from `CONFIDENT` (a walk's guide), it does not.
+        let fairly = off_sky_from(CONFIDENT - 28, Some(CONFIDENT));
+        assert!(
+            fairly < 0.01,
+            "a strip the fill is only fairly sure of: the guide is {fairly:.3} off the sky"
+        );
+        assert!(off_sky(CONFIDENT - 28) > 0.2, "by default a fairly sure strip guides");
         assert!(sure > 0.2, "a strip the fill is sure of should be carried in: {sure:.3}");
         // Told to take no view pixel (a video walk), not even one the fill is sure of.
         let none = off_sky_from(220, None);

@@ -26,7 +26,7 @@ use crate::daemon::state;
 use crate::geometry::Homography;
 use crate::imaging::convert::to_luminance;
 use crate::imaging::{GrayF32, Mask, RgbF32};
-use crate::inpaint::{AutoMask, AutoMaskParams, FAINT_MARK, Source, auto_mask_report};
+use crate::inpaint::{AutoMask, AutoMaskParams, CONFIDENT, FAINT_MARK, Source, auto_mask_report};
 use crate::session::{AlignRecord, Rgb8, Session, SessionParams};
 
 /// Kept frames from before the keyframe that wait for it (the latest ones): four seconds
@@ -662,6 +662,13 @@ fn detail_along(px: &Rgb8, motion: [f32; 2], r: usize) -> crate::imaging::Plane<
 /// (seed 16 `--keyframe-frame 30`: 16.81 → 27.85 dB; 17 of 24 cases gain, 5 lose up to
 /// 1.8 dB, none below the target; BENCHMARKS.md "Video target, thirteenth session"). The
 /// guide alone loses (seed 16 stays at 16.8 dB, seed 14's first frame falls below 27).
+/// It takes only the frame pixels the fill is sure of (`CONFIDENT`), not the fairly sure
+/// ones the service takes: beside what no frame saw they are the rim of the near crown
+/// that every frame showed there, wrong one time in two, and they guided glass and brick
+/// into the sky (seed 65's first frame 20.06 → 26.34 dB, seed 20's 28.16 → 31.59; no walk
+/// of 36 lost 0.3 dB; BENCHMARKS.md "A walk's fallback: guided by what the fill is sure
+/// of"). The service and the command keep theirs: there it flipped the judgement of a
+/// facade's surfaces (parallax-13 −6 dB).
 ///
 /// A walk's fill uses every buffered frame (no choice of views, `FillParams::select_views`):
 /// frames come in batches between fills, and each candidate would cost a trial fill; the
@@ -691,6 +698,7 @@ fn walk_params(mut params: SessionParams) -> SessionParams {
     fill.select_views = false;
     fill.local_shift = None;
     fill.own = None;
+    fill.fallback_guide_from = Some(CONFIDENT);
     params.sweep = None;
     params
 }
@@ -884,8 +892,10 @@ mod tests {
         assert!(fill.local_shift.is_none(), "a walk's frames are not moved around the hole");
         assert!(fill.own.is_none(), "the runner marks the frames' own occluders, not the fill");
         assert!(walk.sweep.is_none(), "a walk is not swept for surfaces off the wall");
-        // The rest is the service's: the fallback's guide among it.
+        assert_eq!(fill.fallback_guide_from, Some(CONFIDENT), "the guide takes the sure pixels only");
+        // The rest is the service's.
         let mut back = walk.clone();
+        back.fill.fallback_guide_from = base.fill.fallback_guide_from;
         back.sweep = base.sweep.clone();
         back.fill.occlusion_model.sure = base.fill.occlusion_model.sure;
         back.fill.select_views = base.fill.select_views;
