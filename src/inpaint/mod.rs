@@ -2417,7 +2417,7 @@ mod tests {
         );
         assert!(off_sky(CONFIDENT - 28) > 0.2, "by default a fairly sure strip guides");
         assert!(sure > 0.2, "a strip the fill is sure of should be carried in: {sure:.3}");
-        // Told to take no view pixel (a video walk), not even one the fill is sure of.
+        // Told to take no view pixel, not even one the fill is sure of.
         let none = off_sky_from(220, None);
         assert!(none < 0.01, "with no view pixel on the border the guide is {none:.3} off the sky");
     }
