@@ -9,6 +9,7 @@
 pub mod automask;
 pub mod blend;
 pub mod exemplar;
+pub mod follow;
 pub mod fuse;
 pub mod multiview;
 pub mod occlusion;
