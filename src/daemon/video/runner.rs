@@ -26,6 +26,7 @@ use crate::daemon::state;
 use crate::geometry::Homography;
 use crate::imaging::convert::to_luminance;
 use crate::imaging::{GrayF32, Mask, RgbF32};
+use crate::inpaint::follow::{FollowParams, follow_occluders};
 use crate::inpaint::{AutoMask, AutoMaskParams, CONFIDENT, FAINT_MARK, Source, auto_mask_report};
 use crate::session::{AlignRecord, Rgb8, Session, SessionParams};
 
@@ -45,12 +46,14 @@ const LOOK_BACK: usize = 2;
 const LOOK_AHEAD: usize = 2;
 
 /// An accepted frame that a later frame's own occluders are judged against: its id (`None`
-/// for the keyframe), keyframe → frame map, pixels and the marks it was given first.
+/// for the keyframe), keyframe → frame map, pixels, the marks it was given first and the
+/// keyframe's occluders followed into it ([`follow_occluders`]).
 struct Neighbour {
     id: Option<String>,
     h: Homography,
     pixels: Rgb8,
     marks: Option<Mask>,
+    followed: Option<Mask>,
 }
 
 /// An accepted frame waiting for the automatic mask: its id, index and time, alignment,
@@ -80,6 +83,12 @@ pub(super) struct Runner {
     /// Kept frames that arrived before the keyframe (at most [`PRE_KEY_FRAMES`], the
     /// latest): aligned once it is set, since they saw what the keyframe's occluders hide.
     pre_key: VecDeque<(u64, f64, DynamicImage, Instant)>,
+    /// Per part of the keyframe's mask, the stream times and shifts at which the frames
+    /// showed it ([`follow_occluders`]), the keyframe's own first: what a frame that does not
+    /// show a part clearly is marked by ([`predict_shift`]).
+    followed: Vec<Vec<(f64, [f64; 2])>>,
+    /// The keyframe's stream time.
+    key_time: f64,
     /// Frames buffered since the last fill (improving or not).
     buffered_since_fill: usize,
     /// Arrival time of the oldest frame admitted since the last fill.
@@ -103,6 +112,8 @@ impl Runner {
             pre_key: VecDeque::new(),
             last_accepted: None,
             neighbours: VecDeque::new(),
+            followed: Vec::new(),
+            key_time: 0.0,
             buffered_since_fill: 0,
             pending_since: None,
             run_id,
@@ -209,11 +220,14 @@ impl Runner {
         self.track.push_back((t, Homography::identity()));
         self.last_accepted = None;
         self.neighbours.clear();
+        self.followed.clear();
+        self.key_time = t;
         self.neighbours.push_back(Neighbour {
             id: None,
             h: Homography::identity(),
             pixels: rgb8(image),
             marks: None,
+            followed: None,
         });
         let (w, h) = (image.width(), image.height());
         tracing::info!(key = %name, t, width = w, height = h, "keyframe set");
@@ -319,7 +333,7 @@ impl Runner {
             self.pending_since.get_or_insert(arrived);
         }
         if let (Some(h), Some(px)) = (h, pixels) {
-            self.own_occluders(&key, h, px);
+            self.own_occluders(&key, t, h, px);
         }
         if self.slot.session.inputs_digest() != before {
             self.buffered_since_fill += 1;
@@ -377,14 +391,15 @@ impl Runner {
     /// facade its neighbours show there; the occlusion model, judging every frame's pixel
     /// against the others, doubts them but not always enough when several frames carry
     /// pieces of occluders over one pixel (BENCHMARKS.md, "Video target, tenth pass").
-    fn own_occluders(&mut self, id: &str, h: Homography, px: Rgb8) {
+    fn own_occluders(&mut self, id: &str, t: f64, h: Homography, px: Rgb8) {
         let n = self.neighbours.len();
         let before: Vec<usize> = std::iter::once(0).chain(n.saturating_sub(LOOK_BACK).max(1)..n).collect();
         let marks = self.judge(id, &h, &px, &before).map(|found| with_faint_rim(&found.mask, FAINT_RIM));
-        if let Some(marks) = &marks {
-            self.slot.session.set_view_occluders(id, marks);
+        let followed = self.follow(id, t, &h, &px);
+        if let Some(marks) = with_followed(marks.as_ref(), followed.as_ref()) {
+            self.slot.session.set_view_occluders(id, &marks);
         }
-        self.neighbours.push_back(Neighbour { id: Some(id.to_owned()), h, pixels: px, marks });
+        self.neighbours.push_back(Neighbour { id: Some(id.to_owned()), h, pixels: px, marks, followed });
         if let Some(g) = self.neighbours.len().checked_sub(1 + LOOK_AHEAD).filter(|&g| g >= 1) {
             self.judge_again(g);
         }
@@ -406,7 +421,9 @@ impl Runner {
     /// the others cannot judge a pixel (it leaves the picture, or all of them show
     /// occluders), the first verdict is all there is.
     fn judge_again(&mut self, g: usize) {
-        let Neighbour { id: Some(id), h, pixels, marks: Some(first) } = &self.neighbours[g] else { return };
+        let Neighbour { id: Some(id), h, pixels, marks: Some(first), followed } = &self.neighbours[g] else {
+            return;
+        };
         let around: Vec<usize> = std::iter::once(0)
             .chain((g.saturating_sub(LOOK_BACK).max(1)..self.neighbours.len()).filter(|&i| i != g))
             .collect();
@@ -423,8 +440,30 @@ impl Runner {
             _ => [1.0, 0.0],
         };
         let marks = judged_again(first, &again, pixels, motion);
+        let marks = with_followed(Some(&marks), followed.as_ref()).expect("marks given");
         let id = id.clone();
         self.slot.session.set_view_occluders(&id, &marks);
+    }
+
+    /// The keyframe's occluders followed into a frame (keyframe → frame map `h`, pixels
+    /// `px`) by their motion against the facade ([`follow_occluders`]): the frame's pixels
+    /// they cover. `None` without a mask, or where no part of it was followed.
+    fn follow(&mut self, id: &str, t: f64, h: &Homography, px: &Rgb8) -> Option<Mask> {
+        let mask = self.slot.session.mask()?;
+        let key = &self.neighbours.front()?.pixels;
+        let predicted: Vec<Option<[f64; 2]>> =
+            self.followed.iter().map(|track| predict_shift(track, t)).collect();
+        let found = follow_occluders(key, mask, px, h, &predicted, &FollowParams::default());
+        tracing::debug!(view = id, shifts = ?found.shifts, ?predicted, "the keyframe's occluders followed into a frame");
+        if self.followed.len() < found.shifts.len() {
+            self.followed.resize(found.shifts.len(), vec![(self.key_time, [0.0; 2])]);
+        }
+        for (track, d) in self.followed.iter_mut().zip(&found.shifts) {
+            if let Some(d) = d {
+                track.push((t, *d));
+            }
+        }
+        (found.marks.as_slice().iter().any(|&v| v > 0)).then_some(found.marks)
     }
 
     /// The automatic mask of buffered frame `id` (keyframe → frame map `h`, pixels `px`)
@@ -567,6 +606,19 @@ fn frame_judgement(base: &AutoMaskParams, sources: usize) -> AutoMaskParams {
     // measured with it (sixty-eighth session).
     params.shading_ncc = 0.0;
     params
+}
+
+/// A frame's `marks` with the keyframe's occluders `followed` into it: the stronger of the
+/// two per pixel. `None` when there is neither.
+fn with_followed(marks: Option<&Mask>, followed: Option<&Mask>) -> Option<Mask> {
+    match (marks, followed) {
+        (Some(m), Some(f)) => {
+            let mut out = m.clone();
+            out.as_mut_slice().iter_mut().zip(f.as_slice()).for_each(|(o, &v)| *o = (*o).max(v));
+            Some(out)
+        }
+        (m, f) => m.or(f).cloned(),
+    }
 }
 
 /// `marks` with the pixels within `r` of a mark (a `(2r + 1)²` square), and not on one,
@@ -717,6 +769,24 @@ fn disagree(a: &AlignRecord, b: &AlignRecord) -> bool {
         .median_grid_gap(&Homography::identity(), w, h, |_| true)
         .is_none_or(|gap| gap > DISAGREE_PX)
 }
+
+/// The shift at time `t` of a part of the keyframe's mask that the frames of `track`
+/// (stream times and shifts, the keyframe at shift nil among them) showed: carried on from the
+/// two frames nearest in time, when they are within [`PREDICT_SPAN`] of `t`.
+fn predict_shift(track: &[(f64, [f64; 2])], t: f64) -> Option<[f64; 2]> {
+    let mut near: Vec<&(f64, [f64; 2])> =
+        track.iter().filter(|(ti, _)| (ti - t).abs() <= PREDICT_SPAN).collect();
+    near.sort_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()));
+    let (&(t1, d1), &(t2, d2)) = (near.first()?, near.get(1)?);
+    if (t2 - t1).abs() < 1e-6 {
+        return None;
+    }
+    let k = (t - t1) / (t2 - t1);
+    Some([d1[0] + k * (d2[0] - d1[0]), d1[1] + k * (d2[1] - d1[1])])
+}
+
+/// How far in time (seconds) the shift of a keyframe's occluder is carried on.
+const PREDICT_SPAN: f64 = 1.5;
 
 /// Median disagreement (frame pixels) beyond which two alignments of a frame differ.
 const DISAGREE_PX: f64 = 4.0;
@@ -955,5 +1025,20 @@ mod tests {
         track.push_back((3.0, Homography::identity()));
         let h = predict(&track, 3.5).unwrap().rows();
         assert!((h[0][2] + 30.0).abs() < 1e-9, "{h:?}");
+    }
+
+    #[test]
+    fn an_occluders_shift_is_carried_on_from_the_frames_nearest_in_time() {
+        // The keyframe at t = 3 (shift nil); the frames before it, aligned nearest first,
+        // then those after it.
+        let track = vec![(3.0, [0.0, 0.0]), (2.75, [30.0, 2.0]), (2.5, [60.0, 4.0])];
+        let d = predict_shift(&track, 2.25).unwrap();
+        assert!((d[0] - 90.0).abs() < 1e-9 && (d[1] - 6.0).abs() < 1e-9, "{d:?}");
+        // After the keyframe, from it and the frame nearest it: the same speed, onwards.
+        let d = predict_shift(&track, 3.25).unwrap();
+        assert!((d[0] + 30.0).abs() < 1e-9, "{d:?}");
+        // Not from a single frame, nor further than PREDICT_SPAN from any two.
+        assert_eq!(predict_shift(&track[..1], 3.25), None);
+        assert_eq!(predict_shift(&track, 3.0 + PREDICT_SPAN + 0.5), None);
     }
 }
