@@ -2,7 +2,8 @@
 //! and six decoded, aligned views (true homographies); the target is 1.5 s median
 //! and 1.5 GB peak on a 2-core machine.
 //!
-//! `cargo bench --bench fill` (prints the stage timings of one run first).
+//! `cargo bench --bench fill` (prints the stage timings of one run first). The same bench
+//! times following the keyframe's occluders into a walk's frame (`inpaint::follow`).
 
 use std::time::Instant;
 
@@ -11,7 +12,8 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use clearview::geometry::Homography;
-use clearview::imaging::{Mask, RgbF32};
+use clearview::imaging::{Mask, Rgb8, RgbF32};
+use clearview::inpaint::follow::{FollowParams, follow_occluders};
 use clearview::inpaint::{FillParams, Observer, Source, Stage, fill};
 use clearview::synth::{self, Occluder};
 
@@ -134,6 +136,30 @@ fn benches(c: &mut Criterion) {
     c.bench_function("fill 12 MP, 15 % masked, 6 views", |b| {
         b.iter(|| fill(&s.key, &s.mask, &sources, &params, 1, &mut ()))
     });
+    // A walk's frames have the keyframe's occluders followed into them, one frame at a time
+    // (`inpaint::follow`): at 12 MP, and at a walk's 640 × 480.
+    let (key, view) = (rgb8(&s.key), rgb8(&s.views[0]));
+    c.bench_function("follow the keyframe's occluders into a frame, 12 MP", |b| {
+        b.iter(|| follow_occluders(&key, &s.mask, &view, &s.homographies[0], &[], &FollowParams::default()))
+    });
+    let small = |img: &RgbF32| {
+        Rgb8::from_fn(640, 480, |x, y| {
+            let p = img.get(x * W / 640, y * H / 480);
+            p.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        })
+    };
+    let (key, view) = (small(&s.key), small(&s.views[0]));
+    let mask = Mask::from_fn(640, 480, |x, y| s.mask.get(x * W / 640, y * H / 480));
+    let h = Homography::scaling(640.0 / W as f64)
+        .after(&s.homographies[0])
+        .after(&Homography::scaling(W as f64 / 640.0));
+    c.bench_function("follow the keyframe's occluders into a frame, 640 x 480", |b| {
+        b.iter(|| follow_occluders(&key, &mask, &view, &h, &[], &FollowParams::default()))
+    });
+}
+
+fn rgb8(img: &RgbF32) -> Rgb8 {
+    img.map(|p| p.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8))
 }
 
 criterion_group! {
