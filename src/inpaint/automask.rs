@@ -571,7 +571,7 @@ pub(crate) fn largest_component(m: &Plane<bool>) -> usize {
 
 /// Calls `f` with the pixels of each 8-connected component of `m`, in the order of their
 /// first pixel in raster order.
-fn each_component(m: &Plane<bool>, mut f: impl FnMut(&[(usize, usize)])) {
+pub(super) fn each_component(m: &Plane<bool>, mut f: impl FnMut(&[(usize, usize)])) {
     let (w, h) = (m.width(), m.height());
     let mut seen = Plane::new(w, h, false);
     let mut members = Vec::new();
@@ -1396,19 +1396,35 @@ fn sobel(w: usize, h: usize, x: usize, y: usize, v: impl Fn(usize, usize) -> f32
     (gx * gx + gy * gy).sqrt()
 }
 
-/// A 16³-bin colour histogram with add-one smoothing.
+/// A colour histogram (`levels`³ bins) with add-one smoothing.
 #[derive(Clone)]
-struct ColourHistogram {
+pub(super) struct ColourHistogram {
+    levels: usize,
     bins: Vec<f32>,
     total: f32,
 }
 
 impl ColourHistogram {
-    const N: usize = 16;
+    /// The grain `--mask auto` tells colours apart at.
+    const LEVELS: usize = 16;
 
-    fn bin(p: [f32; 3]) -> usize {
-        let q = |v: f32| ((v.clamp(0.0, 1.0) * Self::N as f32) as usize).min(Self::N - 1);
-        (q(p[0]) * Self::N + q(p[1])) * Self::N + q(p[2])
+    fn bin(&self, p: [f32; 3]) -> usize {
+        let n = self.levels;
+        let q = |v: f32| ((v.clamp(0.0, 1.0) * n as f32) as usize).min(n - 1);
+        (q(p[0]) * n + q(p[1])) * n + q(p[2])
+    }
+
+    /// The histogram of `colours`, `levels` per channel.
+    pub(super) fn of_colours(levels: usize, colours: impl Iterator<Item = [f32; 3]>) -> Self {
+        let bins = vec![1.0f32; levels.pow(3)];
+        let total = bins.len() as f32;
+        let mut hist = Self { levels, bins, total };
+        for c in colours {
+            let b = hist.bin(c);
+            hist.bins[b] += 1.0;
+            hist.total += 1.0;
+        }
+        hist
     }
 
     fn of(img: &RgbF32, excluded: &Plane<bool>) -> Self {
@@ -1417,17 +1433,8 @@ impl ColourHistogram {
 
     /// The histogram of the pixels of `img` inside `r` where `take` holds.
     fn within(img: &RgbF32, r: &Rect, take: impl Fn(usize, usize) -> bool) -> Self {
-        let mut bins = vec![1.0f32; Self::N.pow(3)];
-        let mut total = bins.len() as f32;
-        for y in r.y..r.y1() {
-            for x in r.x..r.x1() {
-                if take(x, y) {
-                    bins[Self::bin(img.get(x, y))] += 1.0;
-                    total += 1.0;
-                }
-            }
-        }
-        Self { bins, total }
+        let pixels = (r.y..r.y1()).flat_map(|y| (r.x..r.x1()).map(move |x| (x, y)));
+        Self::of_colours(Self::LEVELS, pixels.filter(|&(x, y)| take(x, y)).map(|(x, y)| img.get(x, y)))
     }
 
     /// Takes out of the histogram the pixels of `img` inside `r` where `take` holds (those
@@ -1436,7 +1443,8 @@ impl ColourHistogram {
         for y in r.y..r.y1() {
             for x in r.x..r.x1() {
                 if take(x, y) {
-                    self.bins[Self::bin(img.get(x, y))] -= 1.0;
+                    let b = self.bin(img.get(x, y));
+                    self.bins[b] -= 1.0;
                     self.total -= 1.0;
                 }
             }
@@ -1444,11 +1452,20 @@ impl ColourHistogram {
     }
 
     fn density(&self, p: [f32; 3]) -> f32 {
-        self.bins[Self::bin(p)] / self.total
+        self.bins[self.bin(p)] / self.total
     }
 
     fn log_density(&self, p: [f32; 3]) -> f32 {
-        (self.bins[Self::bin(p)] / self.total).ln()
+        self.density(p).ln()
+    }
+
+    /// Whether colour `p` is one of these colours (at least `share` of them fall in its bin)
+    /// and more likely under them than under `other`'s. A colour neither has seen is not
+    /// typical of either.
+    pub(super) fn typical(&self, p: [f32; 3], other: &ColourHistogram, share: f32) -> bool {
+        let bin = self.bins[self.bin(p)] - 1.0;
+        let seen = self.total - self.bins.len() as f32;
+        bin >= share * seen && self.density(p) > other.density(p)
     }
 }
 

@@ -32,6 +32,7 @@
 use nalgebra::Point2;
 use rayon::prelude::*;
 
+use super::automask::{ColourHistogram, each_component};
 use crate::geometry::Homography;
 use crate::imaging::{Mask, Plane, Rgb8, RgbPixel, bilinear_rgb};
 
@@ -134,6 +135,15 @@ pub fn follow_occluders(
     let any_r = Plane::from_fn(rw, rh, |x, y| block_any(&inside, f, x, y));
     let (labels, parts) = label(&any_r);
     let Some(to_key) = h.inverse() else { return none(parts) };
+    // Per part, its core's pixels, reduced (whole blocks) and at full size, row by row.
+    let mut core_r_px = vec![Vec::new(); parts];
+    for (x, y) in (0..rh).flat_map(|y| (0..rw).map(move |x| (x, y))).filter(|&(x, y)| core_r.get(x, y)) {
+        core_r_px[labels.get(x, y) as usize - 1].push((x, y));
+    }
+    let mut core_px = vec![Vec::new(); parts];
+    for (x, y) in (0..ht).flat_map(|y| (0..w).map(move |x| (x, y))).filter(|&(x, y)| core.get(x, y)) {
+        core_px[labels.get(x / f, y / f) as usize - 1].push((x, y));
+    }
     // The frame, reduced alike, taken to the keyframe's reduced coordinates over the range.
     let frame_r = block_mean(frame, f);
     let (ex, ey) =
@@ -156,16 +166,13 @@ pub fn follow_occluders(
                 Some(v) => dist(key_r.get(x, y), v) >= params.agree,
                 None => true,
             };
-            let whole: Vec<(usize, usize)> = (0..rh)
-                .flat_map(|y| (0..rw).map(move |x| (x, y)))
-                .filter(|&(x, y)| labels.get(x, y) == part as u32 + 1 && core_r.get(x, y))
-                .collect();
+            let whole = &core_r_px[part];
             let template: Vec<(usize, usize)> = whole.iter().copied().filter(|&(x, y)| moved(x, y)).collect();
             if template.len() < params.min_part {
                 return None;
             }
             let coarse = coarse_shift(&key_r, &canvas, &template, (ex, ey), params)?;
-            let d = refine(key, frame, &core, (&labels, part as u32 + 1), f, h, coarse, params);
+            let d = refine(key, frame, &core_px[part], f, h, coarse, params);
             // Moved further than its own size, an occluder no longer covers any of the place
             // it had: what of the part the frame still shows in place is wall a generous
             // brush took (a rectangle around a car). Such a part is not followed: moved with
@@ -216,7 +223,7 @@ pub fn follow_occluders(
     }
 
     // Per followed part, its colours and the building's around it (reduced pixels).
-    let colours: Vec<Option<(Histogram, Histogram)>> = used
+    let colours: Vec<Option<(ColourHistogram, ColourHistogram)>> = used
         .iter()
         .enumerate()
         .map(|(part, d)| {
@@ -233,7 +240,8 @@ pub fn follow_occluders(
             let (bx0, by0, bx1, by1) =
                 (x0.saturating_sub(m), y0.saturating_sub(m), (x1 + m).min(rw), (y1 + m).min(rh));
             let within = |take: &dyn Fn(usize, usize) -> bool| {
-                Histogram::new(
+                ColourHistogram::of_colours(
+                    LEVELS,
                     (by0..by1)
                         .flat_map(|y| (bx0..bx1).map(move |x| (x, y)))
                         .filter(|&(x, y)| take(x, y))
@@ -260,7 +268,7 @@ pub fn follow_occluders(
             if past
                 && let Some((own, building)) = &colours[part]
                 && let c = frame.get(x, y).to_f32()
-                && !own.typical(c, building)
+                && !own.typical(c, building, TYPICAL)
             {
                 continue;
             }
@@ -331,8 +339,8 @@ fn coarse_shift(
             }
         }
     }
-    let (_, [bx, by]) = best?;
     let mut best = best?;
+    let [bx, by] = best.1;
     for dy in by - 1..=by + 1 {
         for dx in bx - 1..=bx + 1 {
             if let Some(s) = score(dx, dy)
@@ -356,14 +364,13 @@ fn coarse_shift(
     .map(|_| shift)
 }
 
-/// The full-size shift of part `part` around the coarse one (reduced by `f`): the one, within
-/// a reduced pixel of it, at which most of the part's core agrees with the frame.
-#[allow(clippy::too_many_arguments)]
+/// The full-size shift of a part whose core is `core` (full-size pixels) around the coarse
+/// one (reduced by `f`): the one, within a reduced pixel of it, at which most of the core
+/// that moved agrees with the frame.
 fn refine(
     key: &Rgb8,
     frame: &Rgb8,
-    core: &Plane<bool>,
-    (labels, part): (&Plane<u32>, u32),
+    core: &[(usize, usize)],
     f: usize,
     h: &Homography,
     coarse: [isize; 2],
@@ -376,10 +383,7 @@ fn refine(
     };
     let moved =
         |x: usize, y: usize| shown(x, y).is_none_or(|v| dist(key.get(x, y).to_f32(), v) >= params.agree);
-    let pixels: Vec<(usize, usize)> = (0..key.height())
-        .flat_map(|y| (0..key.width()).map(move |x| (x, y)))
-        .filter(|&(x, y)| core.get(x, y) && labels.get(x / f, y / f) == part && moved(x, y))
-        .collect();
+    let pixels: Vec<(usize, usize)> = core.iter().copied().filter(|&(x, y)| moved(x, y)).collect();
     let stride = pixels.len().div_ceil(SAMPLES).max(1);
     let samples: Vec<(usize, usize)> = pixels.into_iter().step_by(stride).collect();
     let centre = [(coarse[0] * f as isize) as f64, (coarse[1] * f as isize) as f64];
@@ -404,43 +408,8 @@ fn refine(
     best.1
 }
 
-/// A colour histogram (8 levels per channel), each bin starting at one.
-struct Histogram {
-    bins: Vec<f32>,
-    total: f32,
-}
-
-impl Histogram {
-    const LEVELS: usize = 8;
-
-    fn bin(p: [f32; 3]) -> usize {
-        let q = |v: f32| ((v.clamp(0.0, 1.0) * Self::LEVELS as f32) as usize).min(Self::LEVELS - 1);
-        (q(p[0]) * Self::LEVELS + q(p[1])) * Self::LEVELS + q(p[2])
-    }
-
-    fn new(colours: impl Iterator<Item = [f32; 3]>) -> Self {
-        let mut bins = vec![1.0f32; Self::LEVELS.pow(3)];
-        let mut total = bins.len() as f32;
-        for c in colours {
-            bins[Self::bin(c)] += 1.0;
-            total += 1.0;
-        }
-        Self { bins, total }
-    }
-
-    fn density(&self, p: [f32; 3]) -> f32 {
-        self.bins[Self::bin(p)] / self.total
-    }
-
-    /// Whether colour `p` is one of these colours (at least [`TYPICAL`] of them fall in its
-    /// bin) and more likely under them than under `other`'s. A colour neither has seen is
-    /// not typical of either.
-    fn typical(&self, p: [f32; 3], other: &Histogram) -> bool {
-        let bin = self.bins[Self::bin(p)] - 1.0;
-        let seen = self.total - self.bins.len() as f32;
-        bin >= TYPICAL * seen && self.density(p) > other.density(p)
-    }
-}
+/// The levels per channel a part's colours are told from the building's at.
+const LEVELS: usize = 8;
 
 /// The share of a part's colours that must fall in a colour's bin for it to be the part's.
 const TYPICAL: f32 = 0.01;
@@ -484,35 +453,12 @@ fn erode(m: &Plane<bool>, r: usize) -> Plane<bool> {
 /// 8-connected components of `m`: labels from 1 in the order of their first pixel (row by
 /// row), 0 off `m`; and their count.
 fn label(m: &Plane<bool>) -> (Plane<u32>, usize) {
-    let (w, h) = (m.width(), m.height());
-    let mut labels = Plane::new(w, h, 0u32);
-    let mut count = 0u32;
-    let mut stack = Vec::new();
-    for y0 in 0..h {
-        for x0 in 0..w {
-            if !m.get(x0, y0) || labels.get(x0, y0) != 0 {
-                continue;
-            }
-            count += 1;
-            labels.set(x0, y0, count);
-            stack.push((x0, y0));
-            while let Some((x, y)) = stack.pop() {
-                for dy in -1isize..=1 {
-                    for dx in -1isize..=1 {
-                        let (nx, ny) = (x as isize + dx, y as isize + dy);
-                        if nx < 0 || ny < 0 || nx >= w as isize || ny >= h as isize {
-                            continue;
-                        }
-                        let (nx, ny) = (nx as usize, ny as usize);
-                        if m.get(nx, ny) && labels.get(nx, ny) == 0 {
-                            labels.set(nx, ny, count);
-                            stack.push((nx, ny));
-                        }
-                    }
-                }
-            }
-        }
-    }
+    let mut labels = Plane::new(m.width(), m.height(), 0u32);
+    let mut count = 0;
+    each_component(m, |members| {
+        count += 1;
+        members.iter().for_each(|&(x, y)| labels.set(x, y, count));
+    });
     (labels, count as usize)
 }
 
