@@ -530,16 +530,29 @@ mod tests {
     fn a_flat_car_is_followed_by_where_its_outline_moved() {
         let wall = facade(800, 400, 3);
         let (key, mask, frame, cover, h) = walk(&wall, 20.0, 170.0, 70.0, [-44.0, 3.0]);
-        let found = follow_occluders(&key, &mask, &frame, &h, &[], &FollowParams::default());
-        let d = found.shifts[0].expect("the car is followed");
-        assert!((d[0] + 44.0).abs() <= 1.0 && (d[1] - 3.0).abs() <= 1.0, "shift {d:?}");
+        let (car, astray) = followed_by_its_shift(&key, &mask, &frame, &cover, &h, [-44.0, 3.0]);
         // Its flat body is marked whole, and little beyond a brush's margin of it.
-        let car = count(&cover, |_, _, c| c > 127);
-        let missed = count(&cover, |x, y, c| c > 127 && found.marks.get(x, y) < 255);
+        assert!(astray * 50 < car, "{astray} pixels marked away from the car");
+    }
+
+    /// Follows the car in `frame`, checks it is found at `shift` (within a pixel) and marked
+    /// whole; returns the car's pixel count and the marks more than 6 px away from it.
+    fn followed_by_its_shift(
+        key: &Rgb8,
+        mask: &Mask,
+        frame: &Rgb8,
+        cover: &Mask,
+        h: &Homography,
+        shift: [f64; 2],
+    ) -> (usize, usize) {
+        let found = follow_occluders(key, mask, frame, h, &[], &FollowParams::default());
+        let d = found.shifts[0].expect("the car is followed");
+        assert!((d[0] - shift[0]).abs() <= 1.0 && (d[1] - shift[1]).abs() <= 1.0, "shift {d:?}");
+        let car = count(cover, |_, _, c| c > 127);
+        let missed = count(cover, |x, y, c| c > 127 && found.marks.get(x, y) < 255);
         assert!(missed * 50 < car, "{missed} of the car's {car} pixels not marked");
         let near = super::super::automask::dilate(&cover.map(|&v| v > 127), 6);
-        let astray = count(&found.marks, |x, y, m| m > 0 && !near.get(x, y));
-        assert!(astray * 50 < car, "{astray} pixels marked away from the car");
+        (car, count(&found.marks, |x, y, m| m > 0 && !near.get(x, y)))
     }
 
     #[test]
@@ -633,15 +646,8 @@ mod tests {
         // moves with the car's shift onto other wall in the frame.
         let mask =
             super::super::automask::dilate(&tight.map(|&v| v > 127), 12).map(|&b| if b { 255 } else { 0 });
-        let found = follow_occluders(&key, &mask, &frame, &h, &[], &FollowParams::default());
-        let d = found.shifts[0].expect("the car is followed");
-        assert!((d[0] + 44.0).abs() <= 1.0 && (d[1] - 3.0).abs() <= 1.0, "shift {d:?}");
-        let car = count(&cover, |_, _, c| c > 127);
-        let missed = count(&cover, |x, y, c| c > 127 && found.marks.get(x, y) < 255);
-        assert!(missed * 50 < car, "{missed} of the car's {car} pixels not marked");
+        let (car, astray) = followed_by_its_shift(&key, &mask, &frame, &cover, &h, [-44.0, 3.0]);
         // The band's wall is marked only where the frame's wall happens to look like it.
-        let near = super::super::automask::dilate(&cover.map(|&v| v > 127), 6);
-        let astray = count(&found.marks, |x, y, m| m > 0 && !near.get(x, y));
         assert!(astray * 5 < car, "{astray} pixels marked away from the car (the car: {car})");
     }
 
