@@ -135,14 +135,14 @@ pub fn follow_occluders(
     let any_r = Plane::from_fn(rw, rh, |x, y| block_any(&inside, f, x, y));
     let (labels, parts) = label(&any_r);
     let Some(to_key) = h.inverse() else { return none(parts) };
-    // Per part, its core's pixels, reduced (whole blocks) and at full size, row by row.
-    let mut core_r_px = vec![Vec::new(); parts];
-    for (x, y) in (0..rh).flat_map(|y| (0..rw).map(move |x| (x, y))).filter(|&(x, y)| core_r.get(x, y)) {
-        core_r_px[labels.get(x, y) as usize - 1].push((x, y));
-    }
-    let mut core_px = vec![Vec::new(); parts];
-    for (x, y) in (0..ht).flat_map(|y| (0..w).map(move |x| (x, y))).filter(|&(x, y)| core.get(x, y)) {
-        core_px[labels.get(x / f, y / f) as usize - 1].push((x, y));
+    // Per part, its blocks and its core's blocks (reduced), row by row.
+    let (mut blocks, mut core_r_px) = (vec![Vec::new(); parts], vec![Vec::new(); parts]);
+    for (x, y) in (0..rh).flat_map(|y| (0..rw).map(move |x| (x, y))).filter(|&(x, y)| any_r.get(x, y)) {
+        let part = labels.get(x, y) as usize - 1;
+        blocks[part].push((x, y));
+        if core_r.get(x, y) {
+            core_r_px[part].push((x, y));
+        }
     }
     // The frame, reduced alike, taken to the keyframe's reduced coordinates over the range.
     let frame_r = block_mean(frame, f);
@@ -172,7 +172,7 @@ pub fn follow_occluders(
                 return None;
             }
             let coarse = coarse_shift(&key_r, &canvas, &template, (ex, ey), params)?;
-            let d = refine(key, frame, &core_px[part], f, h, coarse, params);
+            let d = refine(key, frame, &full_size(&core, &blocks[part], f), f, h, coarse, params);
             // Moved further than its own size, an occluder no longer covers any of the place
             // it had: what of the part the frame still shows in place is wall a generous
             // brush took (a rectangle around a car). Such a part is not followed: moved with
@@ -433,6 +433,20 @@ fn block_mean(img: &Rgb8, f: usize) -> Plane<[f32; 3]> {
         }
         s.map(|v| v / n)
     })
+}
+
+/// The pixels of `m` (full size) within `blocks` (`f × f`, row by row), row by row.
+fn full_size(m: &Plane<bool>, blocks: &[(usize, usize)], f: usize) -> Vec<(usize, usize)> {
+    let mut out = Vec::new();
+    for row in blocks.chunk_by(|a, b| a.1 == b.1) {
+        let by = row[0].1;
+        for y in by * f..((by + 1) * f).min(m.height()) {
+            for &(bx, _) in row {
+                out.extend((bx * f..((bx + 1) * f).min(m.width())).filter(|&x| m.get(x, y)).map(|x| (x, y)));
+            }
+        }
+    }
+    out
 }
 
 fn block_all(m: &Plane<bool>, f: usize, bx: usize, by: usize) -> bool {
