@@ -2104,25 +2104,39 @@ fn box_blur(img: &RgbF32, valid: &Plane<bool>, r: usize) -> RgbF32 {
 /// 1-D max (`grow`) or min filter of radius `r` along rows (`vertical` false) or columns.
 fn filter_1d(m: &Plane<bool>, r: usize, grow: bool, vertical: bool) -> Plane<bool> {
     let (w, h) = (m.width(), m.height());
-    let (len, lines) = if vertical { (h, w) } else { (w, h) };
-    let idx = |line: usize, k: usize| if vertical { k * w + line } else { line * w + k };
     let src = m.as_slice();
     let mut out = vec![false; w * h];
-    for line in 0..lines {
-        // Running count of `true` in the window [k − r, k + r] ∩ [0, len).
-        let mut count = 0usize;
-        for k in 0..r.min(len) {
-            count += src[idx(line, k)] as usize;
+    let verdict = |count: u32, window: u32| if grow { count > 0 } else { count == window };
+    if vertical {
+        // Down the rows, a running count per column: each step reads and writes whole rows.
+        let mut count = vec![0u32; w];
+        for row in src.chunks_exact(w.max(1)).take(r.min(h)) {
+            count.iter_mut().zip(row).for_each(|(c, &v)| *c += u32::from(v));
         }
-        for k in 0..len {
-            if k + r < len {
-                count += src[idx(line, k + r)] as usize;
+        for y in 0..h {
+            if y + r < h {
+                count.iter_mut().zip(&src[(y + r) * w..][..w]).for_each(|(c, &v)| *c += u32::from(v));
+            }
+            if y > r {
+                count.iter_mut().zip(&src[(y - r - 1) * w..][..w]).for_each(|(c, &v)| *c -= u32::from(v));
+            }
+            let window = ((y + r).min(h - 1) + 1 - y.saturating_sub(r)) as u32;
+            out[y * w..][..w].iter_mut().zip(&count).for_each(|(o, &c)| *o = verdict(c, window));
+        }
+        return Plane::from_vec(w, h, out);
+    }
+    for (line, row) in src.chunks_exact(w.max(1)).enumerate().take(h) {
+        // Running count of `true` in the window [k − r, k + r] ∩ [0, w).
+        let mut count = row.iter().take(r.min(w)).map(|&v| u32::from(v)).sum::<u32>();
+        for k in 0..w {
+            if k + r < w {
+                count += u32::from(row[k + r]);
             }
             if k > r {
-                count -= src[idx(line, k - r - 1)] as usize;
+                count -= u32::from(row[k - r - 1]);
             }
-            let window = (k + r).min(len - 1) + 1 - k.saturating_sub(r);
-            out[idx(line, k)] = if grow { count > 0 } else { count == window };
+            let window = ((k + r).min(w - 1) + 1 - k.saturating_sub(r)) as u32;
+            out[line * w + k] = verdict(count, window);
         }
     }
     Plane::from_vec(w, h, out)
@@ -2148,6 +2162,36 @@ pub fn erode(m: &Plane<bool>, r: usize) -> Plane<bool> {
 mod tests {
     use super::*;
     use crate::synth::{Occluder, facade, paint_occluder, render_view};
+
+    /// Erosion and dilation by a square, pixel by pixel: the reference for `filter_1d`.
+    fn by_hand(m: &Plane<bool>, r: usize, grow: bool) -> Plane<bool> {
+        let (w, h) = (m.width() as isize, m.height() as isize);
+        let r = r as isize;
+        Plane::from_fn(m.width(), m.height(), |x, y| {
+            let seen = (-r..=r).flat_map(|dy| (-r..=r).map(move |dx| (x as isize + dx, y as isize + dy)));
+            let inside = |&(nx, ny): &(isize, isize)| nx >= 0 && ny >= 0 && nx < w && ny < h;
+            if grow {
+                seen.filter(inside).any(|(nx, ny)| m.get(nx as usize, ny as usize))
+            } else {
+                seen.filter(inside).all(|(nx, ny)| m.get(nx as usize, ny as usize))
+            }
+        })
+    }
+
+    #[test]
+    fn erosion_and_dilation_are_those_of_a_square() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        for (w, h) in [(1, 1), (1, 9), (9, 1), (23, 17), (40, 3)] {
+            for density in [0.2, 0.8, 0.97] {
+                let m = Plane::from_fn(w, h, |_, _| rng.random::<f64>() < density);
+                for r in [0, 1, 2, 5, 30] {
+                    assert!(erode(&m, r) == by_hand(&m, r, false), "erode {w}x{h} r {r} density {density}");
+                    assert!(dilate(&m, r) == by_hand(&m, r, true), "dilate {w}x{h} r {r} density {density}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn morphology_grows_and_shrinks_squares() {
