@@ -144,6 +144,19 @@ impl<T: Copy> Plane<T> {
         Self { width, height, data }
     }
 
+    /// As [`Plane::from_fn`], the rows computed in parallel.
+    pub fn par_from_fn(width: usize, height: usize, f: impl Fn(usize, usize) -> T + Sync) -> Self
+    where
+        T: Send,
+    {
+        use rayon::prelude::*;
+        let data: Vec<T> = {
+            let f = &f;
+            (0..height).into_par_iter().flat_map_iter(|y| (0..width).map(move |x| f(x, y))).collect()
+        };
+        Self { width, height, data }
+    }
+
     /// Wraps `data` (row-major, `width * height` long).
     ///
     /// # Panics

@@ -125,14 +125,14 @@ pub fn follow_occluders(
     if w == 0 || ht == 0 || (mask.width(), mask.height()) != (w, ht) {
         return none(0);
     }
-    let inside = Plane::from_fn(w, ht, |x, y| mask.get(x, y) > 127);
+    let inside = Plane::par_from_fn(w, ht, |x, y| mask.get(x, y) > 127);
     let core = erode(&inside, params.rim);
     let f = ((w * ht) as f64 / params.work_pixels.max(1) as f64).sqrt().ceil().max(1.0) as usize;
     let (rw, rh) = (w.div_ceil(f), ht.div_ceil(f));
     // Reduced: the keyframe's block means, the blocks wholly in the core, the parts.
     let key_r = block_mean(key, f);
-    let core_r = Plane::from_fn(rw, rh, |x, y| block_all(&core, f, x, y));
-    let any_r = Plane::from_fn(rw, rh, |x, y| block_any(&inside, f, x, y));
+    let core_r = Plane::par_from_fn(rw, rh, |x, y| block_all(&core, f, x, y));
+    let any_r = Plane::par_from_fn(rw, rh, |x, y| block_any(&inside, f, x, y));
     let (labels, parts) = label(&any_r);
     let Some(to_key) = h.inverse() else { return none(parts) };
     // Per part, its blocks and its core's blocks (reduced), row by row.
@@ -149,7 +149,7 @@ pub fn follow_occluders(
     let (ex, ey) =
         ((params.reach[0] * rw as f32).ceil() as isize, (params.reach[1] * rh as f32).ceil() as isize);
     let (cw, ch) = (rw + 2 * ex as usize, rh + 2 * ey as usize);
-    let canvas: Plane<Option<[f32; 3]>> = Plane::from_fn(cw, ch, |cx, cy| {
+    let canvas: Plane<Option<[f32; 3]>> = Plane::par_from_fn(cw, ch, |cx, cy| {
         let kx = ((cx as isize - ex) as f64 + 0.5) * f as f64 - 0.5;
         let ky = ((cy as isize - ey) as f64 + 0.5) * f as f64 - 0.5;
         let q = h.apply(Point2::new(kx, ky))?;
@@ -422,7 +422,7 @@ fn dist(a: [f32; 3], b: [f32; 3]) -> f32 {
 /// Block means of `img` over `f × f` blocks (the last row and column of blocks partial).
 fn block_mean(img: &Rgb8, f: usize) -> Plane<[f32; 3]> {
     let (w, h) = (img.width(), img.height());
-    Plane::from_fn(w.div_ceil(f), h.div_ceil(f), |bx, by| {
+    Plane::par_from_fn(w.div_ceil(f), h.div_ceil(f), |bx, by| {
         let (mut s, mut n) = ([0.0f32; 3], 0.0f32);
         for y in by * f..((by + 1) * f).min(h) {
             for x in bx * f..((bx + 1) * f).min(w) {
