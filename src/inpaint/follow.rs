@@ -177,8 +177,7 @@ pub fn follow_occluders(
             // it had: what of the part the frame still shows in place is wall a generous
             // brush took (a rectangle around a car). Such a part is not followed: moved with
             // the car, a repeating wall looks like itself and would be marked.
-            let (x0, x1) = whole.iter().fold((usize::MAX, 0), |(a, b), &(x, _)| (a.min(x), b.max(x)));
-            let (y0, y1) = whole.iter().fold((usize::MAX, 0), |(a, b), &(_, y)| (a.min(y), b.max(y)));
+            let [x0, y0, x1, y1] = span(whole);
             // (One the keyframe's border cuts may be longer than it shows.)
             let cut = x0 == 0 || y0 == 0 || x1 + 1 == rw || y1 + 1 == rh;
             let beyond = d[0].abs() > ((x1 - x0 + 1) * f) as f64 || d[1].abs() > ((y1 - y0 + 1) * f) as f64;
@@ -230,12 +229,8 @@ pub fn follow_occluders(
             d.as_ref()?;
             let label = part as u32 + 1;
             let of_part = |x: usize, y: usize| labels.get(x, y) == label;
-            let (mut x0, mut y0, mut x1, mut y1) = (rw, rh, 0, 0);
-            for y in 0..rh {
-                for x in (0..rw).filter(|&x| of_part(x, y)) {
-                    (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x + 1), y1.max(y + 1));
-                }
-            }
+            let [x0, y0, x1, y1] = span(&blocks[part]);
+            let (x1, y1) = (x1 + 1, y1 + 1);
             let m = (x1 - x0).max(y1 - y0);
             let (bx0, by0, bx1, by1) =
                 (x0.saturating_sub(m), y0.saturating_sub(m), (x1 + m).min(rw), (y1 + m).min(rh));
@@ -417,6 +412,13 @@ const TYPICAL: f32 = 0.01;
 #[inline]
 fn dist(a: [f32; 3], b: [f32; 3]) -> f32 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+/// The smallest and largest column and row of `px` (`[x0, y0, x1, y1]`, inclusive).
+fn span(px: &[(usize, usize)]) -> [usize; 4] {
+    px.iter().fold([usize::MAX, usize::MAX, 0, 0], |[x0, y0, x1, y1], &(x, y)| {
+        [x0.min(x), y0.min(y), x1.max(x), y1.max(y)]
+    })
 }
 
 /// Block means of `img` over `f × f` blocks (the last row and column of blocks partial).
