@@ -458,10 +458,8 @@ impl Runner {
         if self.followed.len() < found.shifts.len() {
             self.followed.resize(found.shifts.len(), vec![(self.key_time, [0.0; 2])]);
         }
-        for (track, d) in self.followed.iter_mut().zip(&found.shifts) {
-            if let Some(d) = d {
-                track.push((t, *d));
-            }
+        for (track, &d) in self.followed.iter_mut().zip(&found.shifts) {
+            carry_shift(track, t, d);
         }
         (found.marks.as_slice().iter().any(|&v| v > 0)).then_some(found.marks)
     }
@@ -785,6 +783,17 @@ fn predict_shift(track: &[(f64, [f64; 2])], t: f64) -> Option<[f64; 2]> {
     Some([d1[0] + k * (d2[0] - d1[0]), d1[1] + k * (d2[1] - d1[1])])
 }
 
+/// The shift `d` at which the frame at time `t` showed a part of the keyframe's mask (if it
+/// did) added to the part's `track`, and what can no longer predict a frame dropped: after the
+/// keyframe the frames come on in time, and nothing further back than [`PREDICT_SPAN`]
+/// predicts any of them ([`predict_shift`]), so an hours-long stream keeps a bounded track.
+/// (Before the keyframe they come nearest first, back in time: nothing is older than the
+/// frame.)
+fn carry_shift(track: &mut Vec<(f64, [f64; 2])>, t: f64, d: Option<[f64; 2]>) {
+    track.extend(d.map(|d| (t, d)));
+    track.retain(|&(ti, _)| ti >= t - PREDICT_SPAN);
+}
+
 /// How far in time (seconds) the shift of a keyframe's occluder is carried on.
 const PREDICT_SPAN: f64 = 1.5;
 
@@ -1040,5 +1049,28 @@ mod tests {
         // Not from a single frame, nor further than PREDICT_SPAN from any two.
         assert_eq!(predict_shift(&track[..1], 3.25), None);
         assert_eq!(predict_shift(&track, 3.0 + PREDICT_SPAN + 0.5), None);
+    }
+
+    #[test]
+    fn an_hour_of_frames_keeps_a_short_track_that_predicts_as_the_whole_one() {
+        // The keyframe at t = 30; 20 frames before it at 5 fps, nearest first; then an hour
+        // at 5 fps, the part seen in two frames of every three.
+        let shift = |t: f64| [12.0 * (t - 30.0), 0.5 * (t - 30.0)];
+        let times = (1..=20)
+            .map(|i| 30.0 - 0.2 * f64::from(i))
+            .chain((1..=18_000).map(|i| 30.0 + 0.2 * f64::from(i)));
+        let (mut short, mut whole) = (vec![(30.0, [0.0; 2])], vec![(30.0, [0.0; 2])]);
+        let mut longest = 0;
+        for (i, t) in times.enumerate() {
+            assert_eq!(predict_shift(&short, t), predict_shift(&whole, t), "at {t}");
+            let d = (i % 3 != 0).then(|| shift(t));
+            carry_shift(&mut short, t, d);
+            whole.extend(d.map(|d| (t, d)));
+            longest = longest.max(short.len());
+        }
+        assert!(whole.len() > 10_000);
+        // The 20 frames before the keyframe wait for the first frames after it.
+        assert!(longest <= 20 + 8, "{longest}");
+        assert!(short.len() <= 8, "{}", short.len());
     }
 }
