@@ -41,6 +41,17 @@ impl Rect {
         Self { x: x0, y: y0, width: x1.saturating_sub(x0), height: y1.saturating_sub(y0) }
     }
 
+    /// The smallest rectangle holding every pixel of `px` (empty when `px` is).
+    pub fn around(px: &[(usize, usize)]) -> Self {
+        if px.is_empty() {
+            return Self::default();
+        }
+        let [x0, y0, x1, y1] = px.iter().fold([usize::MAX, usize::MAX, 0, 0], |[x0, y0, x1, y1], &(x, y)| {
+            [x0.min(x), y0.min(y), x1.max(x), y1.max(y)]
+        });
+        Self::from_corners(x0, y0, x1 + 1, y1 + 1)
+    }
+
     /// One past the last column.
     pub fn x1(&self) -> usize {
         self.x + self.width

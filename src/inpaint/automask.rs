@@ -552,13 +552,7 @@ enum Growth {
 /// Bounding boxes of the 8-connected components of `m`.
 fn components(m: &Plane<bool>) -> Vec<Rect> {
     let mut out = Vec::new();
-    each_component(m, |members| {
-        let (x0, y0, x1, y1) =
-            members.iter().fold((usize::MAX, usize::MAX, 0, 0), |(x0, y0, x1, y1), &(x, y)| {
-                (x0.min(x), y0.min(y), x1.max(x), y1.max(y))
-            });
-        out.push(Rect::from_corners(x0, y0, x1 + 1, y1 + 1));
-    });
+    each_component(m, |members| out.push(Rect::around(members)));
     out
 }
 

@@ -34,7 +34,7 @@ use rayon::prelude::*;
 
 use super::automask::{ColourHistogram, each_component};
 use crate::geometry::Homography;
-use crate::imaging::{Mask, Plane, Rgb8, RgbPixel, bilinear_rgb};
+use crate::imaging::{Mask, Plane, Rect, Rgb8, RgbPixel, bilinear_rgb};
 
 /// Parameters of [`follow_occluders`].
 #[derive(Debug, Clone, PartialEq)]
@@ -177,10 +177,10 @@ pub fn follow_occluders(
             // it had: what of the part the frame still shows in place is wall a generous
             // brush took (a rectangle around a car). Such a part is not followed: moved with
             // the car, a repeating wall looks like itself and would be marked.
-            let [x0, y0, x1, y1] = span(whole);
+            let span = Rect::around(whole);
             // (One the keyframe's border cuts may be longer than it shows.)
-            let cut = x0 == 0 || y0 == 0 || x1 + 1 == rw || y1 + 1 == rh;
-            let beyond = d[0].abs() > ((x1 - x0 + 1) * f) as f64 || d[1].abs() > ((y1 - y0 + 1) * f) as f64;
+            let cut = span.x == 0 || span.y == 0 || span.x1() == rw || span.y1() == rh;
+            let beyond = d[0].abs() > (span.width * f) as f64 || d[1].abs() > (span.height * f) as f64;
             if beyond && !cut {
                 let seen =
                     whole.iter().filter(|&&(x, y)| canvas.get(x + ex as usize, y + ey as usize).is_some());
@@ -229,9 +229,9 @@ pub fn follow_occluders(
             d.as_ref()?;
             let label = part as u32 + 1;
             let of_part = |x: usize, y: usize| labels.get(x, y) == label;
-            let [x0, y0, x1, y1] = span(&blocks[part]);
-            let (x1, y1) = (x1 + 1, y1 + 1);
-            let m = (x1 - x0).max(y1 - y0);
+            let span = Rect::around(&blocks[part]);
+            let (x0, y0, x1, y1) = (span.x, span.y, span.x1(), span.y1());
+            let m = span.width.max(span.height);
             let (bx0, by0, bx1, by1) =
                 (x0.saturating_sub(m), y0.saturating_sub(m), (x1 + m).min(rw), (y1 + m).min(rh));
             let within = |take: &dyn Fn(usize, usize) -> bool| {
@@ -303,9 +303,8 @@ fn coarse_shift(
     let samples: Vec<(usize, usize)> = template.iter().step_by(stride).copied().collect();
     let n = samples.len();
     // Half the part's size, and at least UNIQUE_APART: nearer, the same match is only off.
-    let (x0, x1) = template.iter().fold((usize::MAX, 0), |(a, b), &(x, _)| (a.min(x), b.max(x)));
-    let (y0, y1) = template.iter().fold((usize::MAX, 0), |(a, b), &(_, y)| (a.min(y), b.max(y)));
-    let far = (((x1 - x0).max(y1 - y0) / 2) as isize).max(UNIQUE_APART);
+    let span = Rect::around(template);
+    let far = (((span.width.max(span.height) - 1) / 2) as isize).max(UNIQUE_APART);
     // Shifts are ranked by the share of the whole core that agrees (where only a flat part
     // of it is in the frame, a share of what is seen would be high anywhere); a shift that
     // shows too little of it, or where too little of what it shows agrees, is not taken.
@@ -412,13 +411,6 @@ const TYPICAL: f32 = 0.01;
 #[inline]
 fn dist(a: [f32; 3], b: [f32; 3]) -> f32 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
-}
-
-/// The smallest and largest column and row of `px` (`[x0, y0, x1, y1]`, inclusive).
-fn span(px: &[(usize, usize)]) -> [usize; 4] {
-    px.iter().fold([usize::MAX, usize::MAX, 0, 0], |[x0, y0, x1, y1], &(x, y)| {
-        [x0.min(x), y0.min(y), x1.max(x), y1.max(y)]
-    })
 }
 
 /// Block means of `img` over `f × f` blocks (the last row and column of blocks partial).
