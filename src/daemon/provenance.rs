@@ -6,8 +6,50 @@
 use image::ImageEncoder;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 
+use super::job::name_of;
 use super::registry::LegendEntry;
 use crate::inpaint::{CONFIDENT, Confidence, FALLBACK, KEYFRAME, Provenance};
+use crate::session::{FillOutcome, Session};
+
+/// The file beside a result that says which surface filled each pixel
+/// ([`crate::session::FillOutcome::surface_map`]), named in `result.json` as `surfaces`.
+pub const SURFACES: &str = "surfaces.png";
+
+/// A result's maps, encoded: per name, its PNG, or `None` where the result has none.
+pub type Maps = Vec<(&'static str, Option<Vec<u8>>)>;
+
+/// The maps beside a result (each of [`crate::daemon::emit::MAPS`]), encoded, and the
+/// provenance map's legend: the confidence (0 outside the mask, at least 128 where the fill
+/// is sure the pixel shows the building), which surface off the wall filled each pixel when
+/// the session sweeps for them, and where each pixel came from. A map that cannot be
+/// encoded is not claimed (and one an earlier result left goes). `session` made `outcome`
+/// (its provenance is the session's current result's).
+pub fn result_maps(session: &Session, outcome: &FillOutcome) -> (Maps, Vec<LegendEntry>) {
+    let png = |name: &str, map: &crate::imaging::Plane<u8>| {
+        let mut png = std::io::Cursor::new(Vec::new());
+        match crate::imaging::convert::plane_to_luma8(map).write_to(&mut png, image::ImageFormat::Png) {
+            Ok(()) => Some(png.into_inner()),
+            Err(e) => {
+                tracing::warn!(error = %e, file = name, "cannot encode a map beside the result: it has none");
+                None
+            }
+        }
+    };
+    let confidence = outcome.confidence.as_ref().and_then(|c| png("confidence.png", c));
+    let surfaces = outcome.surface_map.as_ref().and_then(|m| png(SURFACES, m));
+    let names: Vec<String> = outcome.views.iter().map(|id| name_of(id).to_owned()).collect();
+    let (provenance, legend) = match session.provenance() {
+        Some(map) => match render(&map, outcome.confidence.as_ref(), &names) {
+            Ok((png, legend)) => (Some(png), legend),
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot encode provenance.png: the result has none");
+                (None, Vec::new())
+            }
+        },
+        None => (None, Vec::new()),
+    };
+    (vec![("confidence.png", confidence), (SURFACES, surfaces), ("provenance.png", provenance)], legend)
+}
 
 /// Colours of sources 0, 1, ... (cycled), chosen apart from each other and from the
 /// fallback's magenta.

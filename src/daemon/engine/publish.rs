@@ -13,7 +13,6 @@ use tokio_util::sync::CancellationToken;
 use super::{Backoff, Ctx, Slot, ViewEntry, ViewStatus};
 use crate::daemon::emit::rfc3339;
 use crate::daemon::event::{Event, ResultUpdated};
-use crate::daemon::job::name_of;
 use crate::daemon::paths::Inbox;
 use crate::daemon::registry::{SessionSnapshot, ViewSnapshot};
 use crate::daemon::state::SavedResult;
@@ -363,44 +362,14 @@ pub(super) fn write_mask(ctx: &Ctx, slot: &Slot) {
 
 /// The file beside a result that says which surface filled each pixel
 /// ([`crate::session::FillOutcome::surface_map`]), named in `result.json` as `surfaces`.
-pub(crate) const SURFACES: &str = "surfaces.png";
+pub(crate) use crate::daemon::provenance::SURFACES;
 
-/// A result's maps, encoded: per name, its PNG, or `None` where the result has none.
-type Maps = Vec<(&'static str, Option<Vec<u8>>)>;
-
-/// The maps beside a result (each of [`crate::daemon::emit::MAPS`]), encoded, and the
-/// provenance map's legend: the confidence (0 outside the mask, at least 128 where the fill
-/// is sure the pixel shows the building), which surface off the wall filled each pixel when
-/// the session sweeps for them, and where each pixel came from. A map that cannot be
-/// encoded is not claimed (and one an earlier result left goes).
+/// The maps beside the slot's result ([`crate::daemon::provenance::result_maps`]).
 fn encode_maps(
     slot: &Slot,
     outcome: &crate::session::FillOutcome,
-) -> (Maps, Vec<crate::daemon::registry::LegendEntry>) {
-    let png = |name: &str, map: &crate::imaging::Plane<u8>| {
-        let mut png = std::io::Cursor::new(Vec::new());
-        match crate::imaging::convert::plane_to_luma8(map).write_to(&mut png, image::ImageFormat::Png) {
-            Ok(()) => Some(png.into_inner()),
-            Err(e) => {
-                tracing::warn!(error = %e, file = name, "cannot encode a map beside the result: it has none");
-                None
-            }
-        }
-    };
-    let confidence = outcome.confidence.as_ref().and_then(|c| png("confidence.png", c));
-    let surfaces = outcome.surface_map.as_ref().and_then(|m| png(SURFACES, m));
-    let names: Vec<String> = outcome.views.iter().map(|id| name_of(id).to_owned()).collect();
-    let (provenance, legend) = match slot.session.provenance() {
-        Some(map) => match crate::daemon::provenance::render(&map, outcome.confidence.as_ref(), &names) {
-            Ok((png, legend)) => (Some(png), legend),
-            Err(e) => {
-                tracing::warn!(error = %e, "cannot encode provenance.png: the result has none");
-                (None, Vec::new())
-            }
-        },
-        None => (None, Vec::new()),
-    };
-    (vec![("confidence.png", confidence), (SURFACES, surfaces), ("provenance.png", provenance)], legend)
+) -> (crate::daemon::provenance::Maps, Vec<crate::daemon::registry::LegendEntry>) {
+    crate::daemon::provenance::result_maps(&slot.session, outcome)
 }
 
 /// After result `number` is written: the bookkeeping of the status API, and the update
