@@ -2,7 +2,8 @@
 //! - time from a JPEG view landing (bytes in memory: the quiet period is configuration,
 //!   not work) to its updated result written, with 8 views already buffered: decode,
 //!   align (from the previous view's homography when it helps), crop into the buffer,
-//!   fill, encode and write atomically — the worker's path. Target ≤ 1.5 s median, on a
+//!   fill, encode and write atomically with the maps beside it (confidence, provenance,
+//!   surfaces) — the worker's path. Target ≤ 1.5 s median, on a
 //!   flat wall (`jpeg_12mp_view_to_result_8_buffered`) and on a facade with a pier standing
 //!   off it, where every fill sweeps for the surfaces off the wall
 //!   (`jpeg_12mp_depth_view_to_result_8_buffered`).
@@ -26,6 +27,7 @@ use rand_chacha::ChaCha8Rng;
 
 use clearview::config::Config;
 use clearview::daemon::emit::Emitter;
+use clearview::daemon::provenance::result_maps;
 use clearview::imaging::convert::{to_luminance, to_rgb, to_rgb8};
 use clearview::imaging::decode::{DecodeLimits, decode};
 use clearview::imaging::{Mask, RgbF32};
@@ -233,21 +235,25 @@ fn session_bench(c: &mut Criterion, name: &str, shoot: &Shoot) {
     let outcome = session.fill(&mut ()).unwrap();
     let t_fill = t.elapsed();
     let t = Instant::now();
+    let (maps, _) = result_maps(&session, &outcome);
+    let t_maps = t.elapsed();
+    let t = Instant::now();
     emitter
-        .write_result("probe", 1, outcome.image.as_ref().unwrap(), None, &mut serde_json::json!({}), &[])
+        .write_result("probe", 1, outcome.image.as_ref().unwrap(), None, &mut serde_json::json!({}), &maps)
         .unwrap();
     let t_write = t.elapsed();
     eprintln!(
-        "one pass: decode {:.0} ms, align {:.0} ms, crop+admit {:.0} ms, fill {:.0} ms ({} masked, {} from the fallback), encode+write {:.0} ms",
+        "one pass: decode {:.0} ms, align {:.0} ms, crop+admit {:.0} ms, fill {:.0} ms ({} masked, {} from the fallback), maps {:.0} ms, encode+write {:.0} ms",
         t_decode.as_secs_f64() * 1e3,
         t_align.as_secs_f64() * 1e3,
         t_admit.as_secs_f64() * 1e3,
         t_fill.as_secs_f64() * 1e3,
         outcome.report.masked,
         outcome.report.fallback,
+        t_maps.as_secs_f64() * 1e3,
         t_write.as_secs_f64() * 1e3
     );
-    drop((img, pixels, outcome));
+    drop((img, pixels, outcome, maps));
     // Steady passes: one new view each, as in the timed loop, with the fill's stages timed
     // (a view is judged for its own occluders again only when the views it is judged
     // against changed, so passes differ).
@@ -278,8 +284,9 @@ fn session_bench(c: &mut Criterion, name: &str, shoot: &Shoot) {
             offer(&mut session, format!("new{n}"), bytes);
             let outcome = session.fill(&mut ()).unwrap();
             let image = outcome.image.as_ref().unwrap_or_else(|| panic!("score fell: {}", outcome.score));
+            let (maps, _) = result_maps(&session, &outcome);
             emitter
-                .write_result("bench", n, image, None, &mut serde_json::json!({ "number": n }), &[])
+                .write_result("bench", n, image, None, &mut serde_json::json!({ "number": n }), &maps)
                 .unwrap();
         })
     });
