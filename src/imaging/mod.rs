@@ -83,11 +83,29 @@ impl Rect {
 }
 
 /// A dense, row-major image of `T` pixels: `data[y * width + x]`.
-#[derive(Clone, PartialEq)]
+#[derive(PartialEq)]
 pub struct Plane<T> {
     width: usize,
     height: usize,
     data: Vec<T>,
+}
+
+/// Planes of at least this many pixels are copied on every core ([`Plane::clone`]).
+const PARALLEL_CLONE_FROM: usize = 1 << 20;
+
+impl<T: Clone + Send + Sync> Clone for Plane<T> {
+    /// A copy; from [`PARALLEL_CLONE_FROM`] pixels up, made on every core. A 12 MP RGB
+    /// result is 144 MB: its copy (the page faults of the new memory with it) took one core
+    /// 140 ms of every landing in the service (BENCHMARKS.md, "Capture service").
+    fn clone(&self) -> Self {
+        let data = if self.data.len() >= PARALLEL_CLONE_FROM {
+            use rayon::prelude::*;
+            self.data.par_iter().cloned().collect()
+        } else {
+            self.data.clone()
+        };
+        Self { width: self.width, height: self.height, data }
+    }
 }
 
 /// Luminance (or one channel) in `f32`, nominally 0..=1.
