@@ -277,9 +277,10 @@ fn box_blur(img: &[[f32; 3]], valid: &[bool], w: usize, h: usize, r: usize) -> V
 /// everywhere, their occluders included, came from (nearly) the same spot and share a vote.
 fn independence(blurred: &[Vec<[f32; 3]>], valid: &[&[bool]], need: &[bool], agree: f32) -> Vec<f32> {
     let nv = blurred.len();
-    let mut twin = vec![vec![0.0f32; nv]; nv];
-    for a in 0..nv {
-        for b in a + 1..nv {
+    let pairs: Vec<(usize, usize)> = (0..nv).flat_map(|a| (a + 1..nv).map(move |b| (a, b))).collect();
+    let twins: Vec<f32> = pairs
+        .par_iter()
+        .map(|&(a, b)| {
             let (mut both, mut differ) = (0usize, 0usize);
             for i in (0..need.len()).step_by(3) {
                 if need[i] && valid[a][i] && valid[b][i] {
@@ -292,10 +293,13 @@ fn independence(blurred: &[Vec<[f32; 3]>], valid: &[&[bool]], need: &[bool], agr
             // Independent shots of a wall differ by noise, resampling and parallax at the
             // edges; shots from one spot differ by almost nothing.
             let frac = if both > 0 { differ as f32 / both as f32 } else { 1.0 };
-            let t = (1.0 - frac / 0.03).clamp(0.0, 1.0);
-            twin[a][b] = t;
-            twin[b][a] = t;
-        }
+            (1.0 - frac / 0.03).clamp(0.0, 1.0)
+        })
+        .collect();
+    let mut twin = vec![vec![0.0f32; nv]; nv];
+    for (&(a, b), &t) in pairs.iter().zip(&twins) {
+        twin[a][b] = t;
+        twin[b][a] = t;
     }
     (0..nv).map(|a| 1.0 / (1.0 + twin[a].iter().sum::<f32>())).collect()
 }
@@ -472,8 +476,12 @@ fn outlines(
     if params.w_outline == 0.0 {
         return out;
     }
-    for u in 0..nv {
-        for v in u + 1..nv {
+    // Each pair's areas are found on every core; their evidence is added in the pairs'
+    // order, as it always was.
+    let pairs: Vec<(usize, usize)> = (0..nv).flat_map(|u| (u + 1..nv).map(move |v| (u, v))).collect();
+    let steps: Vec<Vec<(Vec<usize>, f32)>> = pairs
+        .par_iter()
+        .map(|&(u, v)| {
             let seen: Vec<bool> = (0..n).map(|i| valid[u][i] && valid[v][i]).collect();
             // Where the two disagree: grossly (the cores of areas), or at all (what an area
             // takes in around its core).
@@ -489,23 +497,29 @@ fn outlines(
                 areas.push(members.to_vec());
                 false
             });
-            for members in areas {
-                let e = outline_step(
-                    &members,
-                    &differ,
-                    [&views[u], &views[v]],
-                    [raw[u].0, raw[v].0],
-                    &seen,
-                    w,
-                    h,
-                    max_shift,
-                    params,
-                );
-                let Some((area, e)) = e else { continue };
-                for i in area {
-                    out[v][i] += e;
-                    out[u][i] -= e;
-                }
+            areas
+                .into_iter()
+                .filter_map(|members| {
+                    outline_step(
+                        &members,
+                        &differ,
+                        [&views[u], &views[v]],
+                        [raw[u].0, raw[v].0],
+                        &seen,
+                        w,
+                        h,
+                        max_shift,
+                        params,
+                    )
+                })
+                .collect()
+        })
+        .collect();
+    for (&(u, v), found) in pairs.iter().zip(steps) {
+        for (area, e) in found {
+            for i in area {
+                out[v][i] += e;
+                out[u][i] -= e;
             }
         }
     }
@@ -648,10 +662,11 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
     let r = params.blur_radius;
     let max_shift = (params.displaced_share * input.diagonal).round() as usize;
     let all = vec![true; n];
-    let key_b = box_blur(input.region.key, &all, w, h, r);
     let valid: Vec<&[bool]> = input.views.iter().map(|v| v.1).collect();
-    let views_b: Vec<Vec<[f32; 3]>> =
-        input.views.par_iter().map(|(img, ok)| box_blur(img, ok, w, h, r)).collect();
+    let (key_b, views_b): (Vec<[f32; 3]>, Vec<Vec<[f32; 3]>>) = rayon::join(
+        || box_blur(input.region.key, &all, w, h, r),
+        || input.views.par_iter().map(|(img, ok)| box_blur(img, ok, w, h, r)).collect(),
+    );
     let ind = independence(&views_b, &valid, input.region.need, params.agree);
     // Per pixel, each view's support among the others (weighted share agreeing with it),
     // and the best support any view has there: a view is an outlier only where others
@@ -679,15 +694,20 @@ pub fn occlusion_map(input: &RegionInput<'_>, params: &OcclusionParams) -> Occlu
                 .collect()
         })
         .collect();
-    let witnesses: Vec<f32> =
-        (0..n).map(|i| (0..nv).filter(|&u| valid[u][i]).map(|u| ind[u]).sum::<f32>()).collect();
-    let best: Vec<f32> = (0..n).map(|i| (0..nv).map(|v| support[v][i]).fold(0.0, f32::max)).collect();
+    let witnesses: Vec<f32> = (0..n)
+        .into_par_iter()
+        .map(|i| (0..nv).filter(|&u| valid[u][i]).map(|u| ind[u]).sum::<f32>())
+        .collect();
+    let best: Vec<f32> =
+        (0..n).into_par_iter().map(|i| (0..nv).map(|v| support[v][i]).fold(0.0, f32::max)).collect();
 
     let outline =
         outlines(&views_b, input.views, &valid, input.region.hole, &witnesses, &ind, w, h, max_shift, params);
     // The building: the keyframe around the hole. The occluder: the keyframe inside it.
-    let around: Vec<bool> =
-        (0..n).map(|i| input.region.need[i] && !input.region.hole[i] && !input.region.blocked[i]).collect();
+    let around: Vec<bool> = (0..n)
+        .into_par_iter()
+        .map(|i| input.region.need[i] && !input.region.hole[i] && !input.region.blocked[i])
+        .collect();
     let building = Histogram::new((0..n).filter(|&i| around[i]).map(|i| input.region.key[i]));
     let inner = super::automask::erode(&crate::imaging::Plane::from_vec(w, h, input.region.hole.to_vec()), 2);
     let occluder = Histogram::new((0..n).filter(|&i| inner.as_slice()[i]).map(|i| input.region.key[i]));
@@ -883,7 +903,7 @@ impl Shared<'_> {
             })
             .collect();
         let n = occluded.first().map_or(0, Vec::len);
-        let any_sure: Vec<bool> = (0..n).map(|i| sure_of.iter().any(|s| s[i])).collect();
+        let any_sure: Vec<bool> = (0..n).into_par_iter().map(|i| sure_of.iter().any(|s| s[i])).collect();
         (0..nv)
             .into_par_iter()
             .map(|v| {
