@@ -97,21 +97,44 @@ pub fn render(
     confidence: Option<&Confidence>,
     names: &[String],
 ) -> std::io::Result<(Vec<u8>, Vec<LegendEntry>)> {
+    use rayon::prelude::*;
+    use std::collections::BTreeMap;
     let (w, h) = (map.width(), map.height());
-    let mut rgba = Vec::with_capacity(w * h * 4);
-    let mut counts: std::collections::BTreeMap<u16, usize> = std::collections::BTreeMap::new();
-    for y in 0..h {
-        for (x, &v) in map.row(y).iter().enumerate() {
-            let doubtful =
-                v != KEYFRAME && v != FALLBACK && confidence.is_some_and(|c| c.get(x, y) < CONFIDENT);
-            let v = if doubtful { DOUBTFUL } else { v };
-            *counts.entry(v).or_default() += 1;
-            match colour(v) {
-                None => rgba.extend_from_slice(&[0, 0, 0, 0]),
-                Some(c) => rgba.extend_from_slice(&[c[0], c[1], c[2], 255]),
+    // Row by row on every core: a 12 MP map took one core about 90 ms of every landing.
+    let mut rgba = vec![0u8; w * h * 4];
+    let counts = rgba
+        .par_chunks_mut((4 * w).max(1))
+        .enumerate()
+        .map(|(y, out)| {
+            let mut counts = BTreeMap::<u16, usize>::new();
+            let mut run: Option<(u16, usize)> = None;
+            for ((x, &v), px) in map.row(y).iter().enumerate().zip(out.chunks_exact_mut(4)) {
+                let doubtful =
+                    v != KEYFRAME && v != FALLBACK && confidence.is_some_and(|c| c.get(x, y) < CONFIDENT);
+                let v = if doubtful { DOUBTFUL } else { v };
+                match &mut run {
+                    Some((value, n)) if *value == v => *n += 1,
+                    _ => {
+                        if let Some((value, n)) = run.replace((v, 1)) {
+                            *counts.entry(value).or_default() += n;
+                        }
+                    }
+                }
+                if let Some(c) = colour(v) {
+                    px.copy_from_slice(&[c[0], c[1], c[2], 255]);
+                }
             }
-        }
-    }
+            if let Some((value, n)) = run {
+                *counts.entry(value).or_default() += n;
+            }
+            counts
+        })
+        .reduce(BTreeMap::new, |mut a, b| {
+            for (value, n) in b {
+                *a.entry(value).or_default() += n;
+            }
+            a
+        });
     let mut png = Vec::new();
     PngEncoder::new_with_quality(&mut png, CompressionType::Fast, FilterType::Adaptive)
         .write_image(&rgba, w as u32, h as u32, image::ExtendedColorType::Rgba8)
