@@ -80,31 +80,64 @@ pub const SAME_AS_KEY: f64 = 0.02;
 /// ([`monochrome`]) their luma is compared: a black-and-white export of the keyframe is the
 /// keyframe. `false` when the view sees less than half of the mask.
 pub fn shows_the_keyframe(key: &RgbF32, mask: &Mask, h: &Homography, pixels: &Rgb8) -> bool {
-    let Some(region) = mask.hole_bounds() else { return false };
-    let grey = monochrome(pixels) || monochrome(key);
-    let step = if mask.hole_count() > 250_000 { 2 } else { 1 };
-    let (w, h_px) = (pixels.width() as f64, pixels.height() as f64);
-    let (mut sum, mut seen, mut holes) = (0.0f64, 0usize, 0usize);
-    for y in (region.y..region.y1()).step_by(step) {
-        for x in (region.x..region.x1()).step_by(step) {
-            if !mask.is_hole(x, y) {
-                continue;
-            }
-            holes += 1;
-            let Some(p) = h.apply(Point2::new(x as f64, y as f64)) else { continue };
-            let (vx, vy) = (p.x.round(), p.y.round());
-            if vx < 0.0 || vy < 0.0 || vx >= w || vy >= h_px {
-                continue;
-            }
-            let (v, k) = (pixels.get(vx as usize, vy as usize).to_f32(), key.get(x, y));
-            sum += if grey {
-                f64::from((luma(v) - luma(k)).abs())
-            } else {
-                (0..3).map(|c| f64::from((v[c] - k[c]).abs())).sum::<f64>() / 3.0
-            };
-            seen += 1;
-        }
+    shows_the_keyframe_in(key, mask, &Holes::of(mask), h, pixels)
+}
+
+/// A mask's hole pixels, counted once: their bounding box (`None`: none) and how many.
+#[derive(Debug, Clone, Copy)]
+pub struct Holes {
+    pub bounds: Option<Rect>,
+    pub count: usize,
+}
+
+impl Holes {
+    pub fn of(mask: &Mask) -> Self {
+        Self { bounds: mask.hole_bounds(), count: mask.hole_count() }
     }
+}
+
+/// [`shows_the_keyframe`] with the mask's `holes` counted already (a session counts them
+/// once per mask), its rows on every core.
+pub fn shows_the_keyframe_in(
+    key: &RgbF32,
+    mask: &Mask,
+    holes: &Holes,
+    h: &Homography,
+    pixels: &Rgb8,
+) -> bool {
+    use rayon::prelude::*;
+    let Some(region) = holes.bounds else { return false };
+    let grey = monochrome(pixels) || monochrome(key);
+    let step = if holes.count > 250_000 { 2 } else { 1 };
+    let (w, h_px) = (pixels.width() as f64, pixels.height() as f64);
+    let rows: Vec<(f64, usize, usize)> = (region.y..region.y1())
+        .into_par_iter()
+        .step_by(step)
+        .map(|y| {
+            let (mut sum, mut seen, mut holes) = (0.0f64, 0usize, 0usize);
+            for x in (region.x..region.x1()).step_by(step) {
+                if !mask.is_hole(x, y) {
+                    continue;
+                }
+                holes += 1;
+                let Some(p) = h.apply(Point2::new(x as f64, y as f64)) else { continue };
+                let (vx, vy) = (p.x.round(), p.y.round());
+                if vx < 0.0 || vy < 0.0 || vx >= w || vy >= h_px {
+                    continue;
+                }
+                let (v, k) = (pixels.get(vx as usize, vy as usize).to_f32(), key.get(x, y));
+                sum += if grey {
+                    f64::from((luma(v) - luma(k)).abs())
+                } else {
+                    (0..3).map(|c| f64::from((v[c] - k[c]).abs())).sum::<f64>() / 3.0
+                };
+                seen += 1;
+            }
+            (sum, seen, holes)
+        })
+        .collect();
+    let (sum, seen, holes) =
+        rows.iter().fold((0.0f64, 0usize, 0usize), |(s, n, m), &(a, b, c)| (s + a, n + b, m + c));
     seen > 0 && seen * 2 >= holes && sum / (seen as f64) < SAME_AS_KEY
 }
 
@@ -159,12 +192,23 @@ pub const SAME_SHOT_VIEWPOINT_SHARE: f64 = 0.005;
 /// When either is black and white ([`monochrome`]) their luma is compared: a
 /// black-and-white export of a shot is that shot.
 pub fn the_same_shot(mask: &Mask, a: (&Homography, &Rgb8), b: (&Homography, &Rgb8)) -> bool {
-    let Some(region) = mask.hole_bounds() else { return false };
+    the_same_shot_in(mask, &Holes::of(mask), a, b)
+}
+
+/// [`the_same_shot`] with the mask's `holes` counted already (a session counts them once
+/// per mask; a landing view is compared with every buffered one).
+pub fn the_same_shot_in(
+    mask: &Mask,
+    holes: &Holes,
+    a: (&Homography, &Rgb8),
+    b: (&Homography, &Rgb8),
+) -> bool {
+    let Some(region) = holes.bounds else { return false };
     let grey = monochrome(a.1) || monochrome(b.1);
     // `b`'s pixels per pixel of `a`.
     let Some(ratio) = one_viewpoint(region, a.0, b.0) else { return false };
     // About 200 000 pixels at most, spread evenly: a pair costs a few milliseconds.
-    let step = ((mask.hole_count() as f64 / 200_000.0).sqrt().ceil() as usize).max(1);
+    let step = ((holes.count as f64 / 200_000.0).sqrt().ceil() as usize).max(1);
     // The finer of the two is sampled as the coarser sees it: averaged over the coarser's
     // pixel (k × k samples), or a halved copy differs from its original in every fine detail.
     let box_of = |r: f64| if r < 0.8 { (1.0 / r).round().clamp(1.0, 4.0) as usize } else { 1 };
@@ -473,6 +517,9 @@ struct MaskInfo {
     /// The mask's bounding box grown by the margin, clamped to the keyframe; `None` for an
     /// empty mask.
     region: Option<Rect>,
+    /// The mask's hole pixels: their bounding box and count (each a scan of the whole
+    /// keyframe, asked of every view that lands).
+    holes: Holes,
 }
 
 /// The session itself. The daemon feeds it keyframes, masks and views and writes what
@@ -602,8 +649,9 @@ impl Session {
         }
         // What is under the mask is to be removed: its corners are not matched.
         key.frame.set_mask(Some(&mask));
-        let region = mask.hole_bounds().map(|r| r.grown(self.params.margin_px, kw, kh));
-        self.mask = Some(MaskInfo { id, mask, region });
+        let holes = Holes::of(&mask);
+        let region = holes.bounds.map(|r| r.grown(self.params.margin_px, kw, kh));
+        self.mask = Some(MaskInfo { id, mask, region, holes });
         self.mask_changed();
         self.dirty = true;
         Ok(self.buffer.iter().map(|b| b.id.clone()).collect())
@@ -715,7 +763,7 @@ impl Session {
         }
         if let Some(p) = pixels
             && let (Some(key), Some(mask)) = (&self.key, &self.mask)
-            && shows_the_keyframe(&key.rgb, &mask.mask, &homography, p)
+            && shows_the_keyframe_in(&key.rgb, &mask.mask, &mask.holes, &homography, p)
         {
             return Ok(Admission::Rejected {
                 reason: "shows what the keyframe shows where the mask is (the same picture): it adds nothing"
@@ -758,7 +806,12 @@ impl Session {
                             (b.record.view_size == record.view_size
                                 && (0..r.height).all(|y| &p.row(r.y + y)[r.x..r.x1()] == c.image.row(y)))
                                 || (!frame
-                                    && the_same_shot(&mask.mask, (&homography, p), (&c.homography, &c.image)))
+                                    && the_same_shot_in(
+                                        &mask.mask,
+                                        &mask.holes,
+                                        (&homography, p),
+                                        (&c.homography, &c.image),
+                                    ))
                         })
                 }) {
                     return Ok(Admission::Duplicate { of: b.id.clone() });
