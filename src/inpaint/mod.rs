@@ -1345,29 +1345,44 @@ impl Staged<'_> {
 /// surface), and that is a gross error.
 fn witnessed(img: &RgbF32, part: &Part, ws: &[Warped], map: &OcclusionMap, errors: &[f32]) -> f64 {
     let r = part.rect;
-    let mut sum = 0.0f64;
-    for (i, &hole) in part.hole.as_slice().iter().enumerate() {
-        if !hole {
-            continue;
-        }
-        let value = img.get(r.x + i % r.width, r.y + i / r.width);
-        let (mut trust, mut wsum, mut agree) = (0.0f32, 0.0f32, 0.0f32);
-        for (v, wv) in ws.iter().enumerate() {
-            if !wv.valid.as_slice()[i] {
-                continue;
+    let holes = part.hole.as_slice();
+    // In blocks of a fixed size on every core, their sums added in order: the same figure
+    // for the same result, whatever the threads (a hole is often one part: serial, it held
+    // one core through every judgement).
+    let blocks: Vec<f64> = holes
+        .par_chunks(WITNESS_BLOCK)
+        .enumerate()
+        .map(|(b, block)| {
+            let mut sum = 0.0f64;
+            for (j, &hole) in block.iter().enumerate() {
+                if !hole {
+                    continue;
+                }
+                let i = b * WITNESS_BLOCK + j;
+                let value = img.get(r.x + i % r.width, r.y + i / r.width);
+                let (mut trust, mut wsum, mut agree) = (0.0f32, 0.0f32, 0.0f32);
+                for (v, wv) in ws.iter().enumerate() {
+                    if !wv.valid.as_slice()[i] {
+                        continue;
+                    }
+                    let t = map.independence[v] * (1.0 - map.occluded[v][i]);
+                    let precision = 1.0 / (errors[v].min(1.0) + ERROR_FLOOR);
+                    trust += t;
+                    wsum += t * precision;
+                    agree += t * precision * backs(occlusion::max_channel(wv.image.as_slice()[i], value));
+                }
+                let sure = (trust / WITNESS_TRUST).min(1.0);
+                let q = if wsum > 0.0 { sure * agree / wsum } else { 0.0 };
+                sum += f64::from(q + (1.0 - sure) * INVENTED);
             }
-            let t = map.independence[v] * (1.0 - map.occluded[v][i]);
-            let precision = 1.0 / (errors[v].min(1.0) + ERROR_FLOOR);
-            trust += t;
-            wsum += t * precision;
-            agree += t * precision * backs(occlusion::max_channel(wv.image.as_slice()[i], value));
-        }
-        let sure = (trust / WITNESS_TRUST).min(1.0);
-        let q = if wsum > 0.0 { sure * agree / wsum } else { 0.0 };
-        sum += f64::from(q + (1.0 - sure) * INVENTED);
-    }
-    sum
+            sum
+        })
+        .collect();
+    blocks.iter().sum()
 }
+
+/// The pixels of a part [`witnessed`] sums on one core before the blocks' sums are added.
+const WITNESS_BLOCK: usize = 1 << 16;
 
 /// Whether a witness backs a pixel it differs from by `d` (the largest channel difference):
 /// fully below [`GROSS`] less [`GROSS_STEP`], not at all from [`GROSS`] plus it, linearly
@@ -1453,40 +1468,53 @@ fn exclude_marked(
     let view_mean = |wv: &Warped, x: usize, y: usize| {
         mean(x, y, &|xx, yy| wv.valid.get(xx, yy).then(|| wv.image.get(xx, yy)))
     };
-    let mut drop: Vec<(usize, usize, usize)> = Vec::new();
-    // The building's colours: the keyframe around the part, outside the mask (counted
-    // only if a pixel is to be lifted).
-    let building = std::cell::LazyCell::new(|| {
+    // Row by row on every core: a mark drops its pixel, except where every view that sees
+    // the pixel is marked and this mark is not sure; those are judged after.
+    // (view, x, y) of a part's pixel.
+    type At = (usize, usize, usize);
+    let rows: Vec<(Vec<At>, Vec<At>)> = (0..h)
+        .into_par_iter()
+        .map(|y| {
+            let (mut drop, mut judge) = (Vec::new(), Vec::new());
+            for x in 0..w {
+                let mut seen = (0..ws.len()).filter(|&v| ws[v].valid.get(x, y)).peekable();
+                let all_marked = seen.peek().is_some() && seen.clone().all(|v| level(v, x, y) > 127);
+                for v in seen {
+                    let l = level(v, x, y);
+                    if l > 127 && !(all_marked && l < 255) {
+                        drop.push((v, x, y));
+                    } else if l > 127 {
+                        judge.push((v, x, y));
+                    }
+                }
+            }
+            (drop, judge)
+        })
+        .collect();
+    let judged: Vec<At> = rows.iter().flat_map(|r| r.1.iter().copied()).collect();
+    let mut drop: Vec<At> = rows.into_iter().flat_map(|r| r.0).collect();
+    if !judged.is_empty() {
+        // The building's colours: the keyframe around the part, outside the mask.
         let around = r.grown(LIFTED_FOREIGN_REACH, key.width(), key.height());
-        occlusion::Histogram::new(
+        let building = occlusion::Histogram::new(
             (around.y..around.y1())
                 .flat_map(|y| (around.x..around.x1()).map(move |x| (x, y)))
                 .filter(|&(x, y)| !mask.is_hole(x, y))
                 .map(|(x, y)| key.get(x, y)),
-        )
-    });
-    for y in 0..h {
-        for x in 0..w {
-            let seen: Vec<usize> = (0..ws.len()).filter(|&v| ws[v].valid.get(x, y)).collect();
-            let all_marked = !seen.is_empty() && seen.iter().all(|&v| level(v, x, y) > 127);
+        );
+        for (v, x, y) in judged {
+            let l = level(v, x, y);
+            // Inside the mask the keyframe shows its occluder: a lifted pixel like it shows
+            // the same one. And a mark over a colour the building does not have is right,
+            // whatever the other views' marks.
             let inside = mask.is_hole(r.x + x, r.y + y);
-            for v in seen {
-                let l = level(v, x, y);
-                if l > 127 && !(all_marked && l < 255) {
-                    drop.push((v, x, y));
-                } else if l > 127 {
-                    // Inside the mask the keyframe shows its occluder: a lifted pixel like
-                    // it shows the same one. And a mark over a colour the building does not
-                    // have is right, whatever the other views' marks.
-                    let (a, b) = (view_mean(&ws[v], x, y), key_mean(x, y));
-                    let d = (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>().sqrt();
-                    let like_keys_occluder = inside && d < LIFTED_RESEMBLES && l > FAINT_MARK;
-                    if like_keys_occluder || building.foreign(a) >= LIFTED_FOREIGN {
-                        drop.push((v, x, y));
-                    } else {
-                        lifted[v].get_or_insert_with(|| Plane::new(w, h, false)).set(x, y, true);
-                    }
-                }
+            let (a, b) = (view_mean(&ws[v], x, y), key_mean(x, y));
+            let d = (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>().sqrt();
+            let like_keys_occluder = inside && d < LIFTED_RESEMBLES && l > FAINT_MARK;
+            if like_keys_occluder || building.foreign(a) >= LIFTED_FOREIGN {
+                drop.push((v, x, y));
+            } else {
+                lifted[v].get_or_insert_with(|| Plane::new(w, h, false)).set(x, y, true);
             }
         }
     }
