@@ -102,12 +102,18 @@ fn shoot_depth(n: usize) -> Shoot {
     }
 }
 
+/// The decoded view's pixels as the worker buffers them (`daemon::engine::rgb8`: borrowed
+/// when already 8-bit RGB, converted on every core).
 fn rgb8(img: &DynamicImage) -> Rgb8 {
-    let c = img.to_rgb8();
+    use rayon::prelude::*;
+    let c = match img {
+        DynamicImage::ImageRgb8(c) => std::borrow::Cow::Borrowed(c),
+        other => std::borrow::Cow::Owned(other.to_rgb8()),
+    };
     Rgb8::from_vec(
         c.width() as usize,
         c.height() as usize,
-        c.as_raw().chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect(),
+        c.as_raw().par_chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect(),
     )
 }
 
