@@ -28,9 +28,9 @@ use rand_chacha::ChaCha8Rng;
 use clearview::config::Config;
 use clearview::daemon::emit::Emitter;
 use clearview::daemon::provenance::result_maps;
-use clearview::imaging::convert::{to_luminance, to_rgb, to_rgb8};
+use clearview::imaging::convert::{crop_rgb8, to_luminance, to_rgb, to_rgb8};
 use clearview::imaging::decode::{DecodeLimits, decode};
-use clearview::imaging::{Mask, RgbF32};
+use clearview::imaging::{Mask, Rect, RgbF32};
 use clearview::inpaint::{Observer, Stage};
 use clearview::session::{Rgb8, Session, SessionParams};
 use clearview::synth::{self, Occluder};
@@ -102,19 +102,9 @@ fn shoot_depth(n: usize) -> Shoot {
     }
 }
 
-/// The decoded view's pixels as the worker buffers them (`daemon::engine::rgb8`: borrowed
-/// when already 8-bit RGB, converted on every core).
+/// The decoded view's pixels as the worker buffers them.
 fn rgb8(img: &DynamicImage) -> Rgb8 {
-    use rayon::prelude::*;
-    let c = match img {
-        DynamicImage::ImageRgb8(c) => std::borrow::Cow::Borrowed(c),
-        other => std::borrow::Cow::Owned(other.to_rgb8()),
-    };
-    Rgb8::from_vec(
-        c.width() as usize,
-        c.height() as usize,
-        c.as_raw().par_chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect(),
-    )
+    crop_rgb8(img, Rect::full(img.width() as usize, img.height() as usize))
 }
 
 /// Decode, align, admit: what a worker does with a view before the fill.

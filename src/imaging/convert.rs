@@ -40,7 +40,7 @@ pub fn to_rgb(img: &DynamicImage) -> RgbF32 {
 }
 
 /// The pixels of `img` inside `r` (which must lie inside it) in 8-bit RGB: what the fill
-/// keeps of a view. 8-bit RGB is copied row by row; other layouts are converted as `image`'s
+/// keeps of a view (the whole image with [`Rect::full`]). 8-bit RGB is copied row by row; other layouts are converted as `image`'s
 /// `to_rgb8` does (16-bit rounded to 8 bits, alpha dropped).
 pub fn crop_rgb8(img: &DynamicImage, r: Rect) -> Rgb8 {
     assert!(
@@ -57,10 +57,16 @@ pub fn crop_rgb8(img: &DynamicImage, r: Rect) -> Rgb8 {
             (converted.as_raw(), r.width, 0, 0)
         }
     };
-    let mut data = Vec::with_capacity(r.area());
-    for y in y0..y0 + r.height {
-        let row = &raw[3 * (y * stride + x0)..3 * (y * stride + x0 + r.width)];
-        data.extend(row.chunks_exact(3).map(|p| [p[0], p[1], p[2]]));
+    // Row by row on every core: a 12 MP view is 36 MB, on each landing's path.
+    let mut data = vec![[0u8; 3]; r.area()];
+    if r.width > 0 {
+        data.par_chunks_mut(r.width).enumerate().for_each(|(j, out)| {
+            let y = y0 + j;
+            let row = &raw[3 * (y * stride + x0)..3 * (y * stride + x0 + r.width)];
+            for (d, p) in out.iter_mut().zip(row.chunks_exact(3)) {
+                *d = [p[0], p[1], p[2]];
+            }
+        });
     }
     Rgb8::from_vec(r.width, r.height, data)
 }

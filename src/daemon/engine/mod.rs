@@ -418,16 +418,10 @@ impl Slot {
     }
 }
 
-/// 8-bit RGB pixels of a decoded image, as the core buffers them (on every core: a 12 MP
-/// view is 36 MB, and this is on each landing's path).
+/// 8-bit RGB pixels of a decoded image, as the core buffers them.
 pub(crate) fn rgb8(image: &DynamicImage) -> Rgb8 {
-    use rayon::prelude::*;
-    let rgb = match image {
-        DynamicImage::ImageRgb8(c) => std::borrow::Cow::Borrowed(c),
-        other => std::borrow::Cow::Owned(other.to_rgb8()),
-    };
-    let (w, h) = (rgb.width() as usize, rgb.height() as usize);
-    Rgb8::from_vec(w, h, rgb.as_raw().par_chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect())
+    let whole = crate::imaging::Rect::full(image.width() as usize, image.height() as usize);
+    crate::imaging::convert::crop_rgb8(image, whole)
 }
 
 /// When to try again something that failed on the disk: 1 s, then twice as long each
