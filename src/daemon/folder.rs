@@ -599,7 +599,7 @@ mod tests {
                 }
             }
             assert!(maps.contains_key("confidence.png") && maps.contains_key("provenance.png"), "{report}");
-            maps.contains_key(crate::daemon::engine::publish::SURFACES)
+            maps.contains_key(crate::daemon::provenance::SURFACES)
         };
         let mut slot = Slot::new(&ctx, "s", dir.clone());
         for name in ["key.png", "key.mask.png", "v1.png"] {
@@ -609,7 +609,7 @@ mod tests {
         assert!(!own_maps(first));
         assert_eq!(crate::daemon::emit::check_result(&out), Ok(first));
         // A surface map of an earlier result (one that swept), which the next one has not.
-        let surfaces = out.join(crate::daemon::engine::publish::SURFACES);
+        let surfaces = out.join(crate::daemon::provenance::SURFACES);
         std::fs::write(&surfaces, std::fs::read(out.join("confidence.png")).unwrap()).unwrap();
         for name in ["v2.png", "v3.png"] {
             give(&ctx, &mut slot, name);

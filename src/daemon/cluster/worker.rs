@@ -28,10 +28,11 @@ use super::{
     Nats, OUT_PREFIX, OpError, Record, ResultMsg, ResultRef, SessionMsg,
 };
 use crate::config::Config;
-use crate::daemon::engine::publish::{FillStep, SURFACES};
+use crate::daemon::engine::publish::FillStep;
 use crate::daemon::engine::{Ctx, Slot};
 use crate::daemon::event::{Event, FileSkipped};
 use crate::daemon::job::FileId;
+use crate::daemon::provenance::SURFACES;
 use crate::daemon::{Backlog, Stats, emit, folder, state, watch};
 
 /// What `clearview worker` is told beyond the configuration.

@@ -186,7 +186,7 @@ fn write_result(ctx: &Ctx, slot: &mut Slot, mut p: Pending) -> FillStep {
     // The keyframe's own pixels at its precision (16-bit, or another colour space).
     let precise = full.flatten().and_then(|k| slot.session.with_key_pixels(image, &k));
     let image = precise.as_ref().unwrap_or(image);
-    let (maps, legend) = encode_maps(slot, &p.outcome);
+    let (maps, legend) = crate::daemon::provenance::result_maps(&slot.session, &p.outcome);
     match ctx.emitter.write_result(&slot.name, number, image, key.as_ref(), &mut p.report, &maps) {
         Ok(path) => {
             slot.legend = legend;
@@ -319,7 +319,7 @@ fn result_json(
         report["planes"] = json!(surfaces);
     }
     if outcome.surface_map.is_some() {
-        report["surfaces"] = json!(SURFACES);
+        report["surfaces"] = json!(crate::daemon::provenance::SURFACES);
     }
     report
 }
@@ -358,18 +358,6 @@ pub(super) fn write_mask(ctx: &Ctx, slot: &Slot) {
     if let Err(e) = r {
         tracing::warn!(error = %e, "cannot write mask.png");
     }
-}
-
-/// The file beside a result that says which surface filled each pixel
-/// ([`crate::session::FillOutcome::surface_map`]), named in `result.json` as `surfaces`.
-pub(crate) use crate::daemon::provenance::SURFACES;
-
-/// The maps beside the slot's result ([`crate::daemon::provenance::result_maps`]).
-fn encode_maps(
-    slot: &Slot,
-    outcome: &crate::session::FillOutcome,
-) -> (crate::daemon::provenance::Maps, Vec<crate::daemon::registry::LegendEntry>) {
-    crate::daemon::provenance::result_maps(&slot.session, outcome)
 }
 
 /// After result `number` is written: the bookkeeping of the status API, and the update

@@ -230,7 +230,7 @@ pub async fn provenance(State(s): AppState, UrlPath(id): UrlPath<String>) -> Res
 /// when the session does not sweep for surfaces off the wall.
 pub async fn surfaces(State(s): AppState, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
     let x = session(&s, &id)?;
-    let path = s.emitter.session_dir(&x.id).join(crate::daemon::engine::publish::SURFACES);
+    let path = s.emitter.session_dir(&x.id).join(crate::daemon::provenance::SURFACES);
     let bytes = match tokio::fs::read(&path).await {
         Ok(b) => b,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
