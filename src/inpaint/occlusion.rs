@@ -277,7 +277,7 @@ fn box_blur(img: &[[f32; 3]], valid: &[bool], w: usize, h: usize, r: usize) -> V
 /// everywhere, their occluders included, came from (nearly) the same spot and share a vote.
 fn independence(blurred: &[Vec<[f32; 3]>], valid: &[&[bool]], need: &[bool], agree: f32) -> Vec<f32> {
     let nv = blurred.len();
-    let pairs: Vec<(usize, usize)> = (0..nv).flat_map(|a| (a + 1..nv).map(move |b| (a, b))).collect();
+    let pairs = pairs_of(nv);
     let twins: Vec<f32> = pairs
         .par_iter()
         .map(|&(a, b)| {
@@ -302,6 +302,11 @@ fn independence(blurred: &[Vec<[f32; 3]>], valid: &[&[bool]], need: &[bool], agr
         twin[b][a] = t;
     }
     (0..nv).map(|a| 1.0 / (1.0 + twin[a].iter().sum::<f32>())).collect()
+}
+
+/// Every pair `(a, b)` of `n` views with `a < b`, in order.
+fn pairs_of(n: usize) -> Vec<(usize, usize)> {
+    (0..n).flat_map(|a| (a + 1..n).map(move |b| (a, b))).collect()
 }
 
 /// 4-connected components of `seed` with at least `min` pixels that `keep` keeps.
@@ -478,7 +483,7 @@ fn outlines(
     }
     // Each pair's areas are found on every core; their evidence is added in the pairs'
     // order, as it always was.
-    let pairs: Vec<(usize, usize)> = (0..nv).flat_map(|u| (u + 1..nv).map(move |v| (u, v))).collect();
+    let pairs = pairs_of(nv);
     let steps: Vec<Vec<(Vec<usize>, f32)>> = pairs
         .par_iter()
         .map(|&(u, v)| {
