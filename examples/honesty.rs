@@ -9,7 +9,8 @@
 //! `cargo run --release --example honesty -- --dir CASE...`
 //!     case folders as `fill_cases` writes them (key.png, mask.png, truth.png, view-N.png),
 //!     the views aligned as the fill command aligns them.
-//! `--dump DIR` writes each result and a map of its honesty there; `--prior X`, `--cut X`
+//! `--dump DIR` writes each result, a map of its honesty, the keyframe, the truth and the
+//! views there; `--prior X`, `--cut X`
 //! try other values of the model's parameters; `--select off` uses every view, `--select M`
 //! lets a view into the fill unless it costs more than M of the judge's agreement.
 //!
@@ -85,6 +86,11 @@ fn run(case: &Case, params: &FillParams, dump: Option<&Path>) -> (f64, Honesty, 
         // confident and grossly wrong, yellow = flagged and wrong, blue = flagged and right.
         std::fs::create_dir_all(d).unwrap();
         to_rgb8(&f.image).save(d.join(format!("{}-result.png", case.name))).unwrap();
+        to_rgb8(&case.truth).save(d.join(format!("{}-truth.png", case.name))).unwrap();
+        to_rgb8(&case.key).save(d.join(format!("{}-key.png", case.name))).unwrap();
+        for (v, (image, _)) in case.views.iter().enumerate() {
+            to_rgb8(image).save(d.join(format!("{}-view-{}.png", case.name, v + 1))).unwrap();
+        }
         let map = RgbF32::from_fn(case.key.width(), case.key.height(), |x, y| {
             if !case.mask.is_hole(x, y) {
                 return case.key.get(x, y).map(|v| 0.3 * v);
