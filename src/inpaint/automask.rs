@@ -1815,6 +1815,9 @@ pub fn own_occluders_memo<'m, P: RgbPixel>(
             }
         })
         .collect();
+    // Only two views see the region: each keeps only its objects in foreign colours
+    // ([`OwnParams::foreign_share`]).
+    let foreign_only = kept.len() < 3;
     // Per kept view: its map back to the keyframe, the references a fresh choice takes,
     // and how far apart they are.
     let plans: Vec<Option<(Homography, Vec<usize>, f64)>> = reduced
@@ -1836,9 +1839,8 @@ pub fn own_occluders_memo<'m, P: RgbPixel>(
     // A view keeps its marks when they were judged against the fresh choice, or against as
     // many views spread at least `1 / keep_spread` as far apart ([`OwnParams::keep_spread`]),
     // whether or not those views are still here: what they showed was evidence then and is
-    // still. Otherwise it is judged again.
-    // Two views see the region: each keeps only its objects in foreign colours.
-    let foreign_only = kept.len() < 3;
+    // still. Otherwise it is judged again, and so is a view judged when only two views saw
+    // the region (foreign objects only), or when more did.
     let stale: Vec<usize> = (0..kept.len())
         .filter(|&k| {
             let Some(before) = &memo[kept[k]].judged else { return true };
@@ -1897,8 +1899,7 @@ pub fn own_occluders_memo<'m, P: RgbPixel>(
                 })
                 .collect()
         };
-        // The building's colours, where two views see the region
-        // ([`OwnParams::foreign_share`]).
+        // The building's colours, for `foreign_only`.
         let building: Option<super::occlusion::Histogram> = foreign_only.then(|| {
             let pixels = (0..key_r.height()).flat_map(|y| (0..key_r.width()).map(move |x| (x, y)));
             super::occlusion::Histogram::new(
