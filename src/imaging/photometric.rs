@@ -297,16 +297,25 @@ pub fn fit_tone(pairs: &[([f32; 3], [f32; 3])], params: &ToneParams) -> ToneFit 
 /// 1st to the 99th percentile; equal view values merged), made non-decreasing.
 fn quantile_curve(pairs: &[([f32; 3], [f32; 3])], bins: usize) -> Option<ToneCurve> {
     let mut knots: [Vec<(f32, f32)>; 3] = Default::default();
+    let n = pairs.len();
+    if n == 0 {
+        return None;
+    }
+    // The ranks of the quantiles: those of the values sorted.
+    let ranks: Vec<usize> = (0..=bins)
+        .map(|b| {
+            let q = 0.01 + 0.98 * b as f32 / bins as f32;
+            ((n - 1) as f32 * q).round() as usize
+        })
+        .collect();
     for (c, out) in knots.iter_mut().enumerate() {
         let mut xs: Vec<f32> = pairs.iter().map(|p| p.0[c]).collect();
         let mut ys: Vec<f32> = pairs.iter().map(|p| p.1[c]).collect();
-        xs.sort_unstable_by(f32::total_cmp);
-        ys.sort_unstable_by(f32::total_cmp);
+        select_ranks(&mut xs, &ranks);
+        select_ranks(&mut ys, &ranks);
         // (view value, key value, weight) per quantile.
         let mut pts: Vec<(f32, f32, f32)> = Vec::with_capacity(bins + 1);
-        for b in 0..=bins {
-            let q = 0.01 + 0.98 * b as f32 / bins as f32;
-            let i = ((xs.len() - 1) as f32 * q).round() as usize;
+        for &i in &ranks {
             let (x, y) = (xs[i], ys[i]);
             match pts.last_mut() {
                 Some(last) if x - last.0 < 1e-4 => {
@@ -322,6 +331,19 @@ fn quantile_curve(pairs: &[([f32; 3], [f32; 3])], bins: usize) -> Option<ToneCur
         *out = monotone(&pts);
     }
     Some(ToneCurve { knots })
+}
+
+/// Puts at each of `ranks` (non-decreasing, each below `v.len()`) the value a sort of `v`
+/// (by [`f32::total_cmp`]) puts there: a selection splits `v` at the middle rank, and each
+/// side takes the ranks that fall in it, so that `v` is never wholly sorted.
+fn select_ranks(v: &mut [f32], ranks: &[usize]) {
+    let Some(&mid) = ranks.get(ranks.len() / 2) else { return };
+    let (below, _, above) = v.select_nth_unstable_by(mid, f32::total_cmp);
+    let (lo, hi) = ranks.split_at(ranks.len() / 2);
+    let lo: Vec<usize> = lo.iter().copied().filter(|&r| r < mid).collect();
+    let hi: Vec<usize> = hi.iter().filter(|&&r| r > mid).map(|&r| r - mid - 1).collect();
+    select_ranks(below, &lo);
+    select_ranks(above, &hi);
 }
 
 /// Pool-adjacent-violators: the non-decreasing sequence closest (weighted least squares)
@@ -356,6 +378,25 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
+
+    /// The values a selection puts at the ranks are the sorted values there, with ties,
+    /// repeated ranks and the ends.
+    #[test]
+    fn the_ranks_selected_hold_the_sorted_values() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for n in [1usize, 2, 7, 100, 5000] {
+            let v: Vec<f32> = (0..n).map(|_| (rng.random::<f32>() * 50.0).round() / 50.0).collect();
+            let mut sorted = v.clone();
+            sorted.sort_unstable_by(f32::total_cmp);
+            let mut ranks: Vec<usize> = (0..40).map(|_| rng.random_range(0..n)).chain([0, n - 1]).collect();
+            ranks.sort_unstable();
+            let mut got = v.clone();
+            select_ranks(&mut got, &ranks);
+            for &r in &ranks {
+                assert_eq!(got[r].to_bits(), sorted[r].to_bits(), "rank {r} of {n}");
+            }
+        }
+    }
 
     #[test]
     fn recovers_a_known_gain_and_offset_despite_outliers() {
