@@ -1641,7 +1641,10 @@ impl Band {
         let s = *to_sweep.matrix();
         let s_inv = s.try_inverse()?;
         let zt = nalgebra::RowVector3::new(0.0, 0.0, 1.0) * s_inv;
-        let at = |u: usize, e: &V3, g: f64| -> M3 { s * family.walls[u] * s_inv + (s * e) * zt * g };
+        // Each view's wall at the sweep resolution, made once (the searches below ask for
+        // tens of millions of matrices).
+        let walls: Vec<M3> = family.walls.iter().map(|w| s * w * s_inv).collect();
+        let at = |u: usize, e: &V3, g: f64| -> M3 { walls[u] + (s * e) * zt * g };
         let view = &views[v];
         // The others' matrices per vote (at its depth, and at the wall).
         let others_at = |vs: &[(usize, f64)], wall: bool| -> Vec<Vec<(usize, M3)>> {
