@@ -1881,10 +1881,15 @@ impl Band {
             .map(|(k, (a, b))| (k, a, b))
             .collect();
         let img = |v: usize| &warped[v].as_ref().expect("a homography").0;
+        // A last chunk of fewer than four pairs is filled with zeros (a product of 0 and 0).
+        let zero = vec![0.0f32; n];
         for four in pairs.chunks(4) {
-            let product = |c: usize, k: usize| four.get(c).map_or(0.0, |&(_, a, b)| img(a)[k] * img(b)[k]);
+            let sides: [(&[f32], &[f32]); 4] = std::array::from_fn(|c| {
+                four.get(c).map_or((&zero[..], &zero[..]), |&(_, a, b)| (&img(a)[..], &img(b)[..]))
+            });
+            let [(a0, b0), (a1, b1), (a2, b2), (a3, b3)] = sides;
             let products =
-                box_sums_of(sw, sh, r, |k| [product(0, k), product(1, k), product(2, k), product(3, k)]);
+                box_sums_of(sw, sh, r, |k| [a0[k] * b0[k], a1[k] * b1[k], a2[k] * b2[k], a3[k] * b3[k]]);
             for (c, &(k, a, b)) in four.iter().enumerate() {
                 let slot = &mut out[k * ni..(k + 1) * ni];
                 let (Some((_, stats_a)), Some((_, stats_b))) = (&warped[a], &warped[b]) else {
