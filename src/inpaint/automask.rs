@@ -804,33 +804,129 @@ fn window_sum(
 /// become weak: the building, displaced.
 fn explain_by_parallax(key: &RgbF32, ev: &mut Evidence, params: &AutoMaskParams) {
     let (w, h) = (key.width(), key.height());
-    let r = params.parallax_radius as isize;
-    if r == 0 {
+    if params.parallax_radius == 0 {
         return;
     }
-    let t2 = params.threshold * params.threshold;
-    // The nearest moves first: the building moved by a pixel or two is the usual answer,
-    // and the search stops at the first move that explains the pixel.
-    let mut moves: Vec<(isize, isize)> =
-        (-r..=r).flat_map(|dy| (-r..=r).map(move |dx| (dx, dy))).filter(|&m| m != (0, 0)).collect();
-    moves.sort_by_key(|&(dx, dy)| dx * dx + dy * dy);
     let seen: &Evidence = ev;
-    let (ks, judged, cs) = (key.as_slice(), seen.judged.as_slice(), seen.consensus.as_slice());
-    let size = (w as isize, h as isize);
-    let matches =
-        |x: isize, y: isize, dx: isize, dy: isize| window_matches(ks, cs, judged, size, (x, y), (dx, dy), t2);
+    let search = Moves::new(key, &seen.consensus, &seen.judged, params.parallax_radius, params.threshold);
+    let strong = seen.strong.as_slice();
     // Each pixel is judged on its own: in parallel, the same pixels as one at a time.
-    let explained: Vec<usize> = (0..w * h)
-        .into_par_iter()
-        .filter(|&i| seen.strong.as_slice()[i])
-        .filter(|&i| {
-            let (x, y) = ((i % w) as isize, (i / w) as isize);
-            moves.iter().any(|&(dx, dy)| matches(x, y, dx, dy))
-        })
-        .collect();
+    let explained: Vec<usize> =
+        (0..w * h).into_par_iter().filter(|&i| strong[i] && search.explains(i % w, i / w)).collect();
     for i in explained {
         ev.strong.as_mut_slice()[i] = false;
         ev.weak.as_mut_slice()[i] = true;
+    }
+}
+
+/// The widest row of moves [`Moves::explains`] scores side by side (`2 · radius + 1`).
+const MOVE_LANES: usize = 32;
+
+/// Whether a pixel's 5 × 5 window of `key` matches `other` moved by up to `radius` pixels
+/// each way, not by 0 ([`window_matches`] over every such move).
+struct Moves<'a> {
+    key: &'a [[f32; 3]],
+    other: &'a [[f32; 3]],
+    usable: &'a [bool],
+    /// `other`'s channels apart, for the moves of a row scored side by side.
+    channels: [Vec<f32>; 3],
+    size: (usize, usize),
+    radius: usize,
+    /// The moves, the nearest first ([`window_matches`] one at a time, near the borders).
+    moves: Vec<(isize, isize)>,
+    /// Their rows (`dy`), the nearest first.
+    rows: Vec<isize>,
+    t2: f32,
+}
+
+impl<'a> Moves<'a> {
+    fn new(
+        key: &'a RgbF32,
+        other: &'a RgbF32,
+        usable: &'a Plane<bool>,
+        radius: usize,
+        threshold: f32,
+    ) -> Self {
+        let r = radius as isize;
+        // The nearest moves first: the building moved by a pixel or two is the usual
+        // answer, and the search stops at the first move that explains the pixel.
+        let mut moves: Vec<(isize, isize)> =
+            (-r..=r).flat_map(|dy| (-r..=r).map(move |dx| (dx, dy))).filter(|&m| m != (0, 0)).collect();
+        moves.sort_by_key(|&(dx, dy)| dx * dx + dy * dy);
+        let other_px = other.as_slice();
+        Self {
+            key: key.as_slice(),
+            other: other_px,
+            usable: usable.as_slice(),
+            channels: std::array::from_fn(|c| other_px.iter().map(|p| p[c]).collect()),
+            size: (key.width(), key.height()),
+            radius,
+            moves,
+            rows: std::iter::once(0).chain((1..=r).flat_map(|d| [-d, d])).collect(),
+            t2: threshold * threshold,
+        }
+    }
+
+    /// Whether the window at `(x, y)` matches `other` moved by one of the moves. Away from
+    /// the borders, the `2 · radius + 1` moves of a row (one `dy`) are scored side by side,
+    /// the rows nearest first: each move's sum adds the same taps in the same order as
+    /// [`window_sum`] (a tap not usable adds nothing), so each gets the same bits, and a
+    /// sum that [`window_sum`] would give up on is past the bound and matches neither way.
+    fn explains(&self, x: usize, y: usize) -> bool {
+        let (w, h) = self.size;
+        let (r, half) = (self.radius, HALF as usize);
+        let lanes = 2 * r + 1;
+        if x < r + half || x + r + half >= w || lanes > MOVE_LANES {
+            let size = (w as isize, h as isize);
+            let at = (x as isize, y as isize);
+            return self
+                .moves
+                .iter()
+                .any(|&m| window_matches(self.key, self.other, self.usable, size, at, m, self.t2));
+        }
+        let (y, r) = (y as isize, r as isize);
+        let [c0, c1, c2] = &self.channels;
+        let (mut sums, mut counts) = ([0.0f32; MOVE_LANES], [0u8; MOVE_LANES]);
+        let hopeless = self.t2 * WINDOW as f32;
+        for &dy in &self.rows {
+            let (sums, counts) = (&mut sums[..lanes], &mut counts[..lanes]);
+            sums.fill(0.0);
+            counts.fill(0);
+            for py in y - HALF..=y + HALF {
+                let qy = py + dy;
+                if py < 0 || py >= h as isize || qy < 0 || qy >= h as isize {
+                    continue;
+                }
+                for px in x - half..=x + half {
+                    let k = self.key[py as usize * w + px];
+                    // `other`'s row at the moves of this tap: `px - r ..= px + r`.
+                    let from = qy as usize * w + px - r as usize;
+                    let row = from..from + lanes;
+                    let taps = c0[row.clone()]
+                        .iter()
+                        .zip(&c1[row.clone()])
+                        .zip(&c2[row.clone()])
+                        .zip(&self.usable[row]);
+                    for ((s, n), (((&a, &b), &c), &u)) in sums.iter_mut().zip(counts.iter_mut()).zip(taps) {
+                        let d = (k[0] - a).powi(2) + (k[1] - b).powi(2) + (k[2] - c).powi(2);
+                        *s += if u { d } else { 0.0 };
+                        *n += u8::from(u);
+                    }
+                }
+                // Every move of the row past what any count would bring to the bound.
+                if sums.iter().all(|&s| s > hopeless) {
+                    break;
+                }
+            }
+            let matched = sums.iter().zip(counts.iter()).enumerate().any(|(j, (&s, &n))| {
+                let n = usize::from(n);
+                (dy != 0 || j != r as usize) && n * 2 > WINDOW && s <= self.t2 * n as f32
+            });
+            if matched {
+                return true;
+            }
+        }
+        false
     }
 }
 
@@ -2230,6 +2326,73 @@ mod tests {
                     assert!(dilate(&m, r) == by_hand(&m, r, true), "dilate {w}x{h} r {r} density {density}");
                 }
             }
+        }
+    }
+
+    /// The moves of a row scored side by side explain exactly the pixels that the moves one
+    /// at a time explain ([`window_matches`]): over images where the other is the keyframe
+    /// moved, noisy and with pixels not usable, at thresholds where some windows match and
+    /// some do not, every pixel (the borders too), radii that fit the lanes and one that
+    /// does not.
+    #[test]
+    fn moves_side_by_side_explain_what_each_move_explains() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let (w, h) = (61, 37);
+        // Per radius and case, how many pixels were explained and how many not.
+        let mut tally: Vec<(usize, usize, usize)> = Vec::new();
+        let key = RgbF32::from_fn(w, h, |x, y| {
+            let t = (x as f32 * 0.37).sin() + (y as f32 * 0.23).cos();
+            [0.5 + 0.3 * t.sin(), 0.4 + 0.2 * t, 0.6 - 0.1 * t]
+        });
+        for (move_by, noise, unusable) in
+            [((2isize, 1isize), 0.02f32, 0.1f64), ((-5, 3), 0.05, 0.3), ((0, 0), 0.1, 0.0)]
+        {
+            let other = RgbF32::from_fn(w, h, |x, y| {
+                let (sx, sy) = (
+                    (x as isize - move_by.0).clamp(0, w as isize - 1),
+                    (y as isize - move_by.1).clamp(0, h as isize - 1),
+                );
+                key.get(sx as usize, sy as usize).map(|c| c + noise * (rng.random::<f32>() - 0.5))
+            });
+            let usable = Plane::from_fn(w, h, |_, _| rng.random::<f64>() >= unusable);
+            for radius in [1, 3, 8, 16] {
+                for threshold in [0.01f32, 0.03, 0.08] {
+                    let moves = Moves::new(&key, &other, &usable, radius, threshold);
+                    let size = (w as isize, h as isize);
+                    let (mut yes, mut no) = (0, 0);
+                    for y in 0..h {
+                        for x in 0..w {
+                            let at = (x as isize, y as isize);
+                            let each = moves.moves.iter().any(|&m| {
+                                window_matches(
+                                    key.as_slice(),
+                                    other.as_slice(),
+                                    usable.as_slice(),
+                                    size,
+                                    at,
+                                    m,
+                                    threshold * threshold,
+                                )
+                            });
+                            assert_eq!(
+                                moves.explains(x, y),
+                                each,
+                                "({x}, {y}) radius {radius} threshold {threshold}"
+                            );
+                            if each { yes += 1 } else { no += 1 }
+                        }
+                    }
+                    tally.push((radius, yes, no));
+                }
+            }
+        }
+        for radius in [1, 3, 8, 16] {
+            let of = || tally.iter().filter(|t| t.0 == radius);
+            assert!(
+                of().any(|t| t.1 > 100) && of().any(|t| t.2 > 100),
+                "radius {radius}: both verdicts {tally:?}"
+            );
         }
     }
 
