@@ -1510,27 +1510,35 @@ impl Band {
     /// `view` warped through `m` (keyframe → view, sweep resolution); `None` where the view
     /// does not cover the window or either is flat.
     fn cost_at(&self, view: &GrayF32, j: usize, m: &nalgebra::Matrix3<f64>) -> Option<f32> {
+        self.view_cost(view, self.pixels[j], m)
+    }
+
+    /// 1 − the normalised cross-correlation of the keyframe's window around `rect` pixel `i`
+    /// with `view` warped through `m` there ([`Self::window_samples`]); `None` where the view
+    /// does not cover the window or either is flat.
+    fn view_cost(&self, view: &GrayF32, i: usize, m: &nalgebra::Matrix3<f64>) -> Option<f32> {
         let rw = self.rect.width;
-        self.window_cost(self.pixels[j], |x, y| {
-            Some((self.key[y * rw + x], sample(view, m, self.rect, x, y)?))
-        })
+        ncc_cost(self.window_samples(view, m, i).map(|((x, y), v)| Some((self.key[y * rw + x], v?))))
     }
 
-    /// 1 − the normalised cross-correlation of the pairs `pair(x, y)` over the window around
-    /// `rect` pixel `i` (`rect` coordinates); `None` where a pair is missing or either side
-    /// is flat.
-    fn window_cost(&self, i: usize, pair: impl Fn(usize, usize) -> Option<(f32, f32)>) -> Option<f32> {
-        ncc_cost(self.window_at(i).map(|(x, y)| pair(x, y)))
-    }
-
-    /// The `rect` pixels of the window around `rect` pixel `i`, row by row (clipped to
-    /// `rect`).
-    fn window_at(&self, i: usize) -> impl Iterator<Item = (usize, usize)> + use<> {
-        let (rw, rh) = (self.rect.width, self.rect.height);
-        let (cx, cy) = (i % rw, i / rw);
+    /// `view` mapped through `m` (keyframe → view, sweep resolution) at the `rect` pixels of
+    /// the window around `rect` pixel `i` (clipped to `rect`), row by row, with each pixel:
+    /// the values of `m · (x, y, 1)` sampled bilinearly, the products with a row's `y` made once
+    /// for the row ([`RowMap`]).
+    fn window_samples<'s>(
+        &self,
+        view: &'s GrayF32,
+        m: &'s nalgebra::Matrix3<f64>,
+        i: usize,
+    ) -> impl Iterator<Item = ((usize, usize), Option<f32>)> + use<'s> {
+        let rect = self.rect;
+        let (cx, cy) = (i % rect.width, i / rect.width);
         let r = self.window;
-        let xs = cx.saturating_sub(r)..(cx + r + 1).min(rw);
-        (cy.saturating_sub(r)..(cy + r + 1).min(rh)).flat_map(move |y| xs.clone().map(move |x| (x, y)))
+        let xs = cx.saturating_sub(r)..(cx + r + 1).min(rect.width);
+        (cy.saturating_sub(r)..(cy + r + 1).min(rect.height)).flat_map(move |y| {
+            let row = RowMap::new(m, (rect.y + y) as f64);
+            xs.clone().map(move |x| ((x, y), row.sample(view, (rect.x + x) as f64)))
+        })
     }
 
     /// The units of an epipole's pattern search for the view whose wall is `wall` (family
@@ -1657,7 +1665,6 @@ impl Band {
                 })
                 .collect()
         };
-        let rect = self.rect;
         // The others' samples over each hole vote's window: they stay where they are while
         // `v`'s epipole is searched (empty for a band vote).
         let theirs = |vs: &[(usize, f64)], om: &[Vec<(usize, M3)>]| -> Vec<Vec<Vec<Option<f32>>>> {
@@ -1668,9 +1675,7 @@ impl Band {
                         return Vec::new();
                     }
                     o.iter()
-                        .map(|(u, mu)| {
-                            self.window_at(i).map(|(x, y)| sample(&views[*u], mu, rect, x, y)).collect()
-                        })
+                        .map(|(u, mu)| self.window_samples(&views[*u], mu, i).map(|(_, v)| v).collect())
                         .collect()
                 })
                 .collect()
@@ -1680,15 +1685,13 @@ impl Band {
                 if theirs.is_empty() {
                     return 1.0;
                 }
-                let mine: Vec<Option<f32>> =
-                    self.window_at(i).map(|(x, y)| sample(view, m, rect, x, y)).collect();
+                let mine: Vec<Option<f32>> = self.window_samples(view, m, i).map(|(_, v)| v).collect();
                 theirs
                     .iter()
                     .filter_map(|t| ncc_cost(t.iter().zip(&mine).map(|(a, b)| Some(((*a)?, (*b)?)))))
                     .fold(1.0, f32::min)
             } else {
-                self.window_cost(i, |x, y| Some((self.key[y * rect.width + x], sample(view, m, rect, x, y)?)))
-                    .unwrap_or(1.0)
+                self.view_cost(view, i, m).unwrap_or(1.0)
             }
         };
         let mean = |vs: &[(usize, f64)], om: &[Vec<Vec<Option<f32>>>], e: &V3, wall: bool| -> f32 {
@@ -1769,12 +1772,11 @@ impl Band {
         // Per window, of the pixels the view covers: their count, the sum of their values,
         // of the squares, and of the products with the keyframe.
         let sums = box_sums_by_rows(rw, rh, self.window, |y, line: &mut [[f32; 4]]| {
-            let py = (self.rect.y + y) as f64;
+            let row = RowMap::new(hs.matrix(), (self.rect.y + y) as f64);
             let key = &self.key[y * rw..(y + 1) * rw];
             for &(x0, x1) in &self.need[y] {
                 for (x, (out, k)) in line[x0..x1].iter_mut().zip(&key[x0..x1]).enumerate() {
-                    let p = Point2::new((self.rect.x + x0 + x) as f64, py);
-                    if let Some(a) = hs.apply(p).and_then(|q| bilinear(view, q.x as f32, q.y as f32)) {
+                    if let Some(a) = row.sample(view, (self.rect.x + x0 + x) as f64) {
                         *out = [1.0, a, a * a, a * k];
                     }
                 }
@@ -1844,10 +1846,9 @@ impl Band {
                 let hm = hm.as_ref()?;
                 let (mut img, mut ok) = (vec![0.0f32; n], vec![0.0f32; n]);
                 for &(y, x0, x1) in &self.inside_runs {
-                    let py = (self.rect.y + sub.y + y) as f64;
+                    let row = RowMap::new(hm.matrix(), (self.rect.y + sub.y + y) as f64);
                     for x in x0..x1 {
-                        let p = Point2::new((self.rect.x + sub.x + x) as f64, py);
-                        if let Some(val) = hm.apply(p).and_then(|q| bilinear(view, q.x as f32, q.y as f32)) {
+                        if let Some(val) = row.sample(view, (self.rect.x + sub.x + x) as f64) {
                             img[y * sw + x] = val;
                             ok[y * sw + x] = 1.0;
                         }
@@ -1978,12 +1979,38 @@ fn supported_in(
 }
 
 /// `view` at `rect` pixel `(x, y)` mapped through `m` (sweep resolution); `None` outside.
+#[cfg(test)]
 fn sample(view: &GrayF32, m: &nalgebra::Matrix3<f64>, rect: Rect, x: usize, y: usize) -> Option<f32> {
     let p = m * nalgebra::Vector3::new((rect.x + x) as f64, (rect.y + y) as f64, 1.0);
     if p.z.abs() < 1e-12 {
         return None;
     }
     bilinear(view, (p.x / p.z) as f32, (p.y / p.z) as f32)
+}
+
+/// A homography on one row `y` of the image it maps from: its products with `y` made once
+/// for the row's pixels. Each pixel maps to the same bits as the product `m · (x, y, 1)`
+/// and as [`Homography::apply`]: per coordinate `(m₀·x + m₁·y) + m₂`, summed in that order.
+struct RowMap {
+    m: nalgebra::Matrix3<f64>,
+    with_y: [f64; 3],
+}
+
+impl RowMap {
+    fn new(m: &nalgebra::Matrix3<f64>, y: f64) -> Self {
+        Self { m: *m, with_y: std::array::from_fn(|r| m[(r, 1)] * y) }
+    }
+
+    /// `view` at `(x, y)` mapped through the homography; `None` outside, or at infinity.
+    #[inline]
+    fn sample(&self, view: &GrayF32, x: f64) -> Option<f32> {
+        let at = |r: usize| (self.m[(r, 0)] * x + self.with_y[r]) + self.m[(r, 2)];
+        let z = at(2);
+        if z.abs() < 1e-12 {
+            return None;
+        }
+        bilinear(view, (at(0) / z) as f32, (at(1) / z) as f32)
+    }
 }
 
 /// The `i`-th of the `2 · scale_steps` factors the scales of `γ` are searched over: both
@@ -2820,6 +2847,39 @@ mod tests {
                 .iter()
                 .all(|c| c.len() == nl && c.iter().all(|c| c.is_nan()))
         );
+    }
+
+    /// A row's map gives each pixel the same bits as the whole product and as
+    /// [`Homography::apply`]: over random homographies, some with pixels near and past the
+    /// horizon.
+    #[test]
+    fn a_rows_map_samples_as_the_whole_product() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let view = GrayF32::from_fn(97, 71, |x, y| tex(x as f64, y as f64));
+        let rect = Rect { x: 5, y: 9, width: 60, height: 40 };
+        let (mut inside, mut outside) = (0, 0);
+        for k in 0..200 {
+            let mut m = nalgebra::Matrix3::from_fn(|_, _| rng.random_range(-1.0..1.0));
+            m += nalgebra::Matrix3::identity() * rng.random_range(0.5..2.0);
+            m[(2, 2)] = if k % 4 == 0 { rng.random_range(-40.0..40.0) } else { rng.random_range(0.5..1.5) };
+            let Some(h) = Homography::from_matrix(m) else { continue };
+            let m = *h.matrix();
+            for y in 0..rect.height {
+                let row = RowMap::new(&m, (rect.y + y) as f64);
+                for x in 0..rect.width {
+                    let a = row.sample(&view, (rect.x + x) as f64);
+                    let b = sample(&view, &m, rect, x, y);
+                    let p = Point2::new((rect.x + x) as f64, (rect.y + y) as f64);
+                    let c = h.apply(p).and_then(|q| bilinear(&view, q.x as f32, q.y as f32));
+                    let bits = |v: Option<f32>| v.map(f32::to_bits);
+                    assert_eq!(bits(a), bits(b), "homography {k} at ({x}, {y}): the product");
+                    assert_eq!(bits(a), bits(c), "homography {k} at ({x}, {y}): apply");
+                    if a.is_some() { inside += 1 } else { outside += 1 }
+                }
+            }
+        }
+        assert!(inside > 10_000 && outside > 10_000, "{inside} inside, {outside} outside");
     }
 
     #[test]
