@@ -1,13 +1,16 @@
 //! Issue 14's figures on generated non-planar facades (`synth::facade::parallax_case`):
 //! masked PSNR against the truth of
-//! - `today`: the fill as the `fill` command runs it (views aligned, one homography each);
+//! - `today`: the walls' fill (`clearview fill --no-planes`: views aligned, one homography each);
 //! - `reference`: the single-plane fill with the true wall homography and the views' true
 //!   occluders (their pixels are never copied) — the issue's reference;
 //! - `planes`: the multi-plane fill (planes fitted from the matches the wall leaves out,
 //!   each pixel's surface chosen by photo-consistency), from the same alignment as `today`;
 //! - `swept`: the multi-plane fill with the surfaces swept densely (plane + parallax,
 //!   `swept_planes`), from the same alignment;
-//! - `true-planes`: the multi-plane fill given the true planes (an upper bound for the fit).
+//! - `true-planes`: the multi-plane fill given the true planes (an upper bound for the fit);
+//! - `judged`: what `clearview fill` makes of the swept surfaces: the fill through them where
+//!   the views back it better than the walls' alone, else the walls' ([`fill_swept`]). This is
+//!   the product's figure; `swept` is the fill through the surfaces whatever the judge says.
 //!
 //!
 //! With `--oracles`, a second table says where the swept fill loses against the true planes:
@@ -38,7 +41,7 @@ use clearview::inpaint::parallax::{
     SurfaceParams, SurfacePlane, SweepParams, matching_map, parallax_family, surface_planes, sweep_family,
     swept_planes, tied_family,
 };
-use clearview::inpaint::{FillExtras, FillParams, Filled, Observer, Source, Stage, fill_with};
+use clearview::inpaint::{FillExtras, FillParams, Filled, Observer, Source, Stage, fill_swept, fill_with};
 use clearview::synth::facade::{ParallaxCase, parallax_case};
 
 /// Milliseconds per stage.
@@ -63,6 +66,11 @@ impl Timer {
     }
 }
 
+/// The case's views, each with its homography of `hs`.
+fn sources<'a>(c: &'a ParallaxCase, hs: &[Homography]) -> Vec<Source<'a>> {
+    c.views.iter().zip(hs).map(|(image, &homography)| Source { image, homography }).collect()
+}
+
 fn run(
     c: &ParallaxCase,
     hs: &[Homography],
@@ -70,9 +78,23 @@ fn run(
     params: &FillParams,
     t: &mut Timer,
 ) -> Filled {
-    let sources: Vec<Source<'_>> =
-        c.views.iter().zip(hs).map(|(image, &homography)| Source { image, homography }).collect();
-    let f = fill_with(&c.key, &c.mask, &sources, extras, params, 1, t);
+    let f = fill_with(&c.key, &c.mask, &sources(c, hs), extras, params, 1, t);
+    t.end();
+    f
+}
+
+/// The fill `clearview fill` makes through `swept` on the walls `hs`: through the surfaces
+/// where the views back that fill better than the walls' alone ([`fill_swept`]'s judge).
+fn judged(
+    c: &ParallaxCase,
+    hs: &[Homography],
+    swept: &[SurfacePlane],
+    params: &FillParams,
+    t: &mut Timer,
+) -> Filled {
+    let f =
+        fill_swept(&c.key, &c.mask, &sources(c, hs), &FillExtras::default(), params, swept.to_vec(), 1, t)
+            .filled;
     t.end();
     f
 }
@@ -429,6 +451,11 @@ fn split(c: &ParallaxCase, f: &Filled, swept: &[SurfacePlane], better: &Filled) 
 }
 
 fn main() {
+    // `RUST_LOG=clearview=debug` prints what the stages decided (the judge's gain among them).
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+        .with_writer(std::io::stderr)
+        .init();
     let args: Vec<String> = std::env::args().skip(1).collect();
     let (mut seeds, mut w, mut h, mut n, mut flat, mut dump) =
         (8u64, 640usize, 480usize, 3usize, false, None);
@@ -492,12 +519,12 @@ fn main() {
         }
     }
     let geo_min_common = geo_min.unwrap_or(sp.min_common);
-    let names = ["today", "reference", "planes", "swept", "true-planes"];
-    let mut sums = [0.0f64; 5];
-    let mut honest: [Honesty; 5] = Default::default();
+    let names = ["today", "reference", "planes", "swept", "true-planes", "judged"];
+    let mut sums = [0.0f64; 6];
+    let mut honest: [Honesty; 6] = Default::default();
     let mut stage_ms: Vec<(String, f64)> = Vec::new();
     println!("| seed | slabs | masked px | planes found | swept found | {} |", names.join(" | "));
-    println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    println!("|---:|---:|---:|---:|---:|{}", "---:|".repeat(names.len()));
     for seed in first..first + seeds {
         let c = parallax_case(w, h, n, seed, flat);
         let params = AlignParams::default();
@@ -524,7 +551,7 @@ fn main() {
         }
         let true_planes = c.true_surfaces(24);
         let occ: Vec<Option<&clearview::imaging::Mask>> = c.occluders.iter().map(Some).collect();
-        let mut timers: Vec<Timer> = (0..5).map(|_| Timer::default()).collect();
+        let mut timers: Vec<Timer> = (0..6).map(|_| Timer::default()).collect();
         let results = [
             run(&c, &walls, &FillExtras::default(), &fp, &mut timers[0]),
             run(&c, &c.wall(), &FillExtras { occluders: &occ, ..FillExtras::default() }, &fp, &mut timers[1]),
@@ -537,6 +564,7 @@ fn main() {
                 &fp,
                 &mut timers[4],
             ),
+            judged(&c, &walls, &swept, &fp, &mut timers[5]),
         ];
         let psnr: Vec<f64> = results.iter().map(|f| masked_psnr(&f.image, &c.truth, &c.mask)).collect();
         for (h, f) in honest.iter_mut().zip(&results) {
