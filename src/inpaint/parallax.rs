@@ -1506,13 +1506,6 @@ impl Band {
         supported_in(self.rect, &self.pixels, votes, nl, min_neighbours)
     }
 
-    /// 1 − the normalised cross-correlation of the keyframe's window at band pixel `j` with
-    /// `view` warped through `m` (keyframe → view, sweep resolution); `None` where the view
-    /// does not cover the window or either is flat.
-    fn cost_at(&self, view: &GrayF32, j: usize, m: &nalgebra::Matrix3<f64>) -> Option<f32> {
-        self.view_cost(view, self.pixels[j], m)
-    }
-
     /// 1 − the normalised cross-correlation of the keyframe's window around `rect` pixel `i`
     /// with `view` warped through `m` there ([`Self::window_samples`]); `None` where the view
     /// does not cover the window or either is flat.
@@ -1602,7 +1595,7 @@ impl Band {
                 .par_iter()
                 .map(|&(j, g)| {
                     let m = sm + se * zt * if gamma { g } else { 0.0 };
-                    self.cost_at(view, j, &m).unwrap_or(1.0)
+                    self.view_cost(view, self.pixels[j], &m).unwrap_or(1.0)
                 })
                 .collect();
             (!costs.is_empty()).then(|| costs.iter().sum::<f32>() / costs.len() as f32)
