@@ -225,7 +225,7 @@ pub struct FillReport {
     /// expected share of pixels that show the building.
     pub confidence_sum: f64,
     /// Mean over the mask of how well the result's pixels agree with what the views show
-    /// there ([`witnessed`]): the measure on which two results of the same keyframe and
+    /// there ([`witnessed_by`]): the measure on which two results of the same keyframe and
     /// mask are compared with the same views as witnesses (1 for an empty mask).
     pub witnessed_quality: f64,
     /// Masked pixels whose copy took in other views' colours ([`FillParams::fuse`]).
@@ -983,18 +983,32 @@ impl Gathered {
     /// (fitted on all of them) trusts it: the share of the mask they back
     /// ([`FillReport::witnessed_quality`]).
     fn judge(&self, key: &RgbF32, mask: &Mask, img: &RgbF32) -> f64 {
+        self.judge_by(key, mask, img, &|_, _| 0, 1)[0]
+    }
+
+    /// [`Self::judge`] apart for each of `bins` classes of masked pixel (`bin(x, y)` says
+    /// which): each class's share of the mask the views back, the classes adding up to it.
+    fn judge_by(
+        &self,
+        key: &RgbF32,
+        mask: &Mask,
+        img: &RgbF32,
+        bin: &(dyn Fn(usize, usize) -> usize + Sync),
+        bins: usize,
+    ) -> Vec<f64> {
         debug_assert_eq!((img.width(), img.height()), (key.width(), key.height()));
         // Each part in parallel, added in order: a parallel sum's order follows the work
         // stealing, and a judge must give the same figure for the same result every time.
-        let parts: Vec<f64> = self
+        let parts: Vec<Vec<f64>> = self
             .parts
             .par_iter()
             .zip(self.warps.par_iter())
             .zip(self.maps.par_iter())
             .zip(self.errors.par_iter())
-            .map(|(((part, ws), map), errs)| witnessed(img, part, ws, map, errs))
+            .map(|(((part, ws), map), errs)| witnessed_by(img, part, ws, map, errs, bin, bins))
             .collect();
-        parts.iter().sum::<f64>() / mask.hole_count() as f64
+        let masked = mask.hole_count() as f64;
+        (0..bins).map(|k| parts.iter().map(|p| p[k]).sum::<f64>() / masked).collect()
     }
 }
 
@@ -1016,6 +1030,26 @@ pub fn backed_by<P: RgbPixel>(
     images: &[&RgbF32],
     observer: &mut dyn Observer,
 ) -> Vec<f64> {
+    backed_by_in(key, mask, sources, extras, params, images, &|_, _| 0, 1, observer)
+        .into_iter()
+        .map(|b| b[0])
+        .collect()
+}
+
+/// [`backed_by`] apart for each of `bins` classes of masked pixel (`bin(x, y)` says which):
+/// per image, each class's share of the mask the views back.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn backed_by_in<P: RgbPixel>(
+    key: &RgbF32,
+    mask: &Mask,
+    sources: &[Source<'_, P>],
+    extras: &FillExtras<'_>,
+    params: &FillParams,
+    images: &[&RgbF32],
+    bin: &(dyn Fn(usize, usize) -> usize + Sync),
+    bins: usize,
+    observer: &mut dyn Observer,
+) -> Vec<Vec<f64>> {
     check_inputs(key, mask, sources, extras);
     let (w, h) = (key.width(), key.height());
     let mut report = FillReport {
@@ -1027,8 +1061,8 @@ pub fn backed_by<P: RgbPixel>(
     images
         .iter()
         .map(|image| match &gathered {
-            Some(g) if (image.width(), image.height()) == (w, h) => g.judge(key, mask, image),
-            _ => 0.0,
+            Some(g) if (image.width(), image.height()) == (w, h) => g.judge_by(key, mask, image, bin, bins),
+            _ => vec![0.0; bins],
         })
         .collect()
 }
@@ -1343,23 +1377,35 @@ impl Staged<'_> {
 /// closeness counts over thousands of pixels and which says nothing of which fill is right;
 /// what decides is where a fill shows what the views do not (an occluder copied, a wrong
 /// surface), and that is a gross error.
-fn witnessed(img: &RgbF32, part: &Part, ws: &[Warped], map: &OcclusionMap, errors: &[f32]) -> f64 {
+///
+/// The sums are kept apart for each of `bins` classes of pixel: `bin(x, y)` (keyframe
+/// coordinates, below `bins`) says which class a masked pixel adds to.
+fn witnessed_by(
+    img: &RgbF32,
+    part: &Part,
+    ws: &[Warped],
+    map: &OcclusionMap,
+    errors: &[f32],
+    bin: &(dyn Fn(usize, usize) -> usize + Sync),
+    bins: usize,
+) -> Vec<f64> {
     let r = part.rect;
     let holes = part.hole.as_slice();
     // In blocks of a fixed size on every core, their sums added in order: the same figure
     // for the same result, whatever the threads (a hole is often one part: serial, it held
     // one core through every judgement).
-    let blocks: Vec<f64> = holes
+    let blocks: Vec<Vec<f64>> = holes
         .par_chunks(WITNESS_BLOCK)
         .enumerate()
         .map(|(b, block)| {
-            let mut sum = 0.0f64;
+            let mut sums = vec![0.0f64; bins];
             for (j, &hole) in block.iter().enumerate() {
                 if !hole {
                     continue;
                 }
                 let i = b * WITNESS_BLOCK + j;
-                let value = img.get(r.x + i % r.width, r.y + i / r.width);
+                let (x, y) = (r.x + i % r.width, r.y + i / r.width);
+                let value = img.get(x, y);
                 let (mut trust, mut wsum, mut agree) = (0.0f32, 0.0f32, 0.0f32);
                 for (v, wv) in ws.iter().enumerate() {
                     if !wv.valid.as_slice()[i] {
@@ -1373,15 +1419,15 @@ fn witnessed(img: &RgbF32, part: &Part, ws: &[Warped], map: &OcclusionMap, error
                 }
                 let sure = (trust / WITNESS_TRUST).min(1.0);
                 let q = if wsum > 0.0 { sure * agree / wsum } else { 0.0 };
-                sum += f64::from(q + (1.0 - sure) * INVENTED);
+                sums[bin(x, y)] += f64::from(q + (1.0 - sure) * INVENTED);
             }
-            sum
+            sums
         })
         .collect();
-    blocks.iter().sum()
+    (0..bins).map(|k| blocks.iter().map(|b| b[k]).sum()).collect()
 }
 
-/// The pixels of a part [`witnessed`] sums on one core before the blocks' sums are added.
+/// The pixels of a part [`witnessed_by`] sums on one core before the blocks' sums are added.
 const WITNESS_BLOCK: usize = 1 << 16;
 
 /// Whether a witness backs a pixel it differs from by `d` (the largest channel difference):
