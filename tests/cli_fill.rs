@@ -517,6 +517,7 @@ fn planes_reports_the_surfaces_it_filled_through() {
     assert!(filled > 0 && filled < masked, "{filled} of {masked} masked pixels through surfaces");
     for p in surfaces {
         assert!(p["views"].as_u64().unwrap() >= 2, "a surface seen by one view: {p}");
+        assert!(p["kept"] == true || p["filled_pixels"] == 0, "filled through a surface not kept: {p}");
         assert_eq!(p["region"].as_array().unwrap().len(), 4);
     }
     assert!(stdout.contains(&format!("{filled} masked pixels filled through")), "{stdout}");
@@ -562,7 +563,10 @@ fn surfaces_the_views_do_not_back_are_found_but_not_used() {
     let planes = &report["planes"];
     assert!(!planes["surfaces"].as_array().unwrap().is_empty(), "{report}");
     assert_eq!(planes["used"], false, "{report}");
-    assert!(planes["surfaces"].as_array().unwrap().iter().all(|p| p["filled_pixels"] == 0), "{report}");
+    assert!(
+        planes["surfaces"].as_array().unwrap().iter().all(|p| p["filled_pixels"] == 0 && p["kept"] == false),
+        "{report}"
+    );
     assert!(stdout.contains("the views back the wall's fill better"), "{stdout}");
     assert!(plain == result, "the result is not the wall's fill");
 }

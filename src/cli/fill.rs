@@ -722,10 +722,13 @@ fn print_summary(r: &Report<'_>) {
         if n == 0 {
             println!("  planes: no surface off the wall found; the wall's homography filled every pixel");
         } else if p.used {
-            println!(
-                "  planes: {found}, {filled} masked pixels filled through {}",
-                if n == 1 { "it" } else { "them" }
-            );
+            let kept = p.surfaces.iter().filter(|s| s.kept).count();
+            let through = match (n, kept) {
+                (1, _) => "it".to_string(),
+                (n, k) if k == n => "them".to_string(),
+                (_, k) => format!("the {k} of them the views back"),
+            };
+            println!("  planes: {found}, {filled} masked pixels filled through {through}");
         } else {
             println!("  planes: {found}, but the views back the wall's fill better: the result is that fill");
         }

@@ -12,8 +12,8 @@ use serde::Serialize;
 use super::parallax::{SurfacePlane, SweepParams, ViewMatches, swept_planes_memo};
 use super::reduced::{Reduced, levels_for, reduce_rgb};
 use super::{
-    FillExtras, FillParams, Filled, Gathered, Observer, Quiet, Source, Stage, backed_by, fill_gathered,
-    fill_with,
+    FillExtras, FillParams, Filled, Gathered, Observer, Quiet, Source, Stage, backed_by, backed_by_in,
+    fill_gathered, fill_with,
 };
 use crate::imaging::convert::luminance;
 use crate::imaging::{GrayF32, Mask, Plane, RgbF32, RgbPixel};
@@ -24,8 +24,10 @@ pub struct Swept {
     pub filled: Filled,
     /// The surfaces off the wall the sweep found (empty: none, and `filled` is the walls').
     pub planes: Vec<SurfacePlane>,
-    /// Whether `filled` was made through `planes` ([`Filled::surface`] says where).
+    /// Whether `filled` was made through any of `planes` ([`Filled::surface`] says where).
     pub used: bool,
+    /// Per surface of `planes`: whether `filled` was made through it (the judge kept it).
+    pub kept: Vec<bool>,
     /// The inputs as the judge saw them, reduced ([`FillParams::judge_max_pixels`]): a
     /// later judgement of the same inputs ([`judged_with_marks`]) takes them from here.
     judged_on: Option<Reduced>,
@@ -46,9 +48,11 @@ impl Swept {
             .planes
             .iter()
             .zip(filled)
-            .map(|(p, filled_pixels)| SurfaceReport {
+            .zip(&self.kept)
+            .map(|((p, filled_pixels), &kept)| SurfaceReport {
                 region: [p.region.x + origin.0, p.region.y + origin.1, p.region.width, p.region.height],
                 views: p.views.iter().flatten().count(),
+                kept,
                 filled_pixels,
             })
             .collect();
@@ -72,8 +76,9 @@ impl Swept {
 pub struct SurfacesReport {
     /// The surfaces off the wall the sweep found (empty: none).
     pub surfaces: Vec<SurfaceReport>,
-    /// Whether the result was filled through them: the views back that fill better than
-    /// the walls' alone ([`fill_swept`]). When not, the result is the walls' fill.
+    /// Whether the result was filled through any of them: the views back the fill through
+    /// them better than the walls' alone ([`fill_swept`]). When not, the result is the
+    /// walls' fill.
     pub used: bool,
 }
 
@@ -84,7 +89,10 @@ pub struct SurfaceReport {
     pub region: [usize; 4],
     /// Views that see it (have a homography for it).
     pub views: usize,
-    /// Masked pixels filled through it (none when the walls' fill was kept).
+    /// Whether the fill was made through it: the views back the fill through it, on the
+    /// pixels it copied, better than the walls' ([`fill_swept`]).
+    pub kept: bool,
+    /// Masked pixels filled through it (none when it was not kept).
     pub filled_pixels: usize,
 }
 
@@ -115,21 +123,25 @@ pub fn sweep_surfaces<P: RgbPixel>(
     swept_planes_memo(key, &view, &walls, mask, params, seed, memo, &|| observer.cancelled())
 }
 
-/// [`fill_with`] through the surfaces off the wall `planes` ([`sweep_surfaces`]) where the
-/// views back that fill better than the walls' alone; without surfaces, the walls' fill
-/// itself (`extras.planes` must be empty: the surfaces are given here).
+/// [`fill_with`] through those of the surfaces off the wall `planes` ([`sweep_surfaces`])
+/// under which the views back the fill better than the walls' alone; without surfaces, or
+/// with none backed, the walls' fill itself (`extras.planes` must be empty: the surfaces
+/// are given here).
 ///
-/// Each fill is judged by the views ([`Filled::rival_quality`]: the share of the mask the
-/// views that show the building back) twice: the views warped through their walls'
-/// homographies, and through the surfaces. Each fill agrees best with the evidence it was
-/// made from, so neither judgement alone can tell; the surfaces are kept when their fill
-/// gains more under the surfaces' evidence than it loses under the walls', by more than
-/// [`FillParams::select_margin`] (where the rival was filled through surfaces, unless they
-/// lose by more than it: [`FillExtras::rival_swept`]). A surface that is there lines the
-/// views up and gains much;
-/// one that is not (a label carried into the wall where a view it lacks shows an occluder, a
-/// repeat of texture) gains little and loses where it moved the wall's lines (BENCHMARKS.md,
-/// "Parallax").
+/// The fill through all the surfaces and the walls' fill are judged by the views (the share
+/// of the mask the views that show the building back, as [`Filled::rival_quality`] says)
+/// twice: the views warped through their walls' homographies, and through the surfaces.
+/// Each fill agrees best with the evidence it was made from, so neither judgement alone can
+/// tell; a surface is kept when, on the pixels the first fill copied through it, that fill
+/// gains more under the surfaces' evidence than it loses under the walls', by more than its
+/// part of [`FillParams::select_margin`] (the margin shared among the surfaces as the pixels
+/// they copied; where the rival was filled through surfaces, unless it loses by more than
+/// its part: [`FillExtras::rival_swept`]). A surface that is there lines the views up and
+/// gains much; one that is not (a label carried into the wall where a view it lacks shows
+/// an occluder, a repeat of texture) gains little and loses where it moved the wall's lines
+/// (BENCHMARKS.md, "Parallax"). Judged surface by surface, a false surface no longer takes
+/// the true ones down with it, nor the true ones carry it (BENCHMARKS.md, eighty-fourth
+/// session). When only some are kept, the fill is made again through those.
 ///
 /// A cancelled fill returns what [`fill_with`] returns when cancelled.
 #[allow(clippy::too_many_arguments)]
@@ -146,7 +158,7 @@ pub fn fill_swept<P: RgbPixel>(
     assert!(extras.planes.is_empty(), "the surfaces are given as `planes`");
     if planes.is_empty() {
         let filled = fill_with(key, mask, sources, extras, params, seed, observer);
-        return Swept { filled, planes, used: false, judged_on: None };
+        return Swept { filled, planes, used: false, kept: Vec::new(), judged_on: None };
     }
     let levels = levels_for(key.width(), key.height(), params.judge_max_pixels);
     if levels > 0 {
@@ -161,27 +173,51 @@ pub fn fill_swept<P: RgbPixel>(
             fill_gathered(&r.key, &r.mask, &small, &with(&small_planes), params, seed, quiet);
         let wall = fill_with(&r.key, &r.mask, &small, &with(&[]), params, seed, quiet);
         let through = (&through, seen.as_ref());
-        let gain = judge(&r.key, &r.mask, &small, &with(&[]), params, quiet, through, &wall, &small_planes);
-        let used = gain > margin(extras, params) && !observer.cancelled();
-        let chosen = FillExtras { planes: if used { &planes } else { &[] }, ..*extras };
-        let filled = fill_with(key, mask, sources, &chosen, params, seed, observer);
-        return Swept { filled, planes, used, judged_on: Some(r) };
+        let gains = judge(&r.key, &r.mask, &small, &with(&[]), params, quiet, through, &wall, &small_planes);
+        let keep =
+            if observer.cancelled() { vec![false; planes.len()] } else { gains.kept(margin(extras, params)) };
+        let chosen: Vec<SurfacePlane> =
+            planes.iter().zip(&keep).filter(|(_, k)| **k).map(|(p, _)| p.clone()).collect();
+        let mut filled =
+            fill_with(key, mask, sources, &FillExtras { planes: &chosen, ..*extras }, params, seed, observer);
+        relabel(&mut filled, &keep);
+        return Swept { filled, planes, used: !chosen.is_empty(), kept: keep, judged_on: Some(r) };
     }
     let (through, seen) =
         fill_gathered(key, mask, sources, &FillExtras { planes: &planes, ..*extras }, params, seed, observer);
     if observer.cancelled() {
-        return Swept { filled: through, planes, used: false, judged_on: None };
+        let kept = vec![false; planes.len()];
+        return Swept { filled: through, planes, used: false, kept, judged_on: None };
     }
     observer.stage(Stage::Judge);
     let quiet = &mut Quiet(&*observer);
     // The walls' fill is the one made without the surfaces, the views' own occluders marked.
     let wall = fill_with(key, mask, sources, extras, params, seed, quiet);
-    let gain = judge(key, mask, sources, extras, params, quiet, (&through, seen.as_ref()), &wall, &planes);
+    let gains = judge(key, mask, sources, extras, params, quiet, (&through, seen.as_ref()), &wall, &planes);
     drop(seen);
-    if gain > margin(extras, params) {
-        Swept { filled: through, planes, used: true, judged_on: None }
+    let keep = gains.kept(margin(extras, params));
+    if keep.iter().all(|&k| k) {
+        Swept { filled: through, planes, used: true, kept: keep, judged_on: None }
+    } else if keep.iter().all(|&k| !k) {
+        Swept { filled: wall, planes, used: false, kept: keep, judged_on: None }
     } else {
-        Swept { filled: wall, planes, used: false, judged_on: None }
+        let chosen: Vec<SurfacePlane> =
+            planes.iter().zip(&keep).filter(|(_, k)| **k).map(|(p, _)| p.clone()).collect();
+        let mut filled =
+            fill_with(key, mask, sources, &FillExtras { planes: &chosen, ..*extras }, params, seed, observer);
+        relabel(&mut filled, &keep);
+        Swept { filled, planes, used: true, kept: keep, judged_on: None }
+    }
+}
+
+/// A fill made through the surfaces `keep` marks, its [`Filled::surface`] labels brought
+/// back to the indices of all the surfaces.
+fn relabel(filled: &mut Filled, keep: &[bool]) {
+    let index: Vec<u16> = keep.iter().enumerate().filter(|(_, k)| **k).map(|(p, _)| p as u16 + 1).collect();
+    for s in filled.surface.as_mut_slice() {
+        if *s > 0 {
+            *s = index[usize::from(*s) - 1];
+        }
     }
 }
 
@@ -236,8 +272,35 @@ fn margin(extras: &FillExtras<'_>, params: &FillParams) -> f64 {
     if extras.rival_swept && extras.rival.is_some() { -params.select_margin } else { params.select_margin }
 }
 
+/// What the judge found ([`fill_swept`]): per surface off the wall, how much better the views
+/// back the fill through the surfaces than the walls' on the pixels the former copied through
+/// it, and those pixels' share of the mask.
+#[derive(Debug, Clone, PartialEq)]
+struct Gains {
+    /// Per surface: the gain, a share of the mask.
+    gain: Vec<f64>,
+    /// Per surface: the share of the mask the fill through the surfaces copied through it.
+    share: Vec<f64>,
+}
+
+impl Gains {
+    /// Which surfaces the fill is made through: each whose gain is more than its part of
+    /// `margin` (the margin shared among the surfaces as the pixels they copied). Where the
+    /// margin is negative (a rival filled through surfaces, [`margin`]), a surface stays
+    /// unless it loses more than its part. A surface that copied nothing stays (its fill is
+    /// the fill through them); when none that copied is kept, none is.
+    fn kept(&self, margin: f64) -> Vec<bool> {
+        let copied: f64 = self.share.iter().sum();
+        let keep: Vec<bool> =
+            self.gain.iter().zip(&self.share).map(|(&g, &a)| a == 0.0 || g > margin * a / copied).collect();
+        if keep.iter().zip(&self.share).any(|(&k, &a)| k && a > 0.0) { keep } else { vec![false; keep.len()] }
+    }
+}
+
 /// How much better the views back the fill through the surfaces (`through`) than the walls'
-/// (`wall`), each judged under its own evidence and the other's ([`fill_swept`]).
+/// (`wall`) on the pixels `through` copied through each surface: both fills judged under both
+/// evidences, the views warped through the surfaces (`seen`, what `through` was made from)
+/// and through their walls, no view's own occluders marked in either ([`fill_swept`]).
 #[allow(clippy::too_many_arguments)]
 fn judge<P: RgbPixel>(
     key: &RgbF32,
@@ -249,26 +312,55 @@ fn judge<P: RgbPixel>(
     (through, seen): (&Filled, Option<&Gathered>),
     wall: &Filled,
     planes: &[SurfacePlane],
-) -> f64 {
+) -> Gains {
     // Through the walls with no view's own occluders marked, as through the surfaces
     // (`fill_with` marks none there), which is the evidence `through` was made from.
     let unmarked = FillParams { own: None, ..params.clone() };
     let by_walls = FillExtras { planes: &[], ..*extras };
-    let through_by_walls =
-        backed_by(key, mask, sources, &by_walls, &unmarked, &[&through.judged_image()], quiet)[0];
-    let wall_by_planes = seen.map_or(0.0, |g| g.judge(key, mask, &wall.judged_image()));
-    let gain = (through.report.witnessed_quality - wall_by_planes)
-        + (through_by_walls - wall.report.witnessed_quality);
+    // Per class of pixel: the walls (0) and each surface `p` (`1 + p`) the fill through the
+    // surfaces copied it through.
+    let bins = planes.len() + 1;
+    let surface = &through.surface;
+    let bin = |x: usize, y: usize| usize::from(surface.get(x, y)).min(bins - 1);
+    let (through_image, wall_image) = (through.judged_image(), wall.judged_image());
+    let walls = backed_by_in(
+        key,
+        mask,
+        sources,
+        &by_walls,
+        &unmarked,
+        &[&through_image, &wall_image],
+        &bin,
+        bins,
+        quiet,
+    );
+    let (mut by_surfaces, mut copied) = (vec![vec![0.0; bins]; 2], vec![0usize; bins]);
+    if let Some(g) = seen {
+        by_surfaces =
+            [&through_image, &wall_image].map(|image| g.judge_by(key, mask, image, &bin, bins)).to_vec();
+    }
+    for (&s, &m) in surface.as_slice().iter().zip(mask.as_slice()) {
+        if m > 127 {
+            copied[usize::from(s).min(bins - 1)] += 1;
+        }
+    }
+    let masked = mask.hole_count().max(1) as f64;
+    let gains = Gains {
+        gain: (1..bins)
+            .map(|k| (by_surfaces[0][k] - by_surfaces[1][k]) + (walls[0][k] - walls[1][k]))
+            .collect(),
+        share: copied[1..].iter().map(|&n| n as f64 / masked).collect(),
+    };
     tracing::debug!(
-        gain,
-        through = through.report.witnessed_quality,
-        through_by_walls,
-        wall = wall.report.witnessed_quality,
-        wall_by_planes,
+        walls_pixels = (by_surfaces[0][0] - by_surfaces[1][0]) + (walls[0][0] - walls[1][0]),
+        through = ?(by_surfaces[0].iter().sum::<f64>(), walls[0].iter().sum::<f64>()),
+        wall = ?(by_surfaces[1].iter().sum::<f64>(), walls[1].iter().sum::<f64>()),
+        ?gains.gain,
+        ?gains.share,
         regions = ?planes.iter().map(|p| p.region).collect::<Vec<_>>(),
         "surfaces judged against the walls"
     );
-    gain
+    gains
 }
 
 #[cfg(test)]
@@ -298,6 +390,72 @@ mod tests {
         fill_with(&c.key, &c.mask, sources, &extras, params, 7, &mut ())
     }
 
+    /// Each surface is judged on the pixels it copied: on this facade (seed 25, the true
+    /// surfaces) the fill through all of them gains too little as a whole for the judge of
+    /// the whole (the two evidences nearly cancel), and the first surface gains a fifth of
+    /// the mask on its own pixels. It is kept, and the result is 6 dB closer to the truth
+    /// than the walls' fill.
+    #[test]
+    fn a_surface_that_gains_on_its_own_pixels_is_kept() {
+        use crate::imaging::metrics::masked_psnr;
+        let c = parallax_case(640, 480, 3, 25, false);
+        let planes = c.true_surfaces(24);
+        let walls = c.wall();
+        let sources: Vec<Source<'_>> =
+            c.views.iter().zip(&walls).map(|(image, &homography)| Source { image, homography }).collect();
+        let (none, params) = (FillExtras::default(), FillParams::default());
+        let through_extras = FillExtras { planes: &planes, ..none };
+        let (through, seen) = fill_gathered(&c.key, &c.mask, &sources, &through_extras, &params, 7, &mut ());
+        let wall = fill_with(&c.key, &c.mask, &sources, &none, &params, 7, &mut ());
+        let gains = judge(
+            &c.key,
+            &c.mask,
+            &sources,
+            &none,
+            &params,
+            &mut Quiet(&()),
+            (&through, seen.as_ref()),
+            &wall,
+            &planes,
+        );
+        // The judge of the whole (each fill under its own evidence, the walls' with the views'
+        // own occluders marked, and under the other's) would have taken the walls' fill.
+        let unmarked = FillParams { own: None, ..params.clone() };
+        let by_walls =
+            backed_by(&c.key, &c.mask, &sources, &none, &unmarked, &[&through.judged_image()], &mut ())[0];
+        let wall_by_planes =
+            seen.as_ref().expect("a fill was made").judge(&c.key, &c.mask, &wall.judged_image());
+        let whole =
+            (through.report.witnessed_quality - wall_by_planes) + (by_walls - wall.report.witnessed_quality);
+        assert!(whole < params.select_margin, "as a whole, the surfaces gain {whole:.4}");
+        assert!(gains.gain[0] > 0.1, "{gains:?}");
+        let swept = fill_swept(&c.key, &c.mask, &sources, &none, &params, planes.clone(), 7, &mut ());
+        assert!(swept.used && swept.kept[0], "{:?}", swept.kept);
+        let through_first = swept.filled.surface.as_slice().iter().filter(|&&s| s == 1).count();
+        assert!(through_first > c.mask.hole_count() / 4, "{through_first} pixels through the first surface");
+        let (result, walls_fill) = (
+            masked_psnr(&swept.filled.image, &c.truth, &c.mask),
+            masked_psnr(&wall.image, &c.truth, &c.mask),
+        );
+        assert!(result > walls_fill + 6.0, "{result:.2} dB against the walls' {walls_fill:.2}");
+    }
+
+    /// Each surface is kept on its part of the margin, shared as the pixels the surfaces
+    /// copied: a small surface that gains little is kept, a large one that gains as little
+    /// is not; with a negative margin (a rival through surfaces) a surface goes only when it
+    /// loses more than its part. One that copied nothing stays, unless nothing else does.
+    #[test]
+    fn each_surface_is_kept_on_its_part_of_the_margin() {
+        let gains =
+            Gains { gain: vec![0.004, 0.004, 0.2, -0.001, 0.0], share: vec![0.02, 0.6, 0.18, 0.2, 0.0] };
+        assert_eq!(gains.kept(0.01), [true, false, true, false, true]);
+        assert_eq!(gains.kept(-0.01), [true, true, true, true, true]);
+        assert_eq!(gains.kept(5.0), [false; 5], "none that copied is kept");
+        let losing = Gains { gain: vec![-0.01, 0.0], share: vec![0.4, 0.0] };
+        assert_eq!(losing.kept(-0.005), [false, false]);
+        assert_eq!(losing.kept(-0.05), [true, true]);
+    }
+
     /// A near tie keeps what the current result was filled through: with the judge's margin
     /// set above the surfaces' gain, the walls' fill is taken when the rival was filled
     /// through the walls (or there is none), and the surfaces when it was filled through
@@ -315,9 +473,14 @@ mod tests {
         let (through, seen) = fill_gathered(&c.key, &c.mask, &sources, &through_extras, &params, 7, &mut ());
         let wall = fill_with(&c.key, &c.mask, &sources, &none, &params, 7, &mut ());
         let through = (&through, seen.as_ref());
-        let gain = judge(&c.key, &c.mask, &sources, &none, &params, &mut Quiet(&()), through, &wall, &planes);
-        assert!(gain > params.select_margin, "the true surfaces gain {gain:.4}");
-        let near = FillParams { select_margin: 2.0 * gain, ..params };
+        let gains =
+            judge(&c.key, &c.mask, &sources, &none, &params, &mut Quiet(&()), through, &wall, &planes);
+        assert!(gains.kept(params.select_margin).iter().all(|&k| k), "the true surfaces gain: {gains:?}");
+        // Above every surface's gain on its part of the margin.
+        let copied: f64 = gains.share.iter().sum();
+        let most =
+            gains.gain.iter().zip(&gains.share).filter(|(_, a)| **a > 0.0).map(|(g, a)| g * copied / a);
+        let near = FillParams { select_margin: 2.0 * most.fold(0.0, f64::max), ..params };
         let rival = wall.judged_image();
         let used = |rival: Option<&RgbF32>, rival_swept: bool| {
             let extras = FillExtras { rival, rival_swept, ..none };
