@@ -193,6 +193,11 @@ fn memory_report(shoot: &Shoot) {
 }
 
 fn bench(c: &mut Criterion) {
+    // RUST_LOG=clearview::session=debug prints each fill's judgement against the current result.
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+        .with_writer(std::io::stderr)
+        .try_init();
     let shoot = shoot(17);
     if std::env::var_os("SKIP_MEMORY").is_none() {
         memory_report(&shoot);

@@ -1169,8 +1169,8 @@ impl Session {
         // A fill through surfaces off the wall marks no view's own occluders, and so its
         // judge heard a view's own van or passer-by, copied through a surface, as a witness
         // for itself. Before such a fill replaces the current result, the two are judged
-        // again through the same surfaces with the views' own occluders marked (see the
-        // module docs).
+        // again through the surfaces it was made through (those the judge kept) with the
+        // views' own occluders marked (see the module docs).
         let with_marks = match (&rival, &own) {
             (Some(rival), Some(_)) if judged_better && swept.used && !observer.cancelled() => {
                 observer.stage(Stage::Judge);
@@ -1216,6 +1216,15 @@ impl Session {
         let views = used.iter().map(|&i| self.buffer[i].id.clone()).collect();
         let better = judged_better
             && with_marks.is_none_or(|(new, current)| new >= current - self.params.fill.select_margin);
+        tracing::debug!(
+            better,
+            new = filled.report.witnessed_quality,
+            current = ?filled.rival_quality,
+            ?with_marks,
+            through_surfaces,
+            current_through_surfaces = self.result_swept,
+            "the new fill judged against the current result"
+        );
         let mut confidence = Confidence::new(key.rgb.width(), key.rgb.height(), 0);
         confidence.paste(&filled.confidence, region);
         // A view tried and not in the published result is kept out of the next fills (a
