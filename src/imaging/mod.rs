@@ -76,6 +76,16 @@ impl Rect {
         self.width * self.height
     }
 
+    /// The pixels in both `self` and `other` (empty when they do not overlap).
+    pub fn intersection(&self, other: &Rect) -> Self {
+        Self::from_corners(
+            self.x.max(other.x),
+            self.y.max(other.y),
+            self.x1().min(other.x1()),
+            self.y1().min(other.y1()),
+        )
+    }
+
     /// `true` when the image pixel `(x, y)` is inside.
     pub fn contains(&self, x: usize, y: usize) -> bool {
         x >= self.x && y >= self.y && x < self.x1() && y < self.y1()

@@ -38,7 +38,7 @@ use shift::{Shift, ShiftBand, ShiftParams, local_shift};
 
 pub use automask::{
     AutoMask, AutoMaskParams, OwnMarks, OwnParams, auto_mask, auto_mask_report, own_occluders,
-    own_occluders_memo,
+    own_occluders_memo, own_occluders_off_surfaces,
 };
 pub use exemplar::{ExemplarParams, exemplar_fill, exemplar_fill_guided, exemplar_fill_until};
 pub use swept::{SurfaceReport, SurfacesReport, Swept, fill_swept, judged_with_marks, sweep_surfaces};
@@ -461,9 +461,11 @@ pub struct FillExtras<'a> {
     /// session's result between the two from one view to the next.
     pub rival_swept: bool,
     /// The views' own occluders ([`FillExtras::own`], else as [`FillParams::own`] finds
-    /// them) are marked through `planes` too. For a judgement ([`judged_with_marks`]), not
-    /// for a fill: a slab seen through the wall's homography is marked like an occluder,
-    /// and the marks take the pixels the surfaces fill from.
+    /// them) are marked through `planes` too, less what the surfaces explain
+    /// ([`own_occluders_off_surfaces`]). For a judgement ([`judged_with_marks`]), not for a
+    /// fill: the marks left on the slabs still take pixels the surfaces fill from (a fill
+    /// through the surfaces with them: 18.55 → 17.15 dB on the 40 depth facades;
+    /// BENCHMARKS.md, eighty-sixth session).
     pub marks_through_planes: bool,
 }
 
@@ -775,21 +777,39 @@ impl Gathered {
         // surfaces off the wall: a slab seen through the wall's homography disagrees like an
         // occluder, and its marks took the pixels the surfaces fill from (the swept fill and
         // its judgement were measured without them); unless a judgement asks for them
-        // ([`FillExtras::marks_through_planes`]).
+        // ([`FillExtras::marks_through_planes`]), and then less what the surfaces explain.
         let found: Vec<Option<Mask>>;
+        let off: Vec<Option<Mask>>;
         let own: Vec<Option<&Mask>> = match (&params.own, extras.own) {
             (Some(p), given)
                 if extras.occluders.is_empty()
                     && (extras.planes.is_empty() || extras.marks_through_planes)
                     && sources.len() >= p.min_views =>
             {
-                match given {
+                let through_walls: Vec<Option<&Mask>> = match given {
                     Some(given) => given.to_vec(),
                     None => {
                         observer.stage(Stage::Own);
                         found = own_occluders(key, mask, sources, p, &AutoMaskParams::default());
                         found.iter().map(Option::as_ref).collect()
                     }
+                };
+                if extras.planes.is_empty() || through_walls.is_empty() {
+                    through_walls
+                } else {
+                    // Found through the walls, a slab is marked as an occluder: judged
+                    // again through the surfaces, what one explains is not.
+                    observer.stage(Stage::Own);
+                    off = own_occluders_off_surfaces(
+                        key,
+                        mask,
+                        sources,
+                        &through_walls,
+                        extras.planes,
+                        p,
+                        &AutoMaskParams::default(),
+                    );
+                    off.iter().map(Option::as_ref).collect()
                 }
             }
             _ => Vec::new(),

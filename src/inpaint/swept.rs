@@ -241,7 +241,11 @@ fn relabel(filled: &mut Filled, keep: &[bool]) {
 /// A fill through the surfaces marks no own occluders, because a slab seen through the
 /// wall's homography is marked like one; so its own judgement hears a view's own van,
 /// copied through a surface, as a witness. Judged here, two results that differ there are
-/// told apart by the views that show the building.
+/// told apart by the views that show the building. The marks found through the walls are
+/// judged again through the surfaces ([`super::own_occluders_off_surfaces`]): kept on the
+/// slabs, they silenced the views that back a fill through the surfaces, and a session
+/// kept its walls' result while the one-shot fill of the same views was 5.8 dB closer to
+/// the truth (BENCHMARKS.md, eighty-sixth session).
 #[allow(clippy::too_many_arguments)]
 pub fn judged_with_marks<P: RgbPixel>(
     key: &RgbF32,
