@@ -1783,6 +1783,28 @@ pub struct OwnParams {
     pub foreign_share: f32,
 }
 
+impl OwnParams {
+    /// These parameters for the same inputs halved `levels` times (a judge on reduced
+    /// inputs, [`super::judged_with_marks`]), `mask` being the full-resolution mask: the
+    /// margin (keyframe pixels) halved with them, and the radii (working pixels) scaled so
+    /// that they reach as far on the building as at full resolution. There a 12 MP
+    /// keyframe's region is judged at a third of its size and the parallax radius spans
+    /// about 24 pixels of it; at the judge's eighth, unscaled, it spanned 64.
+    pub fn halved(&self, levels: u32, mask: &Mask) -> Self {
+        let s = 1usize << levels;
+        let Some(whole) = judged_region(mask, self) else { return self.clone() };
+        let full = work_factor(whole.width, whole.height, self.work_pixels);
+        let reduced = work_factor(whole.width / s, whole.height / s, self.work_pixels);
+        let scale = |r: usize| ((r * full) as f64 / (reduced * s) as f64).round().max(1.0) as usize;
+        Self {
+            margin: self.margin.div_ceil(s),
+            parallax_radius: scale(self.parallax_radius),
+            growth: scale(self.growth),
+            ..self.clone()
+        }
+    }
+}
+
 impl Default for OwnParams {
     fn default() -> Self {
         Self {
@@ -2383,38 +2405,22 @@ mod tests {
     use super::*;
     use crate::synth::{Occluder, facade, paint_occluder, render_view};
 
-    /// Where each view's marks lie on a facade with slabs: (on the view's true occluders
-    /// grown by 4 px, on a slab's face off them, the rest).
-    fn where_marks_lie(c: &facade::ParallaxCase, marks: &[Option<Mask>]) -> (usize, usize, usize) {
-        let (kw, kh) = (c.key.width() as f64, c.key.height() as f64);
-        let (mut occluder, mut slab, mut rest) = (0, 0, 0);
-        for (v, m) in marks.iter().enumerate() {
-            let Some(m) = m else { continue };
-            let near = dilate(&c.occluders[v].map(|&a| a > 0), 4);
-            let back: Vec<Homography> = c.planes[v].iter().map(|h| h.inverse().expect("regular")).collect();
-            for y in 0..m.height() {
-                for x in 0..m.width() {
-                    if m.get(x, y) == 0 {
-                        continue;
-                    }
-                    if near.get(x, y) {
-                        occluder += 1;
-                        continue;
-                    }
-                    // On slab `p` when the keyframe shows that slab where `p` maps the pixel.
-                    let on_slab = back.iter().enumerate().skip(1).any(|(p, h)| {
-                        h.apply(nalgebra::Point2::new(x as f64, y as f64)).is_some_and(|q| {
-                            q.x >= 0.0 && q.y >= 0.0 && q.x < kw && q.y < kh && {
-                                let s = c.surface.get(q.x as usize, q.y as usize);
-                                usize::from(s) == p || s == facade::SIDE
-                            }
-                        })
-                    });
-                    if on_slab { slab += 1 } else { rest += 1 }
-                }
+    /// Judged on the inputs halved three times, a 12 MP keyframe's region judged (1296 ×
+    /// 1096, worked at half size at full resolution) is worked whole: the radii shrink so
+    /// that they reach as far on the building, the margin with the pixels.
+    #[test]
+    fn own_params_halved_reach_as_far_on_the_building() {
+        let p = OwnParams::default();
+        let mut mask = Mask::new(4000, 3000, 0);
+        for y in 1000..2000 {
+            for x in 1500..2700 {
+                mask.set(x, y, 255);
             }
         }
-        (occluder, slab, rest)
+        let same = p.halved(0, &mask);
+        assert_eq!((same.margin, same.parallax_radius, same.growth), (p.margin, p.parallax_radius, p.growth));
+        let h = p.halved(3, &mask);
+        assert_eq!((h.margin, h.parallax_radius, h.growth), (6, 2, 1));
     }
 
     /// A slab off the wall, seen through the wall's homography, is marked as a view's own
@@ -2440,15 +2446,17 @@ mod tests {
                 &own,
                 &auto,
             );
-            let before = where_marks_lie(&c, &through_walls);
-            let after = where_marks_lie(&c, &off);
+            let (before, after) = (c.where_marks_lie(&through_walls), c.where_marks_lie(&off));
             assert!(
-                before.1 * 2 > before.0,
+                before.slab * 2 > before.occluder,
                 "seed {seed}: the slabs are marked through the walls {before:?}"
             );
-            assert!(after.1 * 5 < before.1 * 2, "seed {seed}: the slabs' marks stay {before:?} → {after:?}");
             assert!(
-                after.0 * 10 >= before.0 * 9,
+                after.slab * 5 < before.slab * 2,
+                "seed {seed}: the slabs' marks stay {before:?} → {after:?}"
+            );
+            assert!(
+                after.occluder * 10 >= before.occluder * 9,
                 "seed {seed}: the occluders' marks go {before:?} → {after:?}"
             );
         }

@@ -127,6 +127,17 @@ pub struct ParallaxCase {
     pub cameras: Vec<Camera>,
 }
 
+/// Marked pixels by what they lie on ([`ParallaxCase::where_marks_lie`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct MarksLie {
+    /// On a view's true occluder (grown by 4 px).
+    pub occluder: usize,
+    /// Off the occluders, on a slab.
+    pub slab: usize,
+    /// Elsewhere: the wall, a strip the keyframe's slab hides.
+    pub elsewhere: usize,
+}
+
 /// [`ParallaxCase::surface`] of a slab's side face.
 pub const SIDE: u16 = u16::MAX;
 
@@ -134,6 +145,46 @@ impl ParallaxCase {
     /// The true wall homography of each view.
     pub fn wall(&self) -> Vec<Homography> {
         self.planes.iter().map(|p| p[0]).collect()
+    }
+
+    /// Where marks of the views' own occluders (per view, view-sized, as
+    /// [`crate::inpaint::own_occluders`] gives them) lie: how many marked pixels are on the
+    /// view's true occluders grown by 4 px, how many off them on a slab (a pixel whose slab's
+    /// homography maps it to where the keyframe shows that slab or a slab's side), and how
+    /// many elsewhere.
+    pub fn where_marks_lie(&self, marks: &[Option<Mask>]) -> MarksLie {
+        let (kw, kh) = (self.key.width() as f64, self.key.height() as f64);
+        let mut lie = MarksLie::default();
+        for (v, m) in marks.iter().enumerate() {
+            let Some(m) = m else { continue };
+            let near = dilate_mask(&self.occluders[v], 4);
+            let back: Vec<Option<Homography>> = self.planes[v].iter().map(Homography::inverse).collect();
+            for y in 0..m.height() {
+                for x in 0..m.width() {
+                    if m.get(x, y) == 0 {
+                        continue;
+                    }
+                    if near.get(x, y) > 0 {
+                        lie.occluder += 1;
+                        continue;
+                    }
+                    let on_slab = back.iter().enumerate().skip(1).any(|(p, h)| {
+                        h.and_then(|h| h.apply(nalgebra::Point2::new(x as f64, y as f64))).is_some_and(|q| {
+                            q.x >= 0.0 && q.y >= 0.0 && q.x < kw && q.y < kh && {
+                                let s = self.surface.get(q.x as usize, q.y as usize);
+                                usize::from(s) == p || s == SIDE
+                            }
+                        })
+                    });
+                    if on_slab {
+                        lie.slab += 1;
+                    } else {
+                        lie.elsewhere += 1;
+                    }
+                }
+            }
+        }
+        lie
     }
 
     /// The true slab planes as the fill takes them, each allowed where the keyframe shows it
