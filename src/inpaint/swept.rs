@@ -272,7 +272,8 @@ pub fn judged_with_marks<P: RgbPixel>(
         FillExtras { marks_through_planes: true, ..r.extras(&small_planes, &occluders, own.as_deref(), &[]) };
     let reduced: Vec<RgbF32> = images.iter().map(|image| reduce_rgb(image, levels)).collect();
     let reduced: Vec<&RgbF32> = reduced.iter().collect();
-    backed_by(&r.key, &r.mask, &small, &by, params, &reduced, &mut Quiet(observer))
+    let params = FillParams { own: params.own.as_ref().map(|o| o.halved(levels, mask)), ..params.clone() };
+    backed_by(&r.key, &r.mask, &small, &by, &params, &reduced, &mut Quiet(observer))
 }
 
 /// The gain by which the surfaces are kept ([`fill_swept`]): [`FillParams::select_margin`],
