@@ -19,6 +19,10 @@ use clearview::inpaint::{self, FillExtras, FillParams, Source};
 use clearview::session::{Session, SessionParams};
 use clearview::synth::facade::parallax_case;
 
+#[path = "common/facades.rs"]
+mod facades;
+use facades::Facades;
+
 fn main() {
     // `RUST_LOG=clearview::session=debug` prints each fill's judgement against the current result.
     tracing_subscriber::fmt()
@@ -26,24 +30,18 @@ fn main() {
         .with_writer(std::io::stderr)
         .init();
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let (mut seeds, mut first, mut n, mut w, mut h) = (8u64, 1u64, 5usize, 640usize, 480usize);
+    let mut facades = Facades::new(8, 5);
     let mut it = args.iter();
     while let Some(a) = it.next() {
-        match a.as_str() {
-            "--seeds" => seeds = it.next().and_then(|v| v.parse().ok()).expect("--seeds N"),
-            "--first" => first = it.next().and_then(|v| v.parse().ok()).expect("--first K"),
-            "--views" => n = it.next().and_then(|v| v.parse().ok()).expect("--views N"),
-            "--size" => {
-                let (a, b) = it.next().and_then(|s| s.split_once('x')).expect("--size WxH");
-                (w, h) = (a.parse().expect("width"), b.parse().expect("height"));
-            }
-            other => panic!("unknown argument {other}"),
+        if !facades.read(a, &mut it) {
+            panic!("unknown argument {a}");
         }
     }
+    let Facades { seeds, width: w, height: h, views: n, .. } = facades;
     println!("| seed | published after each view (dB; * kept the current) | one-shot | last − one-shot |");
     println!("|---:|---|---:|---:|");
     let (mut worse, mut landings, mut last_sum, mut once_sum) = (0usize, 0usize, 0.0, 0.0);
-    for seed in first..first + seeds {
+    for seed in facades.seed_range() {
         let c = parallax_case(w, h, n, seed, false);
         let session = SessionParams::default();
         let seed_of_fill = session.seed;

@@ -5,7 +5,7 @@
 //! true occluders, on slabs, elsewhere.
 //!
 //! `cargo run --release --example own_marks -- [--seeds N] [--first K] [--views N]
-//! [--surfaces walls|true|swept]`
+//! [--size WxH] [--surfaces walls|true|swept]`
 
 use clearview::imaging::Mask;
 use clearview::imaging::convert::luminance;
@@ -13,15 +13,17 @@ use clearview::inpaint::parallax::{SweepParams, ViewMatches};
 use clearview::inpaint::{self, AutoMaskParams, OwnParams, Source};
 use clearview::synth::facade::{MarksLie, parallax_case};
 
+#[path = "common/facades.rs"]
+mod facades;
+use facades::Facades;
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let (mut seeds, mut first, mut n, mut surfaces) = (12u64, 1u64, 5usize, "true".to_string());
+    let (mut facades, mut surfaces) = (Facades::new(12, 5), "true".to_string());
     let mut it = args.iter();
     while let Some(a) = it.next() {
         match a.as_str() {
-            "--seeds" => seeds = it.next().and_then(|v| v.parse().ok()).expect("--seeds N"),
-            "--first" => first = it.next().and_then(|v| v.parse().ok()).expect("--first K"),
-            "--views" => n = it.next().and_then(|v| v.parse().ok()).expect("--views N"),
+            f if facades.read(f, &mut it) => {}
             "--surfaces" => surfaces = it.next().cloned().expect("--surfaces walls|true|swept"),
             other => panic!("unknown argument {other}"),
         }
@@ -30,8 +32,8 @@ fn main() {
     println!("| seed | surfaces | through walls (occluder / slab / elsewhere) | {surfaces} | s |");
     println!("|---:|---:|---|---|---:|");
     let (mut before, mut after) = (MarksLie::default(), MarksLie::default());
-    for seed in first..first + seeds {
-        let c = parallax_case(640, 480, n, seed, false);
+    for seed in facades.seed_range() {
+        let c = parallax_case(facades.width, facades.height, facades.views, seed, false);
         let walls = c.wall();
         let sources: Vec<Source<'_>> =
             c.views.iter().zip(&walls).map(|(image, &homography)| Source { image, homography }).collect();

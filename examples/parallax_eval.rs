@@ -31,6 +31,10 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
+#[path = "common/facades.rs"]
+mod facades;
+use facades::Facades;
+
 use clearview::align::{AlignParams, Frame, align};
 use clearview::geometry::Homography;
 use clearview::geometry::planes::{ParallaxFamily, common_scales, epipolar_distance};
@@ -457,9 +461,7 @@ fn main() {
         .with_writer(std::io::stderr)
         .init();
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let (mut seeds, mut w, mut h, mut n, mut flat, mut dump) =
-        (8u64, 640usize, 480usize, 3usize, false, None);
-    let mut first = 1u64;
+    let (mut facades, mut flat, mut dump) = (Facades::new(8, 3), false, None);
     let mut oracles = false;
     let mut true_walls = false;
     let mut epipoles = false;
@@ -473,13 +475,7 @@ fn main() {
     let mut it = args.iter();
     while let Some(a) = it.next() {
         match a.as_str() {
-            "--seeds" => seeds = it.next().and_then(|v| v.parse().ok()).expect("--seeds N"),
-            "--first" => first = it.next().and_then(|v| v.parse().ok()).expect("--first K"),
-            "--views" => n = it.next().and_then(|v| v.parse().ok()).expect("--views N"),
-            "--size" => {
-                let (a, b) = it.next().and_then(|s| s.split_once('x')).expect("--size WxH");
-                (w, h) = (a.parse().expect("width"), b.parse().expect("height"));
-            }
+            f if facades.read(f, &mut it) => {}
             "--flat" => flat = true,
             "--true-walls" => true_walls = true,
             "--oracles" => oracles = true,
@@ -518,6 +514,7 @@ fn main() {
             other => panic!("unknown argument {other}"),
         }
     }
+    let Facades { seeds, width: w, height: h, views: n, .. } = facades;
     let geo_min_common = geo_min.unwrap_or(sp.min_common);
     let names = ["today", "reference", "planes", "swept", "true-planes", "judged"];
     let mut sums = [0.0f64; 6];
@@ -525,7 +522,7 @@ fn main() {
     let mut stage_ms: Vec<(String, f64)> = Vec::new();
     println!("| seed | slabs | masked px | planes found | swept found | {} |", names.join(" | "));
     println!("|---:|---:|---:|---:|---:|{}", "---:|".repeat(names.len()));
-    for seed in first..first + seeds {
+    for seed in facades.seed_range() {
         let c = parallax_case(w, h, n, seed, flat);
         let params = AlignParams::default();
         let t0 = Instant::now();
