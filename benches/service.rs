@@ -37,6 +37,7 @@ use clearview::imaging::convert::{crop_rgb8, to_luminance, to_rgb, to_rgb8};
 use clearview::imaging::decode::{DecodeLimits, decode};
 use clearview::imaging::metrics::masked_psnr;
 use clearview::imaging::{Mask, Rect, RgbF32};
+use clearview::inpaint::reduced::reduce_rgb;
 use clearview::inpaint::{Observer, Stage};
 use clearview::session::{Rgb8, Session, SessionParams};
 use clearview::synth::{self, Occluder};
@@ -316,7 +317,7 @@ fn session_bench(c: &mut Criterion, name: &str, shoot: &Shoot) {
                     .unwrap();
                 spent += t.elapsed();
                 if let Some((truth, mask)) = &shoot.truth {
-                    let now = masked_psnr(&quarter(image), truth, mask);
+                    let now = masked_psnr(&reduce_rgb(image, 2), truth, mask);
                     assert!(last.is_none_or(|l| now >= l - 0.3), "result fell: {last:?} → {now:.2} dB");
                     last = Some(now);
                 }
@@ -331,19 +332,6 @@ fn session_bench(c: &mut Criterion, name: &str, shoot: &Shoot) {
             last.unwrap_or(f64::NAN)
         );
     }
-}
-
-/// `image` box-averaged to a quarter of its size (the depth facade's truth).
-fn quarter(image: &RgbF32) -> RgbF32 {
-    RgbF32::from_fn(image.width() / 4, image.height() / 4, |x, y| {
-        let mut acc = [0.0f32; 3];
-        for yy in 4 * y..4 * y + 4 {
-            for p in &image.row(yy)[4 * x..4 * x + 4] {
-                (0..3).for_each(|c| acc[c] += p[c]);
-            }
-        }
-        acc.map(|a| a / 16.0)
-    })
 }
 
 criterion_group!(benches, bench);
